@@ -1,0 +1,298 @@
+"""The ``roadmap3d`` command line.
+
+This module only declares the commands and their options and turns errors into messages;
+each command's work lives in the module that owns it (imported lazily so ``--help`` is fast).
+Errors meant for users (bad files, bad values) become ``error: ...`` on stderr and exit code 2;
+set ``ROADMAP3D_DEBUG=1`` to see the traceback instead.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import tyro
+
+ImageKind = Literal["fluoro", "exposure"]
+
+
+class UserError(Exception):
+    """A problem with the user's input that deserves a message, not a traceback."""
+
+
+# --------------------------------------------------------------------------------------
+# validate
+# --------------------------------------------------------------------------------------
+@dataclass
+class Table1:
+    """Reproduce Table I: T1-T4, fluoro and exposure, formats 27/27 and 48/48 cm."""
+
+    json: bool = False
+    """Print one JSON object {"records": [...], "summary": {...}} on stdout."""
+    seed: int = 0
+    """Seed of the phantom, image noise and annealing."""
+
+
+@dataclass
+class PhantomStudy:
+    """Table II-III and Fig. 6: every volume x image format, T1-T4, fluoro and exposure."""
+
+    out: Path = Path("validation-phantom")
+    """Output folder (results.jsonl, plots, report.md/html); a rerun resumes."""
+    quick: bool = False
+    """A reduced grid that finishes in a few minutes."""
+    json: bool = False
+    """Print the summary as one JSON object."""
+    seed: int = 0
+    jobs: int | None = None
+    """Parallel processes (default: all cores)."""
+    scheduler: str | None = None
+    """Run on a Dask cluster, e.g. tcp://HOST:PORT."""
+
+
+@dataclass
+class ClinicalStudy:
+    """Fig. 7: 10 virtual patients, 100 random registrations each against their own 3DRA."""
+
+    out: Path = Path("validation-clinical")
+    quick: bool = False
+    json: bool = False
+    seed: int = 0
+    jobs: int | None = None
+    scheduler: str | None = None
+
+
+@dataclass
+class CalibrationStudy:
+    """Machine-based registration error at random angles against the true (bent) geometry."""
+
+    json: bool = False
+    seed: int = 0
+    samples: int = 50
+    """Number of random C-arm angles to test."""
+
+
+Study = Union[
+    Annotated[Table1, tyro.conf.subcommand("table1")],
+    Annotated[PhantomStudy, tyro.conf.subcommand("phantom")],
+    Annotated[ClinicalStudy, tyro.conf.subcommand("clinical")],
+    Annotated[CalibrationStudy, tyro.conf.subcommand("calibration")],
+]
+
+
+def validate(study: Study) -> int:
+    """Run one of the paper's validation studies."""
+    if isinstance(study, Table1):
+        from registration.validation import run_table1
+
+        return run_table1(study)
+    if isinstance(study, PhantomStudy):
+        from registration.validation import run_phantom_study
+
+        return run_phantom_study(study)
+    if isinstance(study, ClinicalStudy):
+        from registration.validation import run_clinical_study
+
+        return run_clinical_study(study)
+    from registration.calibration import run_calibration_study
+
+    return run_calibration_study(study)
+
+
+# --------------------------------------------------------------------------------------
+# bench
+# --------------------------------------------------------------------------------------
+def bench(json: bool = False, quick: bool = False, seed: int = 0) -> int:
+    """Measure DRR, similarity, registration and reconstruction speed (ratios vs references).
+
+    Args:
+        json: Print one JSON object on stdout.
+        quick: Fewer repetitions and no 256^3 case (for smoke tests).
+        seed: Seed of the phantom and the annealing.
+    """
+    from registration.bench import run_bench
+
+    return run_bench(json=json, quick=quick, seed=seed)
+
+
+# --------------------------------------------------------------------------------------
+# data in and out
+# --------------------------------------------------------------------------------------
+def register(
+    volume: Path,
+    image: Path,
+    frame: int | None = None,
+    initial_motion: Path | None = None,
+    truth: Path | None = None,
+    out: Path | None = None,
+    isocenter: str | None = None,
+    seed: int = 0,
+) -> int:
+    """Register a 3DRA/CT volume to an XA/RF image and print a summary.
+
+    Args:
+        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
+        image: XA/RF DICOM file (single or multi-frame).
+        frame: Frame of a multi-frame image (0-based).
+        initial_motion: JSON with "patient_motion" (4x4) to start from (default identity).
+        truth: JSON with the true "patient_motion": adds residuals and success.
+        out: Write the result JSON here.
+        isocenter: Iso-center "x,y,z" in mm (default the world origin).
+        seed: Seed of the annealing.
+    """
+    from registration.cli_io import run_register
+
+    return run_register(
+        volume=volume,
+        image=image,
+        frame=frame,
+        initial_motion=initial_motion,
+        truth=truth,
+        out=out,
+        isocenter=isocenter,
+        seed=seed,
+    )
+
+
+def info(path: Path, /) -> int:
+    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values)."""
+    from registration.cli_io import run_info
+
+    return run_info(path)
+
+
+def phantom(
+    out: Path,
+    volume_format: float = 27.0,
+    image_format: float = 27.0,
+    primary_deg: float = 0.0,
+    secondary_deg: float = 0.0,
+    offset: str = "T4",
+    contrast: bool = True,
+    seed: int = 0,
+) -> int:
+    """Export the built-in phantom: a DICOM 3DRA series, XA images with known motion, truth JSON.
+
+    Args:
+        out: Output folder (created; must be empty or absent).
+        volume_format: 3DRA volume format in cm.
+        image_format: X-ray image format in cm.
+        primary_deg: LAO(+)/RAO(-) angle of the XA views.
+        secondary_deg: CRAN(+)/CAUD(-) angle of the XA views.
+        offset: Patient motion: T1..T4 (Table I) or "tx,ty,tz,rx,ry,rz".
+        contrast: Iodine contrast in the vessels.
+        seed: Phantom variant and noise seed.
+    """
+    from registration.cli_io import run_phantom_export
+
+    return run_phantom_export(
+        out=out,
+        volume_format=volume_format,
+        image_format=image_format,
+        primary_deg=primary_deg,
+        secondary_deg=secondary_deg,
+        offset=offset,
+        contrast=contrast,
+        seed=seed,
+    )
+
+
+def mesh(volume: Path, out: Path) -> int:
+    """Write the vessel and bone surfaces of a volume (STL, PLY or GLB by the file extension).
+
+    Args:
+        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
+        out: Output mesh file (.stl, .ply or .glb).
+    """
+    from registration.cli_io import run_mesh
+
+    return run_mesh(volume=volume, out=out)
+
+
+# --------------------------------------------------------------------------------------
+# the web app
+# --------------------------------------------------------------------------------------
+def demo(port: int = 8080, host: str = "127.0.0.1", open_browser: bool = False) -> int:
+    """Start the web app on the built-in phantom.
+
+    Args:
+        port: Port to listen on (the next free one is taken if busy).
+        host: Interface to bind; 127.0.0.1 keeps the app on this machine.
+        open_browser: Open the page in the default browser.
+    """
+    from app.main import run_app
+
+    return run_app(host=host, port=port, volume=None, image=None, open_browser=open_browser)
+
+
+def app(
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    volume: Path | None = None,
+    image: Path | None = None,
+    frame: int | None = None,
+    allow_share: bool = False,
+    max_upload_mb: float = 512.0,
+    open_browser: bool = False,
+) -> int:
+    """Start the web app, optionally on your own DICOM data.
+
+    Args:
+        host: Interface to bind; 127.0.0.1 keeps the app on this machine.
+        port: Port to listen on (the next free one is taken if busy).
+        volume: 3DRA/CT volume (DICOM folder, multi-frame file or .npz).
+        image: XA/RF DICOM image.
+        frame: Frame of a multi-frame image.
+        allow_share: Let viser's share button open a public tunnel (off: refused).
+        max_upload_mb: Largest upload accepted from the browser.
+        open_browser: Open the page in the default browser.
+    """
+    from app.main import run_app
+
+    return run_app(
+        host=host,
+        port=port,
+        volume=volume,
+        image=image,
+        frame=frame,
+        allow_share=allow_share,
+        max_upload_mb=max_upload_mb,
+        open_browser=open_browser,
+    )
+
+
+COMMANDS = {
+    "demo": demo,
+    "app": app,
+    "validate": validate,
+    "bench": bench,
+    "register": register,
+    "info": info,
+    "phantom": phantom,
+    "mesh": mesh,
+}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``roadmap3d`` console script."""
+    debug = os.environ.get("ROADMAP3D_DEBUG") == "1"
+    try:
+        code = tyro.extras.subcommand_cli_from_dict(
+            COMMANDS, args=argv, config=(tyro.conf.OmitArgPrefixes,), prog="roadmap3d"
+        )
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
+    except (UserError, ValueError, OSError) as exc:
+        if debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    sys.exit(int(code or 0))
+
+
+if __name__ == "__main__":
+    main()
