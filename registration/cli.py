@@ -12,7 +12,7 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 import tyro
 
@@ -75,12 +75,12 @@ class CalibrationStudy:
     """Number of random C-arm angles to test."""
 
 
-Study = Union[
-    Annotated[Table1, tyro.conf.subcommand("table1")],
-    Annotated[PhantomStudy, tyro.conf.subcommand("phantom")],
-    Annotated[ClinicalStudy, tyro.conf.subcommand("clinical")],
-    Annotated[CalibrationStudy, tyro.conf.subcommand("calibration")],
-]
+Study = (
+    Annotated[Table1, tyro.conf.subcommand("table1")]
+    | Annotated[PhantomStudy, tyro.conf.subcommand("phantom")]
+    | Annotated[ClinicalStudy, tyro.conf.subcommand("clinical")]
+    | Annotated[CalibrationStudy, tyro.conf.subcommand("calibration")]
+)
 
 
 def validate(study: Study) -> int:

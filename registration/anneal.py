@@ -1,0 +1,186 @@
+"""Simulated annealing with scipy's optimizer contract.
+
+``anneal(cost, x0, bounds, rng=..., schedule=..., callback=...)`` minimises ``cost(x) ->
+float`` inside box bounds. Neighbours are Gaussian steps whose size (per parameter, in the
+parameter's own unit) shrinks with the temperature; moves are accepted by the Metropolis
+rule. The initial temperature is set from the cost changes of a few probe moves so that a
+target share of uphill moves is accepted at first, whatever the scale of the cost. The
+callback sees every iteration and may stop the run by returning True.
+
+References
+----------
+Kirkpatrick, Gelatt, Vecchi, "Optimization by simulated annealing", Science 220 (1983).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The annealing schedule; every constant named.
+
+    Attributes
+    ----------
+    step:
+        Initial standard deviation of a neighbour step, per parameter (same unit as x).
+    initial_acceptance:
+        Target probability of accepting a typical uphill move at the start; sets T0.
+    probes:
+        Number of random moves used to measure typical cost changes for T0.
+    cooling:
+        Geometric cooling factor applied after each temperature stage.
+    moves_per_stage:
+        Neighbour evaluations per temperature stage.
+    stages:
+        Number of temperature stages (the run ends after them).
+    step_floor:
+        The step never shrinks below ``step * step_floor``.
+    """
+
+    step: tuple[float, ...] = (2.0, 2.0, 1.0, 1.0, 1.0)
+    initial_acceptance: float = 0.5
+    probes: int = 8
+    cooling: float = 0.8
+    moves_per_stage: int = 12
+    stages: int = 15
+    step_floor: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.initial_acceptance < 1.0:
+            raise ValueError(f"initial_acceptance must lie in (0, 1), got {self.initial_acceptance}")
+        if not 0.0 < self.cooling < 1.0:
+            raise ValueError(f"cooling must lie in (0, 1), got {self.cooling}")
+        if self.moves_per_stage < 1 or self.stages < 1 or self.probes < 1:
+            raise ValueError("moves_per_stage, stages and probes must be >= 1")
+        if any(not math.isfinite(s) or s <= 0 for s in self.step):
+            raise ValueError(f"step sizes must be positive, got {self.step}")
+        if not 0.0 < self.step_floor <= 1.0:
+            raise ValueError(f"step_floor must lie in (0, 1], got {self.step_floor}")
+
+    @property
+    def max_evaluations(self) -> int:
+        """Cost evaluations of a full run: x0, the probes and every move."""
+        return 1 + self.probes + self.stages * self.moves_per_stage
+
+
+@dataclass(frozen=True)
+class AnnealState:
+    """What the callback sees after each iteration."""
+
+    nit: int
+    x: Array
+    fun: float
+    best_x: Array
+    best_fun: float
+    temperature: float
+    nfev: int
+
+
+@dataclass
+class AnnealResult:
+    """Result in scipy's vocabulary."""
+
+    x: Array
+    fun: float
+    nit: int
+    nfev: int
+    success: bool
+    message: str
+    trace: list[float] = field(default_factory=list)
+
+
+def anneal(
+    cost: Callable[[Array], float],
+    x0: ArrayLike,
+    bounds: ArrayLike,
+    *,
+    rng: np.random.Generator,
+    schedule: Schedule | None = None,
+    callback: Callable[[AnnealState], bool | None] | None = None,
+) -> AnnealResult:
+    """Minimise ``cost`` by simulated annealing from ``x0`` inside ``bounds`` ((n, 2) array).
+
+    ``trace`` holds the best cost after each iteration. ``success`` is False only when the
+    cost returned a non-finite value at x0; a run stopped by the callback is a success with
+    the message saying so.
+    """
+    schedule = schedule or Schedule()
+    x = np.asarray(x0, dtype=np.float64).copy()
+    b = np.asarray(bounds, dtype=np.float64)
+    n = x.size
+    if b.shape != (n, 2):
+        raise ValueError(f"bounds must have shape ({n}, 2), got {b.shape}")
+    if np.any(~np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
+        raise ValueError(f"bounds must be finite with lower < upper, got {b.tolist()}")
+    if np.any(x < b[:, 0]) or np.any(x > b[:, 1]):
+        raise ValueError(f"x0 {x.tolist()} lies outside the bounds")
+    step0 = np.asarray(schedule.step, dtype=np.float64)
+    if step0.size != n:
+        raise ValueError(f"schedule.step has {step0.size} entries for {n} parameters")
+
+    nfev = 0
+
+    def evaluate(p: Array) -> float:
+        nonlocal nfev
+        nfev += 1
+        value = float(cost(p))
+        return value if math.isfinite(value) else math.inf
+
+    def neighbour(center: Array, step: Array) -> Array:
+        return np.clip(center + rng.normal(0.0, 1.0, n) * step, b[:, 0], b[:, 1])
+
+    fx = evaluate(x)
+    if not math.isfinite(fx):
+        return AnnealResult(x, fx, 0, nfev, False, "cost is not finite at x0")
+    best_x, best_f = x.copy(), fx
+
+    # Initial temperature from the typical uphill change of random moves.
+    ups = []
+    for _ in range(schedule.probes):
+        xp = neighbour(x, step0)
+        fp = evaluate(xp)
+        if fp < best_f:
+            best_x, best_f = xp.copy(), fp
+        if math.isfinite(fp) and fp > fx:
+            ups.append(fp - fx)
+    typical_up = float(np.median(ups)) if ups else max(abs(fx), 1.0) * 1e-3
+    t0 = typical_up / -math.log(schedule.initial_acceptance)
+    temperature = t0
+
+    trace: list[float] = []
+    nit = 0
+    message = "schedule completed"
+    stopped = False
+    for _stage in range(schedule.stages):
+        # Steps shrink with the square root of the temperature ratio.
+        step = step0 * max(schedule.step_floor, math.sqrt(temperature / t0))
+        for _move in range(schedule.moves_per_stage):
+            xp = neighbour(x, step)
+            fp = evaluate(xp)
+            delta = fp - fx
+            if delta <= 0 or rng.random() < math.exp(-delta / max(temperature, 1e-300)):
+                x, fx = xp, fp
+                if fx < best_f:
+                    best_x, best_f = x.copy(), fx
+            nit += 1
+            trace.append(best_f)
+            if callback is not None and callback(
+                AnnealState(nit, x.copy(), fx, best_x.copy(), best_f, temperature, nfev)
+            ):
+                message, stopped = "stopped by the callback", True
+                break
+        if stopped:
+            break
+        temperature *= schedule.cooling
+        # Restart each stage from the best point seen: keeps the walk near the basin.
+        x, fx = best_x.copy(), best_f
+    return AnnealResult(best_x, best_f, nit, nfev, True, message, trace)

@@ -1,0 +1,294 @@
+"""The image-based registration pipeline (the paper's Fig. 2).
+
+The machine-based pose (``initial_motion``, identity when the patient has not moved) is
+refined by comparing DRRs of the volume with the X-ray image under gradient difference,
+optimised by simulated annealing over five parameters in the view frame of the X-ray image:
+in-plane translations (tx, ty) and rotations (rx, ry, rz) about the iso-center; tz is kept.
+The search runs coarse to fine over image/volume pyramids, and ends with a short local
+polish (Powell) at the finest level.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import optimize
+
+from registration.anneal import AnnealState, Schedule, anneal
+from registration.drr import DRRRenderer
+from registration.geometry import CArm, check_rigid, offsets_to_matrix
+from registration.metrics import Residual, residuals
+from registration.similarity import GradientDifference
+from registration.volume import Volume
+from registration.xray import XRayImage
+
+Array = NDArray[np.float64]
+
+#: Names of the five optimised parameters, in order (mm, mm, deg, deg, deg).
+PARAMETERS = ("tx", "ty", "rx", "ry", "rz")
+
+
+@dataclass(frozen=True)
+class Level:
+    """One stage of the coarse-to-fine search.
+
+    ``image_px``: the X-ray image is block-averaged to about this many pixels across;
+    ``volume_level``: pyramid level of the volume (0 = full resolution, 1 = half, ...).
+    """
+
+    image_px: int
+    volume_level: int
+    schedule: Schedule
+
+
+def _default_levels() -> tuple[Level, ...]:
+    return (
+        Level(64, 2, Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per_stage=14, cooling=0.75)),
+        Level(128, 1, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
+    )
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """How a registration searches; the defaults are the benchmarked configuration."""
+
+    levels: tuple[Level, ...] = field(default_factory=_default_levels)
+    #: Search range around the initial pose: +- translation (mm) and rotation (deg).
+    bound_mm: float = 30.0
+    bound_deg: float = 15.0
+    #: Final local polish at the last level (Powell), and its evaluation budget.
+    polish: bool = True
+    polish_evaluations: int = 120
+    polish_image_px: int = 256
+    polish_volume_level: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.levels:
+            raise ValueError("at least one level is needed")
+        if self.bound_mm <= 0 or self.bound_deg <= 0:
+            raise ValueError("bound_mm and bound_deg must be positive")
+        for level in self.levels:
+            if level.image_px < 16:
+                raise ValueError(f"image_px must be >= 16, got {level.image_px}")
+            if level.volume_level < 0:
+                raise ValueError(f"volume_level must be >= 0, got {level.volume_level}")
+
+
+@dataclass(frozen=True)
+class Progress:
+    """What the registration callback sees at every iteration."""
+
+    iteration: int
+    level: int
+    temperature: float
+    current_motion: Array
+    best_motion: Array
+    current_similarity: float
+    best_similarity: float
+    drr_count: int
+    elapsed_s: float
+
+
+@dataclass
+class RegistrationResult:
+    """The outcome of one registration (CONVENTIONS.md §4)."""
+
+    patient_motion: Array
+    similarity: float
+    similarity_trace: list[float]
+    drr_count: int
+    seconds: float
+    stopped: bool
+    offsets: Array
+    geometry: CArm
+    volume_label: str
+    residual: Residual | None = None
+
+    @property
+    def success(self) -> bool | None:
+        return None if self.residual is None else self.residual.success
+
+    def to_dict(self) -> dict:
+        out = {
+            "patient_motion": np.asarray(self.patient_motion).tolist(),
+            "similarity": self.similarity,
+            "similarity_trace": list(self.similarity_trace),
+            "drr_count": self.drr_count,
+            "seconds": self.seconds,
+            "stopped": self.stopped,
+            "offsets": dict(zip(PARAMETERS, np.asarray(self.offsets).tolist(), strict=True)),
+            "geometry": self.geometry.to_dict(),
+            "volume_label": self.volume_label,
+        }
+        if self.residual is not None:
+            out["residual"] = self.residual.to_dict()
+            out["success"] = self.residual.success
+        return out
+
+
+class _Stop(Exception):
+    pass
+
+
+def register(
+    volume: Volume,
+    xray: XRayImage,
+    *,
+    initial_motion: ArrayLike | None = None,
+    options: RegistrationOptions | None = None,
+    seed: int = 0,
+    callback: Callable[[Progress], bool | None] | None = None,
+    truth: ArrayLike | None = None,
+    vessel_points_mm: ArrayLike | None = None,
+    renderer: DRRRenderer | None = None,
+) -> RegistrationResult:
+    """Estimate the patient motion that aligns ``volume`` with ``xray``.
+
+    Parameters
+    ----------
+    volume:
+        The 3DRA (HU). Its label is repeated in the result.
+    xray:
+        The X-ray image (attenuation line integrals), its field mask and geometry.
+    initial_motion:
+        The machine-based pose as a 4x4 patient motion (identity by default).
+    options:
+        Search configuration; see :class:`RegistrationOptions`.
+    seed:
+        Seed of the annealing's random generator (same seed, same result).
+    callback:
+        Called with a :class:`Progress` at every iteration; return True to stop.
+    truth:
+        The true patient motion; when given the result carries residuals and success.
+    vessel_points_mm:
+        Target points for the mTRE (e.g. the vessel centerline), in volume world mm.
+    renderer:
+        A prepared :class:`DRRRenderer` of ``volume`` to reuse across registrations.
+    """
+    start = time.perf_counter()
+    options = options or RegistrationOptions()
+    geometry = xray.geometry
+    m_init = np.eye(4) if initial_motion is None else check_rigid(initial_motion, name="initial motion")
+    truth_m = None if truth is None else check_rigid(truth, name="true motion")
+    n_levels = max([lv.volume_level for lv in options.levels] + [options.polish_volume_level]) + 1
+    if renderer is None:
+        renderer = DRRRenderer(volume, levels=n_levels)
+    elif renderer.volume is not volume:
+        raise ValueError("renderer was prepared for another volume")
+    rng = np.random.default_rng(seed)
+    tz0 = 0.0
+
+    def motion_of(x: Array) -> Array:
+        return offsets_to_matrix([x[0], x[1], tz0, x[2], x[3], x[4]], geometry) @ m_init
+
+    bounds = np.array(
+        [[-options.bound_mm, options.bound_mm]] * 2 + [[-options.bound_deg, options.bound_deg]] * 3
+    )
+    x_best = np.zeros(5)
+    f_best = math.inf
+    trace: list[float] = []
+    drr_count = 0
+    stopped = False
+    iteration = 0
+
+    def report(level: int, temperature: float, x_cur: Array, f_cur: float, x_b: Array, f_b: float) -> bool:
+        nonlocal iteration
+        iteration += 1
+        trace.append(-f_b)
+        if callback is None:
+            return False
+        return bool(
+            callback(
+                Progress(
+                    iteration=iteration,
+                    level=level,
+                    temperature=temperature,
+                    current_motion=motion_of(x_cur),
+                    best_motion=motion_of(x_b),
+                    current_similarity=-f_cur,
+                    best_similarity=-f_b,
+                    drr_count=drr_count,
+                    elapsed_s=time.perf_counter() - start,
+                )
+            )
+        )
+
+    def make_cost(image_px: int, volume_level: int) -> Callable[[Array], float]:
+        factor = max(1, round(geometry.cols / image_px))
+        level_image = xray.downsample(factor) if factor > 1 else xray
+        level_geom = level_image.geometry
+        measure = GradientDifference(level_image.image, level_image.mask)
+        mask = level_image.mask
+        vl = min(volume_level, renderer.levels - 1)
+
+        def cost(x: Array) -> float:
+            nonlocal drr_count
+            drr_count += 1
+            drr = renderer.render(level_geom, motion_of(x), level=vl, mask=mask)
+            return -measure(drr)
+
+        return cost
+
+    for li, level in enumerate(options.levels):
+        cost = make_cost(level.image_px, level.volume_level)
+
+        def on_iter(state: AnnealState, li: int = li) -> bool:
+            return report(li, state.temperature, state.x, state.fun, state.best_x, state.best_fun)
+
+        result = anneal(cost, x_best, bounds, rng=rng, schedule=level.schedule, callback=on_iter)
+        x_best, f_best = result.x, result.fun
+        if result.message == "stopped by the callback":
+            stopped = True
+            break
+
+    if options.polish and not stopped:
+        cost = make_cost(options.polish_image_px, options.polish_volume_level)
+        f_start = cost(x_best)
+        state = {"x": x_best.copy(), "f": f_start}
+
+        def polish_cost(x: Array) -> float:
+            f = cost(np.clip(x, bounds[:, 0], bounds[:, 1]))
+            if f < state["f"]:
+                state["x"], state["f"] = np.clip(x, bounds[:, 0], bounds[:, 1]), f
+            if report(len(options.levels), 0.0, x, f, state["x"], state["f"]):
+                raise _Stop
+            return f
+
+        try:
+            optimize.minimize(
+                polish_cost,
+                x_best,
+                method="Powell",
+                bounds=bounds,
+                options={
+                    "maxfev": options.polish_evaluations,
+                    "xtol": 0.02,
+                    "ftol": 1e-6,
+                    "direc": np.diag([0.5, 0.5, 0.3, 0.3, 0.3]),
+                },
+            )
+        except _Stop:
+            stopped = True
+        x_best, f_best = state["x"], state["f"]
+
+    m_est = motion_of(x_best)
+    res = None
+    if truth_m is not None:
+        res = residuals(m_est, truth_m, geometry, vessel_points_mm)
+    return RegistrationResult(
+        patient_motion=m_est,
+        similarity=-f_best,
+        similarity_trace=trace,
+        drr_count=drr_count,
+        seconds=time.perf_counter() - start,
+        stopped=stopped,
+        offsets=x_best,
+        geometry=geometry,
+        volume_label=volume.label,
+        residual=res,
+    )
