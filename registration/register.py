@@ -224,7 +224,7 @@ def register(
         level_geom = level_image.geometry
         measure = GradientDifference(level_image.image, level_image.mask)
         mask = level_image.mask
-        vl = min(volume_level, renderer.levels - 1)
+        vl = min(volume_level, renderer.n_levels - 1)
 
         def cost(x: Array) -> float:
             nonlocal drr_count
