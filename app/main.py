@@ -1,0 +1,120 @@
+"""``roadmap3d demo`` / ``roadmap3d app``: start the web app and serve until Ctrl-C."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+import time
+import webbrowser
+from pathlib import Path
+from types import FrameType
+
+import viser
+
+from app.data import AppConfig, PhantomData
+from app.gui import RoadmapApp
+from app.session import Session
+from app.share import refuse_share_requests
+
+log = logging.getLogger(__name__)
+
+#: The panel's accent colour (a calm clinical blue).
+BRAND_RGB = (34, 139, 230)
+
+
+def make_server(host: str = "127.0.0.1", port: int = 8080, *, allow_share: bool = False) -> viser.ViserServer:
+    """A viser server in the app's dark theme; share-tunnel requests refused unless allowed."""
+    server = viser.ViserServer(host=host, port=port, label="3D roadmap", verbose=False)
+    if not allow_share:
+        refuse_share_requests(server)
+    server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=allow_share, brand_color=BRAND_RGB)
+    server.initial_camera.position = (1.25, -0.55, 0.85)
+    server.initial_camera.look_at = (0.0, 0.05, 0.0)
+    server.initial_camera.up = (0.0, -1.0, 0.0)
+    return server
+
+
+def url_of(server: viser.ViserServer) -> str:
+    host = server.get_host()
+    shown = "localhost" if host in ("0.0.0.0", "::") else host
+    return f"http://{shown}:{server.get_port()}"
+
+
+def build_app(
+    server: viser.ViserServer,
+    config: AppConfig | None = None,
+    *,
+    announce: bool = False,
+) -> RoadmapApp:
+    """Prepare the phantom data (showing progress in the page) and build the app on ``server``."""
+    config = config or AppConfig.from_env()
+    gui = server.gui
+    note = gui.add_markdown("**Preparing the 3D roadmap…**")
+    bar = gui.add_progress_bar(0.0, animated=True)
+    start = time.perf_counter()
+
+    def progress(message: str, fraction: float) -> None:
+        note.content = f"**Preparing the 3D roadmap…**  \n{message}"
+        bar.value = max(bar.value, min(100.0, fraction * 100.0))
+        if announce:
+            print(f"  [{time.perf_counter() - start:5.1f} s] {message}", file=sys.stderr, flush=True)
+
+    data = PhantomData(config, progress)
+    session = Session(data, config)
+    fmt = session.settings.volume_format_cm
+    data.volume(fmt)
+    data.meshes(fmt)
+    data.renderer(fmt)
+    progress("Forming the first X-ray image", 0.85)
+    session.xray()
+    progress("Ready", 1.0)
+    note.remove()
+    bar.remove()
+    app = RoadmapApp(server, session)
+    app.start()
+    app.message("Ready. Press **T4**, then **Register**.")
+    return app
+
+
+def run_app(
+    host: str,
+    port: int,
+    volume: Path | None,
+    image: Path | None,
+    frame: int | None = None,
+    allow_share: bool = False,
+    max_upload_mb: float = 512.0,
+    open_browser: bool = False,
+) -> int:
+    """Serve the app until Ctrl-C (or SIGTERM); returns the exit code."""
+    if volume is not None or image is not None:
+        raise ValueError("--volume/--image are not supported yet by this build of the app")
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    config = AppConfig.from_env()
+    start = time.perf_counter()
+    server = make_server(host, port, allow_share=allow_share)
+    url = url_of(server)
+    print(f"roadmap3d: serving on {url}  (Ctrl-C to stop)", flush=True)
+    if open_browser:
+        threading.Thread(target=webbrowser.open, args=(url,), daemon=True).start()
+
+    def terminate(_signum: int, _frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, terminate)
+    app: RoadmapApp | None = None
+    try:
+        app = build_app(server, config, announce=True)
+        print(f"roadmap3d: ready after {time.perf_counter() - start:.1f} s at {url}", flush=True)
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        print("\nroadmap3d: stopping", file=sys.stderr, flush=True)
+    finally:
+        if app is not None:
+            app.close()
+        server.stop()
+    return 0

@@ -1,0 +1,157 @@
+"""The 3-D scene: the patient's skull and vessels, their true position as a ghost, the C-arm.
+
+World coordinates are patient LPS millimetres (CONVENTIONS §1) shown in metres (viser's
+lights and camera controls are tuned for metre-sized scenes); anterior (-y) is up, as for a
+supine patient on the table.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import trimesh
+import viser
+import viser.transforms as vtf
+
+from registration.geometry import CArm
+
+M_PER_MM = 1e-3
+
+BONE_RGB = (226, 216, 196)
+VESSEL_RGB = (214, 38, 38)
+GHOST_RGB = (90, 200, 255)
+CARM_RGB = (120, 128, 140)
+SOURCE_RGB = (255, 190, 60)
+
+
+def pose_of(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(wxyz, position in metres) of a node placed by a 4x4 patient motion in mm."""
+    wxyz = vtf.SO3.from_matrix(np.asarray(motion)[:3, :3]).wxyz
+    return wxyz, np.asarray(motion)[:3, 3] * M_PER_MM
+
+
+def _decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    try:
+        return mesh.simplify_quadric_decimation(face_count=max_faces)
+    except Exception:  # fast_simplification missing: keep every k-th face (holes are acceptable)
+        step = int(math.ceil(len(mesh.faces) / max_faces))
+        return trimesh.Trimesh(mesh.vertices, mesh.faces[::step], process=False)
+
+
+class Scene:
+    """Owns the scene nodes; every method may be called from any thread."""
+
+    def __init__(self, server: viser.ViserServer) -> None:
+        self.server = server
+        self.scene = server.scene
+        self.scene.set_up_direction("-y")
+        self.scene.add_grid(
+            "/floor",
+            width=3.0,
+            height=3.0,
+            plane="xz",
+            position=(0.0, 0.45, 0.0),
+            cell_color=(60, 64, 72),
+            section_color=(80, 86, 96),
+        )
+        self.scene.add_icosphere("/isocenter", radius=0.004, color=(255, 255, 255), position=(0.0, 0.0, 0.0))
+        self.scene.add_label("/isocenter/label", "iso-center", position=(0.0, -0.012, 0.0))
+        self.patient: list = []
+        self.ghost: list = []
+        self.frustum: viser.CameraFrustumHandle | None = None
+
+    # ----- the patient ------------------------------------------------------------------
+    def set_anatomy(self, meshes: dict[str, trimesh.Trimesh], *, max_faces: int = 120_000) -> None:
+        """(Re)create skull and vessel nodes from meshes in world mm at the volume's pose."""
+        for handle in self.patient + self.ghost:
+            handle.remove()
+        self.patient, self.ghost = [], []
+        for name, mesh in meshes.items():
+            is_vessel = "vessel" in name
+            shown = _decimated(mesh, max_faces if is_vessel else max_faces)
+            verts = np.asarray(shown.vertices, np.float32) * M_PER_MM
+            faces = np.asarray(shown.faces, np.uint32)
+            self.patient.append(
+                self.scene.add_mesh_simple(
+                    f"/patient/{name}",
+                    verts,
+                    faces,
+                    color=VESSEL_RGB if is_vessel else BONE_RGB,
+                    opacity=1.0 if is_vessel else 0.22,
+                    side="double" if not is_vessel else "front",
+                    flat_shading=False,
+                )
+            )
+            if is_vessel:
+                self.ghost.append(
+                    self.scene.add_mesh_simple(
+                        f"/truth/{name}", verts, faces, color=GHOST_RGB, opacity=0.35, visible=False
+                    )
+                )
+
+    def place(self, estimate: np.ndarray, truth: np.ndarray | None, *, show_ghost: bool) -> None:
+        wxyz, pos = pose_of(estimate)
+        for handle in self.patient:
+            handle.wxyz, handle.position = wxyz, pos
+        if truth is not None:
+            wxyz_t, pos_t = pose_of(truth)
+        for handle in self.ghost:
+            handle.visible = show_ghost and truth is not None
+            if truth is not None:
+                handle.wxyz, handle.position = wxyz_t, pos_t
+
+    # ----- the C-arm --------------------------------------------------------------------
+    def set_carm(self, geometry: CArm, image: np.ndarray | None = None) -> None:
+        """Source, detector, frustum (with ``image`` on the detector) and the C arc."""
+        sid = geometry.sid_mm * M_PER_MM
+        d = geometry.direction
+        u, v = geometry.u, geometry.v
+        # OpenCV camera frame at the source: +z along the beam, +y along image rows; +x = -u keeps
+        # it right-handed (u x v = -d), so the picture is mirrored left-right to sit where it formed.
+        rot = np.column_stack([-u, v, d])
+        wxyz = vtf.SO3.from_matrix(rot).wxyz
+        half_h = geometry.rows * geometry.pixel_mm[0] / 2.0
+        half_w = geometry.cols * geometry.pixel_mm[1] / 2.0
+        fov = 2.0 * math.atan(half_h / geometry.sid_mm)
+        aspect = half_w / half_h
+        tan = math.tan(fov / 2.0)
+        scale = sid * (tan * tan * aspect / 3.0) ** (1.0 / 3.0)  # viser normalises the frustum volume
+        source = geometry.source_mm * M_PER_MM
+        kwargs: dict = {}
+        if image is not None:
+            kwargs = {"image": np.ascontiguousarray(image[:, ::-1]), "format": "jpeg", "jpeg_quality": 85}
+        self.frustum = self.scene.add_camera_frustum(
+            "/carm/beam",
+            fov=fov,
+            aspect=aspect,
+            scale=scale,
+            color=SOURCE_RGB,
+            thickness=0.0015,
+            wxyz=wxyz,
+            position=source,
+            **kwargs,
+        )
+        self.scene.add_icosphere("/carm/source", radius=0.03, color=SOURCE_RGB, position=source)
+        center = geometry.detector_center_mm * M_PER_MM
+        self.scene.add_box(
+            "/carm/detector",
+            dimensions=(2 * half_w * M_PER_MM + 0.06, 2 * half_h * M_PER_MM + 0.06, 0.05),
+            color=(70, 74, 82),
+            wxyz=wxyz,
+            position=center + d * 0.026,
+        )
+        # The C: a half circle from the source housing round to the detector housing.
+        mid = (source + center) / 2.0
+        radius = sid / 2.0 + 0.08
+        t = np.linspace(0.0, math.pi, 48)
+        side = np.cross(d, np.array([0.0, 0.0, 1.0]))
+        side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else u
+        arc = mid - np.cos(t)[:, None] * d * radius + np.sin(t)[:, None] * side * radius * 0.9
+        self.scene.add_spline_catmull_rom("/carm/arc", arc, thickness=0.03, color=CARM_RGB)
+
+    def set_detector_image(self, image: np.ndarray) -> None:
+        if self.frustum is not None:
+            self.frustum.image = np.ascontiguousarray(image[:, ::-1])

@@ -1,0 +1,280 @@
+"""The app's state and its registration worker, independent of viser (testable on its own).
+
+One :class:`Session` holds what every browser tab sees: the C-arm settings, the true patient
+motion (what the simulated patient did), the current estimate of it (what the roadmap uses),
+the X-ray image formed from both, and the registration run in progress. Callbacks change it
+under its lock; readers take consistent snapshots.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from app.data import AppConfig, PhantomData, XRayImage, simulate_xray
+from registration.geometry import TABLE_I, CArm, default_system, matrix_to_offsets, offsets_to_matrix
+from registration.metrics import Residual, residuals
+from registration.register import Progress, RegistrationResult, register
+
+log = logging.getLogger(__name__)
+
+Array = np.ndarray
+
+#: Slider ranges of the six patient-motion offsets (mm, deg).
+TRANSLATION_RANGE_MM = 30.0
+ROTATION_RANGE_DEG = 15.0
+#: The ``Random`` button's offsets: translation up to 25 mm, rotation up to 10 degrees.
+RANDOM_MAX_MM = 25.0
+RANDOM_MAX_DEG = 10.0
+
+
+@dataclass(frozen=True)
+class CArmSettings:
+    """What the C-arm controls set."""
+
+    primary_deg: float = 0.0
+    secondary_deg: float = 0.0
+    sid_mm: float = 1200.0
+    image_format_cm: float = 27.0
+    volume_format_cm: float = 27.0
+    kind: str = "fluoro"
+    contrast: bool = True
+    catheter: bool = False
+
+    def geometry(self, pixels: int) -> CArm:
+        """The nominal view these settings describe (raises ValueError if impossible)."""
+        pixel_mm = self.image_format_cm * 10.0 / pixels
+        return CArm(
+            primary_deg=self.primary_deg,
+            secondary_deg=self.secondary_deg,
+            sid_mm=self.sid_mm,
+            sod_mm=default_system().sod_mm,
+            rows=pixels,
+            cols=pixels,
+            pixel_mm=(pixel_mm, pixel_mm),
+        )
+
+
+@dataclass
+class RunState:
+    """A registration in progress (or the last one)."""
+
+    running: bool = False
+    iterations: list[int] | None = None
+    similarity: list[float] | None = None
+    temperature: list[float] | None = None
+    progress: Progress | None = None
+    result: RegistrationResult | None = None
+    error: str | None = None
+    started_s: float = 0.0
+    stop_requested_s: float | None = None
+    stop_latency_s: float | None = None
+
+
+class Session:
+    """The shared state of the demo and its registration worker."""
+
+    def __init__(self, data: PhantomData, config: AppConfig | None = None) -> None:
+        self.data = data
+        self.config = config or data.config
+        self.lock = threading.RLock()
+        self.settings = CArmSettings()
+        self.true_motion: Array = np.eye(4)
+        self.estimate: Array = np.eye(4)
+        self.run = RunState()
+        #: bumped on every change of settings, motion or estimate (the presenter watches it)
+        self.version = 0
+        self._xray_key: tuple | None = None
+        self._xray: XRayImage | None = None
+        self._xray_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._rng = np.random.default_rng(self.config.seed + 1)
+
+    # ----- geometry and images ----------------------------------------------------------
+    def geometry(self) -> CArm:
+        with self.lock:
+            return self.settings.geometry(self.config.pixels)
+
+    def xray(self) -> XRayImage:
+        """The X-ray image for the current settings and true motion (re-rendered on change)."""
+        with self.lock:
+            settings, motion = self.settings, self.true_motion.copy()
+        key = (settings, motion.tobytes())
+        with self._xray_lock:
+            if key != self._xray_key or self._xray is None:
+                geometry = settings.geometry(self.config.pixels)
+                phantom = self.data.phantom(settings.contrast)
+                self._xray = simulate_xray(
+                    phantom,
+                    geometry,
+                    motion=motion,
+                    kind=settings.kind,
+                    catheter=settings.catheter,
+                    seed=self.config.seed,
+                )
+                self._xray_key = key
+            return self._xray
+
+    def residual(self, estimate: Array | None = None) -> Residual:
+        with self.lock:
+            est = self.estimate if estimate is None else estimate
+            return residuals(est, self.true_motion, self.geometry(), self.data.vessel_points_mm())
+
+    # ----- changes ----------------------------------------------------------------------
+    def _changed(self) -> None:
+        self.version += 1
+
+    def update_settings(self, **changes: object) -> None:
+        """Change C-arm settings; the patient stays where it is in the room (world frame)."""
+        with self.lock:
+            self._refuse_while_running()
+            new = replace(self.settings, **changes)  # type: ignore[arg-type]
+            new.geometry(self.config.pixels)  # validate before accepting
+            self.settings = new
+            self._changed()
+
+    def offsets(self) -> Array:
+        """The true motion as (tx, ty, tz, rx, ry, rz) in the current view frame."""
+        with self.lock:
+            return matrix_to_offsets(self.true_motion, self.geometry())
+
+    def set_offsets(self, offsets: Array | tuple[float, ...], *, reset_estimate: bool = False) -> None:
+        """Move the patient: offsets in the current view frame (Table I convention)."""
+        o = np.asarray(offsets, dtype=np.float64)
+        if o.shape != (6,) or not np.all(np.isfinite(o)):
+            raise ValueError("patient motion needs six finite numbers")
+        if np.any(np.abs(o[:3]) > TRANSLATION_RANGE_MM + 1e-9) or np.any(np.abs(o[3:]) > ROTATION_RANGE_DEG + 1e-9):
+            raise ValueError(
+                f"patient motion is limited to ±{TRANSLATION_RANGE_MM:g} mm and ±{ROTATION_RANGE_DEG:g}° per axis"
+            )
+        with self.lock:
+            self._refuse_while_running()
+            self.true_motion = offsets_to_matrix(o, self.geometry())
+            if reset_estimate:
+                self.estimate = np.eye(4)
+                self.run = RunState()
+            self._changed()
+
+    def apply_table_offset(self, name: str) -> None:
+        """T1..T4 of Table I; the roadmap restarts from the machine-based registration."""
+        self.set_offsets(TABLE_I[name], reset_estimate=True)
+
+    def random_offset(self) -> Array:
+        """A random motion within 25 mm and 10 degrees (as the paper's clinical study)."""
+        direction = self._rng.normal(size=3)
+        t = direction / np.linalg.norm(direction) * RANDOM_MAX_MM * self._rng.uniform() ** (1 / 3)
+        axis = self._rng.normal(size=3)
+        r = axis / np.linalg.norm(axis) * RANDOM_MAX_DEG * self._rng.uniform()
+        offsets = np.concatenate([t, r])
+        self.set_offsets(offsets, reset_estimate=True)
+        return offsets
+
+    def reset(self) -> None:
+        """No patient motion, roadmap at the machine-based registration."""
+        self.set_offsets(np.zeros(6), reset_estimate=True)
+
+    def _refuse_while_running(self) -> None:
+        if self.run.running:
+            raise ValueError("a registration is running: press Stop first")
+
+    # ----- the registration worker ------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self.run.running
+
+    def start_registration(self, on_done: Callable[[], None] | None = None) -> bool:
+        """Start registering on a worker thread; False if one is already running."""
+        with self.lock:
+            if self.run.running:
+                return False
+            self._stop.clear()
+            self.run = RunState(
+                running=True, iterations=[], similarity=[], temperature=[], started_s=time.perf_counter()
+            )
+            initial = self.estimate.copy()
+            truth = self.true_motion.copy()
+            volume_format = self.settings.volume_format_cm
+            run = self.run
+            self._changed()
+        self._worker = threading.Thread(
+            target=self._register, args=(run, initial, truth, volume_format, on_done), name="registration", daemon=True
+        )
+        self._worker.start()
+        return True
+
+    def _register(
+        self,
+        run: RunState,
+        initial: Array,
+        truth: Array,
+        volume_format: float,
+        on_done: Callable[[], None] | None,
+    ) -> None:
+        count = 0
+
+        def callback(progress: Progress) -> bool:
+            nonlocal count
+            count += 1
+            with self.lock:
+                assert run.iterations is not None and run.similarity is not None and run.temperature is not None
+                run.iterations.append(count)
+                run.similarity.append(float(progress.best_similarity))
+                run.temperature.append(float(progress.temperature))
+                run.progress = progress
+            return self._stop.is_set()
+
+        try:
+            xray = self.xray()
+            result = register(
+                self.data.volume(volume_format),
+                xray,
+                initial_motion=initial,
+                seed=self.config.seed,
+                callback=callback,
+                truth=truth,
+                vessel_points_mm=self.data.vessel_points_mm(),
+                renderer=self.data.renderer(volume_format),
+            )
+        except Exception as exc:  # shown in the page, never a dead worker thread
+            log.exception("registration failed")
+            with self.lock:
+                run.error = f"Registration failed: {exc}"
+                run.running = False
+                self._changed()
+        else:
+            with self.lock:
+                run.result = result
+                if not math.isfinite(result.similarity):
+                    run.error = "Registration found no usable overlap between the DRR and the image."
+                else:
+                    self.estimate = np.asarray(result.patient_motion, dtype=np.float64)
+                if run.stop_requested_s is not None:
+                    run.stop_latency_s = time.perf_counter() - run.stop_requested_s
+                run.running = False
+                self._changed()
+        if on_done is not None:
+            on_done()
+
+    def stop_registration(self, *, wait: bool = False, timeout: float = 5.0) -> None:
+        with self.lock:
+            if self.run.running and self.run.stop_requested_s is None:
+                self.run.stop_requested_s = time.perf_counter()
+        self._stop.set()
+        worker = self._worker
+        if wait and worker is not None and worker is not threading.current_thread():
+            worker.join(timeout)
+
+    def wait(self, timeout: float = 60.0) -> bool:
+        """Wait for the running registration to end; True if it did."""
+        worker = self._worker
+        if worker is None:
+            return True
+        worker.join(timeout)
+        return not worker.is_alive()

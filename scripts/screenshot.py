@@ -1,0 +1,69 @@
+"""Regenerate docs/app.png (the README's picture of the web app) with Playwright + Chromium.
+
+Starts the app in this process on a free port, opens it in Debian's headless Chromium, presses
+T4 and Register, waits for the registration to finish and saves a screenshot.
+
+    python scripts/screenshot.py [--out docs/app.png] [--chromium /usr/bin/chromium] [--no-register]
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "app.png")
+    parser.add_argument("--chromium", default="/usr/bin/chromium")
+    parser.add_argument("--width", type=int, default=1600)
+    parser.add_argument("--height", type=int, default=900)
+    parser.add_argument("--no-register", action="store_true", help="only T4, no registration")
+    args = parser.parse_args()
+    if not Path(args.chromium).exists():
+        print(f"error: {args.chromium} not found (apt-get install chromium)", file=sys.stderr)
+        return 2
+
+    from playwright.sync_api import sync_playwright
+
+    from app.main import build_app, make_server, url_of
+
+    server = make_server("127.0.0.1", 0)
+    app = build_app(server)
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(
+                executable_path=args.chromium, args=["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader"]
+            )
+            page = browser.new_page(viewport={"width": args.width, "height": args.height})
+            page.goto(url_of(server))
+            page.get_by_role("button", name="Register").wait_for(timeout=30_000)
+            page.get_by_role("button", name="T4", exact=True).click()
+            time.sleep(1.0)
+            if not args.no_register:
+                page.get_by_role("button", name="Register").click()
+                page.get_by_text(re.compile(r"Time [0-9.]+ s · \d+ DRRs · done")).wait_for(timeout=120_000)
+            time.sleep(1.5)  # let the last frame and the 3D view settle
+            for close in page.get_by_role("button", name=re.compile("close", re.I)).all():
+                try:  # viser's "software WebGL" notice
+                    close.click(timeout=500)
+                except Exception:
+                    pass
+            time.sleep(0.5)
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(args.out))
+            browser.close()
+    finally:
+        app.close()
+        server.stop()
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
