@@ -157,11 +157,16 @@ def register(
     )
 
 
-def info(path: Path, /) -> int:
-    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values)."""
+def info(path: Path, /, json: bool = False) -> int:
+    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values).
+
+    Args:
+        path: DICOM file, DICOM series folder or .npz volume.
+        json: Print the report as one JSON object.
+    """
     from registration.cli_io import run_info
 
-    return run_info(path)
+    return run_info(path, as_json=json)
 
 
 def phantom(
@@ -173,6 +178,8 @@ def phantom(
     offset: str = "T4",
     contrast: bool = True,
     seed: int = 0,
+    voxels: int = 256,
+    pixels: int = 512,
 ) -> int:
     """Export the built-in phantom: a DICOM 3DRA series, XA images with known motion, truth JSON.
 
@@ -185,6 +192,8 @@ def phantom(
         offset: Patient motion: T1..T4 (Table I) or "tx,ty,tz,rx,ry,rz".
         contrast: Iodine contrast in the vessels.
         seed: Phantom variant and noise seed.
+        voxels: 3DRA grid size along each axis.
+        pixels: X-ray image size (square).
     """
     from registration.cli_io import run_phantom_export
 
@@ -197,19 +206,26 @@ def phantom(
         offset=offset,
         contrast=contrast,
         seed=seed,
+        voxels=voxels,
+        pixels=pixels,
     )
 
 
-def mesh(volume: Path, out: Path) -> int:
+def mesh(
+    volume: Path, out: Path, vessel_hu: float | None = None, bone_hu: float | None = None, step: int = 1
+) -> int:
     """Write the vessel and bone surfaces of a volume (STL, PLY or GLB by the file extension).
 
     Args:
         volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
         out: Output mesh file (.stl, .ply or .glb).
+        vessel_hu: Vessel threshold in HU (default 250: iodinated contrast, away from bone).
+        bone_hu: Bone threshold in HU (default 700).
+        step: Marching-cubes step in voxels (2 or more: fewer faces, faster).
     """
     from registration.cli_io import run_mesh
 
-    return run_mesh(volume=volume, out=out)
+    return run_mesh(volume=volume, out=out, vessel_hu=vessel_hu, bone_hu=bone_hu, step=step)
 
 
 # --------------------------------------------------------------------------------------

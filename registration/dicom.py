@@ -1016,7 +1016,8 @@ def _ds_number(value: float) -> str:
     return f"{value:.6g}"
 
 
-def _uid(seed: str | None, *parts: object) -> UID:
+def make_uid(seed: str | None, *parts: object) -> UID:
+    """A new UID, or a reproducible one derived from ``seed`` and ``parts``."""
     if seed is None:
         return generate_uid()
     return generate_uid(entropy_srcs=[seed, *(str(p) for p in parts)])
@@ -1113,6 +1114,12 @@ def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
         tmp.write_text(text)
 
 
+def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write a binary file through a temporary file, never leaving a partial one."""
+    with _atomic_path(Path(path)) as tmp:
+        tmp.write_bytes(data)
+
+
 def _volume_axes(volume: Volume) -> tuple[Array, Array, Array, tuple[float, float], float]:
     a = volume.index_to_world[:3, :3]
     spacing = np.linalg.norm(a, axis=0)
@@ -1147,9 +1154,9 @@ def write_series(
     ``index_to_world @ (0, 0, k, 1)``. The folder appears only when every slice is written.
     """
     row_dir, col_dir, _normal, pixel_spacing, slice_mm = _volume_axes(volume)
-    study = UID(study_uid) if study_uid else _uid(uid_seed, "study")
-    series = _uid(uid_seed, "series", volume.label)
-    frame_of_reference = _uid(uid_seed, "frame of reference")
+    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
+    series = make_uid(uid_seed, "series", volume.label)
+    frame_of_reference = make_uid(uid_seed, "frame of reference")
     description = description or (volume.label or "roadmap3d volume")[:64]
     nk, nj, ni = volume.shape
     pixels = _hu_to_int16(volume.data)
@@ -1162,7 +1169,7 @@ def write_series(
                 modality,
                 study_uid=study,
                 series_uid=series,
-                instance_uid=_uid(uid_seed, "slice", k, volume.label),
+                instance_uid=make_uid(uid_seed, "slice", k, volume.label),
                 series_number=1,
                 description=description[:64],
                 patient_name=patient_name,
@@ -1210,13 +1217,13 @@ def write_enhanced(
     """Write ``volume`` as one Enhanced CT multi-frame file (frame k = slice k), int16 HU."""
     row_dir, col_dir, _normal, pixel_spacing, slice_mm = _volume_axes(volume)
     nk, nj, ni = volume.shape
-    study = UID(study_uid) if study_uid else _uid(uid_seed, "study")
+    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
     ds = _base(
         EnhancedCTImageStorage,
         "CT",
         study_uid=study,
-        series_uid=_uid(uid_seed, "enh series"),
-        instance_uid=_uid(uid_seed, "enh instance"),
+        series_uid=make_uid(uid_seed, "enh series"),
+        instance_uid=make_uid(uid_seed, "enh instance"),
         series_number=2,
         description=(description or volume.label or "roadmap3d volume")[:64],
         patient_name=patient_name,
@@ -1225,7 +1232,7 @@ def write_enhanced(
     ds.ImageType = ["DERIVED", "SECONDARY", "VOLUME", "NONE"]
     if volume.label:
         ds.DerivationDescription = volume.label[:1024]
-    ds.FrameOfReferenceUID = _uid(uid_seed, "frame of reference")
+    ds.FrameOfReferenceUID = make_uid(uid_seed, "frame of reference")
     ds.PositionReferenceIndicator = ""
     ds.InstanceNumber = 1
     ds.ContentQualification = "RESEARCH"
@@ -1336,13 +1343,13 @@ def write_xray(
         ):
             raise ValueError("frames of one XA run must share size, SID, SOD and pixel spacing")
     kind = getattr(first, "kind", "exposure")
-    study = UID(study_uid) if study_uid else _uid(uid_seed, "study")
+    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
     ds = _base(
         XRayAngiographicImageStorage,
         "XA",
         study_uid=study,
-        series_uid=_uid(uid_seed, "xa series", kind, len(frames)),
-        instance_uid=_uid(uid_seed, "xa instance", kind, len(frames)),
+        series_uid=make_uid(uid_seed, "xa series", kind, len(frames)),
+        instance_uid=make_uid(uid_seed, "xa instance", kind, len(frames)),
         series_number=10,
         description=(description or f"roadmap3d {kind}")[:64],
         patient_name=patient_name,
