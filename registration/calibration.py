@@ -516,6 +516,7 @@ def calibrate_view(
     phantom: Dodecahedron | None = None,
     mask: ArrayLike | None = None,
     gate_mm: float = 12.0,
+    max_rms_px: float = 0.5,
 ) -> ViewCalibration:
     """Estimate a view's true geometry from its image of the dodecahedron phantom.
 
@@ -525,7 +526,8 @@ def calibrate_view(
     (``scipy.optimize.least_squares``) minimising the reprojection error in pixels with a weak
     prior toward the nominal geometry. Matches off by more than 3 x the median residual (and
     > 0.5 px) are dropped and the fit repeated once. Raises ValueError when fewer than seven
-    spheres can be used (the fit would be under-determined).
+    spheres can be used (the fit would be under-determined) or when the final reprojection
+    RMS exceeds ``max_rms_px`` (the blobs are not the phantom's spheres).
     """
     phantom = phantom or Dodecahedron()
     img = np.asarray(image, dtype=np.float64)
@@ -561,10 +563,16 @@ def calibrate_view(
         vi, di, observed = vi[~bad], di[~bad], observed[~bad]
     geom = with_deviation(nominal, x)
     err = np.linalg.norm(geom.project(vertices[vi]) - observed, axis=1)
+    rms = float(np.sqrt(np.mean(err**2)))
+    if rms > max_rms_px:
+        raise ValueError(
+            f"calibration failed: reprojection RMS {rms:.2f} px over {vi.size} spheres exceeds "
+            f"{max_rms_px} px (is this an image of the dodecahedron phantom?)"
+        )
     marker = bool(det.areas_px.size and 0 in vi and di[list(vi).index(0)] == int(np.argmax(det.areas_px)))
     return ViewCalibration(
         geometry=geom,
-        rms_px=float(np.sqrt(np.mean(err**2))),
+        rms_px=rms,
         spheres_used=int(vi.size),
         detected=det,
         vertex_index=vi,
@@ -701,6 +709,12 @@ class CalibrationTable:
         Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
 
 
+def _view_seed(seed: int, primary_deg: float, secondary_deg: float) -> int:
+    """Noise seed of a calibration view: fixed by the angles, whatever grid it belongs to."""
+    key = [int(seed), int(round(primary_deg * 1000)) % 2**31, int(round(secondary_deg * 1000)) % 2**31]
+    return int(np.random.SeedSequence(key).generate_state(1)[0])
+
+
 def build_calibration_table(
     bending: BendingModel | None = None,
     *,
@@ -720,7 +734,7 @@ def build_calibration_table(
     for i, a in enumerate(p):
         for j, b in enumerate(s):
             true = bending.true_geometry(calibration_geometry(a, b))
-            result = calibrate_true_view(true, phantom=phantom, seed=seed * 100003 + i * 101 + j)
+            result = calibrate_true_view(true, phantom=phantom, seed=_view_seed(seed, a, b))
             dev[i, j] = result.deviation
             rms.append(result.rms_px)
     meta = {
