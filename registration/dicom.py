@@ -164,12 +164,16 @@ def read_dataset(path: str | os.PathLike[str], *, stop_before_pixels: bool = Fal
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
-                return pydicom.dcmread(path, stop_before_pixels=stop_before_pixels)
+                ds = pydicom.dcmread(path, stop_before_pixels=stop_before_pixels)
             except InvalidDicomError:
                 ds = pydicom.dcmread(path, stop_before_pixels=stop_before_pixels, force=True)
                 if "SOPClassUID" not in ds or not ("PixelData" in ds or stop_before_pixels):
                     raise DicomError(path, "not a DICOM file (no 'DICM' preamble, no image)") from None
-                return ds
+            # pydicom converts values lazily: convert them all now, so a corrupt value fails
+            # here with a message instead of later in some attribute access.
+            for _ in ds.iterall():
+                pass
+            return ds
     except DicomError:
         raise
     except PermissionError:
@@ -463,7 +467,7 @@ def _check_volume_modality(path: Path, ds: Dataset) -> None:
     if sop in XRAY_CLASSES:
         raise DicomError(
             path,
-            f"is a {XRAY_CLASSES[sop]} projection image ({tag_name('SOPClassUID')}), not a volume: "
+            f"is an {XRAY_CLASSES[sop]} projection image ({tag_name('SOPClassUID')}), not a volume: "
             "give it as the X-ray image (--image)",
         )
     if sop in ENHANCED_VOLUME_CLASSES or sop == CTImageStorage:
