@@ -24,15 +24,17 @@ X-ray images (CONVENTIONS §3, §5)
     ``m = RescaleSlope * stored + RescaleIntercept`` (slope 1, intercept 0 when absent) and
     ``m_max`` the largest representable ``m`` (from BitsStored):
 
-    * LOG, sign -1: ``attenuation = m / LOG_UNITS_PER_ATTENUATION``
+    * LOG, sign -1: ``attenuation = (m - LOG_ZERO_VALUE) / LOG_UNITS_PER_ATTENUATION``
     * LOG, sign +1: ``attenuation = (m_max - m) / LOG_UNITS_PER_ATTENUATION``
     * LIN, sign +1: intensity ``I = m``; LIN, sign -1: ``I = m_max - m``;
       ``attenuation = ln(I_ref / max(I, 1))`` with ``I_ref`` the largest ``I`` in the field.
 
     (DISP, or a missing relationship, is read as LOG with a warning.) The project writes
-    LOG, sign -1, 16-bit unsigned pixels ``round(LOG_UNITS_PER_ATTENUATION * attenuation)``
-    clipped to 0..65534, and the value 65535 outside the collimated field (no X-ray intensity
-    behind the collimator), so its files read back within 0.5 / LOG_UNITS_PER_ATTENUATION.
+    LOG, sign -1, 16-bit unsigned pixels
+    ``LOG_ZERO_VALUE + round(LOG_UNITS_PER_ATTENUATION * attenuation)`` clipped to 0..65534
+    (attenuation -1 .. 64.5: the quantum noise of air, slightly below zero, survives), and
+    65535 outside the collimated field (no X-ray intensity behind the collimator), so its
+    files read back within 0.5 / LOG_UNITS_PER_ATTENUATION.
     For other software's LOG images the scale of the logarithm is not stored in DICOM; the
     result is then attenuation in units of 1/1000 of a stored step, which the similarity
     measure (gradient difference fits an intensity scale) does not mind.
@@ -97,6 +99,8 @@ if TYPE_CHECKING:
 
 #: Stored LOG pixel steps per unit of attenuation line integral (see the module docstring).
 LOG_UNITS_PER_ATTENUATION = 1000.0
+#: The stored LOG value (sign -1) of zero attenuation: room for noise below zero.
+LOG_ZERO_VALUE = 1000
 #: The stored value written outside the collimated field (LOG, sign -1: no intensity).
 NO_SIGNAL_VALUE = 65535
 
@@ -249,9 +253,7 @@ def _floats(
     return out
 
 
-def _float(
-    path: Path, ds: Dataset, keyword: str, frame: int | None = None, *, default: float | None = None
-) -> float:
+def _float(path: Path, ds: Dataset, keyword: str, frame: int | None = None, *, default: float | None = None) -> float:
     values = _floats(path, ds, keyword, None, frame, required=default is None)
     if values is None:
         assert default is not None
@@ -335,9 +337,7 @@ def _pixels(path: Path, ds: Dataset, index: int | None = None) -> NDArray[Any]:
             hint = "; compressed pixel data needs a decoder (pip install pylibjpeg pylibjpeg-libjpeg)"
         else:
             hint = ""
-        raise DicomError(
-            path, f"cannot decode {tag_name('PixelData')} in {what}: {_short(exc)}{hint}"
-        ) from None
+        raise DicomError(path, f"cannot decode {tag_name('PixelData')} in {what}: {_short(exc)}{hint}") from None
     return np.asarray(arr)
 
 
@@ -371,9 +371,7 @@ def _orientation(path: Path, values: list[float]) -> Array:
     iop = np.asarray(values, dtype=np.float64)
     row, col = iop[:3], iop[3:]
     if abs(np.linalg.norm(row) - 1) > 1e-3 or abs(np.linalg.norm(col) - 1) > 1e-3 or abs(row @ col) > 1e-3:
-        raise DicomError(
-            path, f"{tag_name('ImageOrientationPatient')} is not two orthogonal unit vectors: {values}"
-        )
+        raise DicomError(path, f"{tag_name('ImageOrientationPatient')} is not two orthogonal unit vectors: {values}")
     row = row / np.linalg.norm(row)
     col = col - (col @ row) * row
     return np.concatenate([row, col / np.linalg.norm(col)])
@@ -432,9 +430,7 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
     first = slices[0].position
     offsets = np.array([s.position - first for s in slices])
     lateral = offsets - np.outer(along - along[0], normal)
-    if np.max(np.linalg.norm(lateral, axis=1)) > POSITION_TOLERANCE_MM + SPACING_TOLERANCE * (
-        along[-1] - along[0]
-    ):
+    if np.max(np.linalg.norm(lateral, axis=1)) > POSITION_TOLERANCE_MM + SPACING_TOLERANCE * (along[-1] - along[0]):
         tilt = math.degrees(math.atan2(float(np.linalg.norm(lateral[-1])), float(along[-1] - along[0])))
         raise DicomError(
             source,
@@ -509,8 +505,7 @@ def _enhanced_volume(path: Path, ds: Dataset, *, label: str | None) -> Volume:
     if "PerFrameFunctionalGroupsSequence" not in ds and "SharedFunctionalGroupsSequence" not in ds:
         raise DicomError(
             path,
-            f"multi-frame file without {tag_name('PerFrameFunctionalGroupsSequence')}: the slice positions "
-            "are unknown",
+            f"multi-frame file without {tag_name('PerFrameFunctionalGroupsSequence')}: the slice positions are unknown",
         )
     per_frame = ds.get("PerFrameFunctionalGroupsSequence") or []
     if len(per_frame) not in (0, frames):
@@ -656,9 +651,7 @@ def read_npz(path: str | os.PathLike[str]) -> Volume:
     except Exception as exc:
         raise DicomError(path, f"not a readable .npz volume ({type(exc).__name__}: {_short(exc)})") from None
     try:
-        return Volume(
-            data=data, index_to_world=affine, label=label, meta={"source": str(path), "format": "npz"}
-        )
+        return Volume(data=data, index_to_world=affine, label=label, meta={"source": str(path), "format": "npz"})
     except ValueError as exc:
         raise DicomError(path, str(exc)) from None
 
@@ -720,8 +713,7 @@ def _frame_angles(path: Path, ds: Dataset, frame: int, frames: int) -> tuple[flo
             else:
                 raise DicomError(
                     path,
-                    f"{tag_name(keyword)} holds {len(inc)} values for {frames} frames "
-                    f"(1 or {frames} expected)",
+                    f"{tag_name(keyword)} holds {len(inc)} values for {frames} frames (1 or {frames} expected)",
                 )
             if which == 0:
                 primary = angle
@@ -798,28 +790,23 @@ def _intensity_to_attenuation(
         relationship = "LOG"
     if sign_value is None or sign_value == "":
         sign = 1
-        warnings.warn(
-            f"{path}: missing {tag_name('PixelIntensityRelationshipSign')}; assuming +1", stacklevel=3
-        )
+        warnings.warn(f"{path}: missing {tag_name('PixelIntensityRelationshipSign')}; assuming +1", stacklevel=3)
     else:
         try:
             sign = int(sign_value)
         except (TypeError, ValueError):
             raise DicomError(
                 path,
-                f"{tag_name('PixelIntensityRelationshipSign')} must be +1 or -1, got "
-                f"{str(sign_value)[:20]!r}",
+                f"{tag_name('PixelIntensityRelationshipSign')} must be +1 or -1, got {str(sign_value)[:20]!r}",
             ) from None
         if sign not in (1, -1):
-            raise DicomError(
-                path, f"{tag_name('PixelIntensityRelationshipSign')} must be +1 or -1, got {sign}"
-            )
+            raise DicomError(path, f"{tag_name('PixelIntensityRelationshipSign')} must be +1 or -1, got {sign}")
     slope = _float(path, ds, "RescaleSlope", frame, default=1.0)
     intercept = _float(path, ds, "RescaleIntercept", frame, default=0.0)
     m = stored.astype(np.float64) * slope + intercept
     m_max = _max_stored(ds) * slope + intercept
     if relationship == "LOG":
-        att = (m if sign == -1 else m_max - m) / LOG_UNITS_PER_ATTENUATION
+        att = (m - LOG_ZERO_VALUE if sign == -1 else m_max - m) / LOG_UNITS_PER_ATTENUATION
     else:
         intensity = m if sign == 1 else m_max - m
         inside = intensity[field] if field.any() else intensity
@@ -892,19 +879,23 @@ def _field_rotation(path: Path, ds: Dataset, image: NDArray[Any]) -> tuple[NDArr
     return np.ascontiguousarray(image), note
 
 
-def _xray_kind(ds: Dataset, kind: str | None) -> str:
+def _xray_kind(ds: Dataset, kind: str | None) -> tuple[str, str]:
+    """The XRayImage kind and the acquisition type guessed from the header."""
+    from registration.xray import IMAGE_KINDS
+
+    if _text(ds, "Modality").upper() == "RF" or "FLUORO" in _text(ds, "ImageType").upper():
+        acquisition = "fluoro"
+    else:
+        acquisition = "exposure"
     if kind is not None:
-        if kind not in ("fluoro", "exposure"):
-            raise ValueError(f"kind must be 'fluoro' or 'exposure', got {kind!r}")
-        return kind
+        if kind not in IMAGE_KINDS:
+            raise ValueError(f"kind must be one of {IMAGE_KINDS}, got {kind!r}")
+        return kind, acquisition
     comments = (_text(ds, "ImageComments") + " " + _text(ds, "SeriesDescription")).lower()
-    if "roadmap3d exposure" in comments:
-        return "exposure"
-    if "roadmap3d fluoro" in comments:
-        return "fluoro"
-    if "FLUORO" in _text(ds, "ImageType").upper() or _text(ds, "Modality").upper() == "RF":
-        return "fluoro"
-    return "exposure"
+    for name in IMAGE_KINDS:
+        if f"roadmap3d {name}" in comments:  # written by the project
+            return name, name
+    return "dicom", acquisition
 
 
 def read_xray(
@@ -950,14 +941,10 @@ def read_xray(
     if stored.ndim == 3 and stored.shape[0] == 1:
         stored = stored[0]
     if stored.shape != (rows, cols):
-        raise DicomError(
-            path, f"{tag_name('PixelData')} decodes to shape {stored.shape}, expected {rows}x{cols}"
-        )
+        raise DicomError(path, f"{tag_name('PixelData')} decodes to shape {stored.shape}, expected {rows}x{cols}")
     stored, rotation_note = _field_rotation(path, ds, stored)
     rows, cols = stored.shape
-    geometry, geo_info = _geometry(
-        path, ds, frame, frames, rows, cols, (float(iso[0]), float(iso[1]), float(iso[2]))
-    )
+    geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, (float(iso[0]), float(iso[1]), float(iso[2])))
     shutter = None if rotation_note else _shutter_mask(path, ds, rows, cols)
     border = _border_mask(stored)
     if shutter is None and border is None:
@@ -995,7 +982,8 @@ def read_xray(
     if rotation_note:
         meta["field_rotation"] = rotation_note
     try:
-        return XRayImage(image=image, mask=mask, geometry=geometry, kind=_xray_kind(ds, kind), meta=meta)
+        image_kind, meta["acquisition"] = _xray_kind(ds, kind)
+        return XRayImage(image=image, mask=mask, geometry=geometry, kind=image_kind, meta=meta)
     except ValueError as exc:
         raise DicomError(path, str(exc)) from None
 
@@ -1306,10 +1294,8 @@ def write_npz(volume: Volume, path: str | os.PathLike[str]) -> Path:
 
 
 def _encode_attenuation(image: NDArray[Any], mask: NDArray[np.bool_]) -> NDArray[np.uint16]:
-    stored = np.clip(
-        np.rint(np.asarray(image, dtype=np.float64) * LOG_UNITS_PER_ATTENUATION), 0, NO_SIGNAL_VALUE - 1
-    )
-    stored = np.where(mask, stored, NO_SIGNAL_VALUE)
+    scaled = np.rint(np.asarray(image, dtype=np.float64) * LOG_UNITS_PER_ATTENUATION) + LOG_ZERO_VALUE
+    stored = np.where(mask, np.clip(scaled, 0, NO_SIGNAL_VALUE - 1), NO_SIGNAL_VALUE)
     return stored.astype(np.uint16)
 
 
@@ -1362,12 +1348,12 @@ def write_xray(
     ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
     ds.InstanceNumber = 1
     ds.ImageComments = (
-        f"roadmap3d {kind}: attenuation line integral = stored value / {LOG_UNITS_PER_ATTENUATION:g} "
-        f"(LOG, sign -1); {NO_SIGNAL_VALUE} outside the field"
+        f"roadmap3d {kind}: attenuation line integral = (stored value - {LOG_ZERO_VALUE}) / "
+        f"{LOG_UNITS_PER_ATTENUATION:g} (LOG, sign -1); {NO_SIGNAL_VALUE} outside the field"
     )
     ds.AcquisitionDateTime = datetime.now(UTC).strftime("%Y%m%d%H%M%S")
     ds.KVP = "80"
-    ds.RadiationSetting = "GR" if kind == "exposure" else "SC"
+    ds.RadiationSetting = "SC" if kind == "fluoro" else "GR"
     ds.PositionerPrimaryAngle = _ds_number(g0.primary_deg)
     ds.PositionerSecondaryAngle = _ds_number(g0.secondary_deg)
     ds.DistanceSourceToDetector = _ds_number(g0.sid_mm)
@@ -1386,9 +1372,7 @@ def write_xray(
             tag_for_keyword("PositionerPrimaryAngleIncrement"),
             tag_for_keyword("PositionerSecondaryAngleIncrement"),
         ]
-        ds.PositionerPrimaryAngleIncrement = [
-            _ds_number(img.geometry.primary_deg - g0.primary_deg) for img in frames
-        ]
+        ds.PositionerPrimaryAngleIncrement = [_ds_number(img.geometry.primary_deg - g0.primary_deg) for img in frames]
         ds.PositionerSecondaryAngleIncrement = [
             _ds_number(img.geometry.secondary_deg - g0.secondary_deg) for img in frames
         ]
@@ -1563,9 +1547,7 @@ def unpack_upload(
                 target.mkdir(mode=0o700, parents=True, exist_ok=True)
                 continue
             if member.compress_size > 0 and member.file_size / member.compress_size > max_ratio:
-                raise UploadError(
-                    f"refused archive member {member.filename!r}: compression ratio above {max_ratio:g}"
-                )
+                raise UploadError(f"refused archive member {member.filename!r}: compression ratio above {max_ratio:g}")
             target.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
             if not target.parent.resolve().is_relative_to(root):
                 raise UploadError(f"refused archive member {member.filename!r}: leaves the upload folder")
@@ -1621,9 +1603,7 @@ def classify_upload(folder: str | os.PathLike[str]) -> dict[str, Path | None]:
     volume: Path | None = npz
     if volume is None and volume_files:
         parents = {p.parent for p in volume_files}
-        volume = (
-            volume_files[0] if len(volume_files) == 1 else (parents.pop() if len(parents) == 1 else folder)
-        )
+        volume = volume_files[0] if len(volume_files) == 1 else (parents.pop() if len(parents) == 1 else folder)
     return {"volume": volume, "image": xray}
 
 

@@ -33,8 +33,7 @@ from registration import dicom
 from registration.dicom import DicomError, UploadError
 from registration.geometry import CArm, rotation_x, rotation_z
 from registration.volume import Volume
-
-XRayImage = pytest.importorskip("registration.xray").XRayImage
+from registration.xray import XRayImage
 
 # DS strings keep ~16 significant characters: positions in mm read back to ~1e-9 relative.
 AFFINE_TOL = 1e-6
@@ -343,8 +342,9 @@ def test_xa_log_and_lin_intensities(tmp_path: Path) -> None:
     stored = np.rint(4095 - 1000 * attenuation)
     img = dicom.read_xray(xa_file(tmp_path / "log.dcm", stored, relationship="LOG", sign=1))
     np.testing.assert_allclose(img.image, attenuation, atol=0.5e-3 + 1e-6)
-    # LOG, sign -1: stored = 1000 * attenuation.
-    img = dicom.read_xray(xa_file(tmp_path / "logm.dcm", np.rint(1000 * attenuation), relationship="LOG", sign=-1))
+    # LOG, sign -1: stored = 1000 + 1000 * attenuation.
+    stored = np.rint(1000 + 1000 * attenuation)
+    img = dicom.read_xray(xa_file(tmp_path / "logm.dcm", stored, relationship="LOG", sign=-1))
     np.testing.assert_allclose(img.image, attenuation, atol=0.5e-3 + 1e-6)
     # LIN, sign +1: stored proportional to intensity; attenuation relative to the brightest pixel.
     intensity = 4000.0 * np.exp(-attenuation)
@@ -416,7 +416,7 @@ def test_multiframe_angles_from_increments(tmp_path: Path) -> None:
 
 def _xray(geometry: CArm, seed: int = 0, kind: str = "fluoro") -> XRayImage:
     rng = np.random.default_rng(seed)
-    image = rng.uniform(0.0, 6.0, (geometry.rows, geometry.cols)).astype(np.float32)
+    image = rng.uniform(-0.5, 6.0, (geometry.rows, geometry.cols)).astype(np.float32)
     mask = geometry.field_mask()
     return XRayImage(
         image=np.where(mask, image, 0).astype(np.float32), mask=mask, geometry=geometry, kind=kind, meta={}
