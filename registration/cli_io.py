@@ -116,11 +116,6 @@ def run_register(
     iso = parse_isocenter(isocenter)
     if out is not None and Path(out).is_dir():
         raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        vol = dicom.read_volume(volume)
-        xray = dicom.read_xray(image, frame=frame, isocenter_mm=iso)
-    _show_warnings(caught)
     m_init = None
     if initial_motion is not None:
         m_init, _ = read_motion_json(initial_motion, what="initial motion")
@@ -128,10 +123,17 @@ def run_register(
     vessel_points = None
     if truth is not None:
         m_true, truth_doc = read_motion_json(truth, what="truth")
-        if "vessel_points_mm" in truth_doc:
-            pts = np.asarray(truth_doc["vessel_points_mm"], dtype=np.float64)
-            if pts.ndim == 2 and pts.shape[1] == 3 and np.all(np.isfinite(pts)):
-                vessel_points = pts
+        try:
+            pts = np.asarray(truth_doc.get("vessel_points_mm", []), dtype=np.float64)
+        except (TypeError, ValueError):
+            pts = np.zeros((0, 3))
+        if pts.ndim == 2 and pts.shape[1] == 3 and len(pts) and np.all(np.isfinite(pts)):
+            vessel_points = pts
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vol = dicom.read_volume(volume)
+        xray = dicom.read_xray(image, frame=frame, isocenter_mm=iso)
+    _show_warnings(caught)
 
     from registration.register import register
 

@@ -1064,6 +1064,12 @@ def _save(ds: Dataset, path: Path) -> None:
     ds.save_as(path, enforce_file_format=True)
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextmanager
 def _atomic_path(path: Path) -> Iterator[Path]:
     """A temporary sibling of ``path`` renamed onto it when the block succeeds."""
@@ -1071,6 +1077,7 @@ def _atomic_path(path: Path) -> Iterator[Path]:
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp_name)
+    tmp.chmod(0o666 & ~_umask())  # mkstemp makes it private; the result gets the usual mode
     try:
         yield tmp
         os.replace(tmp, path)
@@ -1090,6 +1097,7 @@ def atomic_folder(folder: str | os.PathLike[str]) -> Iterator[Path]:
             raise ValueError(f"{folder}: exists and is not empty; refusing to write into it")
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    tmp.chmod(0o777 & ~_umask())
     try:
         yield tmp
         if folder.exists():
@@ -1608,15 +1616,37 @@ def classify_upload(folder: str | os.PathLike[str]) -> dict[str, Path | None]:
 
 
 def json_dumps(data: Any) -> str:
-    """JSON with numpy values converted (for result and truth files)."""
+    """Indented JSON with numpy values converted and each list of numbers on one line."""
 
-    def default(obj: Any) -> Any:
+    def plain(obj: Any) -> Any:
+        if isinstance(obj, dict):
+            return {str(k): plain(v) for k, v in obj.items()}
+        if isinstance(obj, (list, tuple)):
+            return [plain(v) for v in obj]
         if isinstance(obj, np.ndarray):
-            return obj.tolist()
+            return plain(obj.tolist())
         if isinstance(obj, (np.floating, np.integer, np.bool_)):
             return obj.item()
         if isinstance(obj, Path):
             return str(obj)
-        raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+        return obj
 
-    return json.dumps(data, indent=2, default=default) + "\n"
+    def flat(obj: Any) -> bool:
+        return isinstance(obj, list) and all(
+            isinstance(v, (int, float, bool, str)) or v is None or (isinstance(v, list) and flat(v) and len(v) <= 4)
+            for v in obj
+        )
+
+    def dump(obj: Any, level: int) -> str:
+        pad, inner = "  " * level, "  " * (level + 1)
+        if isinstance(obj, dict) and obj:
+            items = [f"{inner}{json.dumps(k)}: {dump(v, level + 1)}" for k, v in obj.items()]
+            return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+        if isinstance(obj, list) and obj and not flat(obj):
+            return "[\n" + ",\n".join(inner + dump(v, level + 1) for v in obj) + "\n" + pad + "]"
+        if isinstance(obj, list) and obj and isinstance(obj[0], list):
+            rows = [json.dumps(v) for v in obj]
+            return "[" + (",\n" + inner).join(rows) + "]"
+        return json.dumps(obj)
+
+    return dump(plain(data), 0) + "\n"
