@@ -164,6 +164,8 @@ def read_dataset(path: str | os.PathLike[str], *, stop_before_pixels: bool = Fal
         raise DicomError(path, "no such file or folder")
     if path.is_dir():
         raise DicomError(path, "is a folder, expected a DICOM file")
+    if not path.is_file():
+        raise DicomError(path, "not a regular file")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -216,6 +216,18 @@ def test_volume_round_trip(tmp_path: Path, writer: str) -> None:
     assert back.label == vol.label
 
 
+def test_left_handed_volume_is_written_in_position_order(tmp_path: Path) -> None:
+    # k runs toward the feet while row x column points to the head: the reader sorts along
+    # the normal, so k comes back reversed, with the same world position of every voxel.
+    data = np.arange(4 * 3 * 2, dtype=np.float32).reshape(4, 3, 2)
+    affine = np.diag([1.0, 1.5, -2.0, 1.0])
+    dicom.write_series(Volume(data, affine), tmp_path / "s")
+    back = dicom.read_volume(tmp_path / "s")
+    np.testing.assert_array_equal(back.data, data[::-1])
+    for i, j, k in [(0, 0, 0), (1, 2, 3), (1, 0, 2)]:
+        np.testing.assert_allclose(back.index_to_world @ [i, j, 3 - k, 1], affine @ [i, j, k, 1], atol=1e-9)
+
+
 def test_written_series_is_a_plain_ct_series(tmp_path: Path) -> None:
     vol = oblique_volume()
     files = dicom.write_series(vol, tmp_path / "s")
@@ -414,6 +426,59 @@ def test_multiframe_angles_from_increments(tmp_path: Path) -> None:
         dicom.read_xray(bad, frame=1)
 
 
+def test_enhanced_xa_per_frame_angles(tmp_path: Path) -> None:
+    # Enhanced XA keeps geometry in functional groups: distances and spacing shared, angles per frame.
+    from pydicom.sequence import Sequence
+    from pydicom.uid import EnhancedXAImageStorage
+
+    ds = Dataset()
+    ds.SOPClassUID = EnhancedXAImageStorage
+    ds.SOPInstanceUID = generate_uid()
+    ds.Modality = "XA"
+    ds.NumberOfFrames = 3
+    shared = Dataset()
+    geometry_item = Dataset()
+    geometry_item.DistanceSourceToIsocenter = 785.0
+    geometry_item.DistanceSourceToDetector = "1195"
+    shared.XRayGeometrySequence = Sequence([geometry_item])
+    ds.ImagerPixelSpacing = ["0.3", "0.3"]
+    ds.SharedFunctionalGroupsSequence = Sequence([shared])
+    frames = []
+    for n in range(3):
+        item, position = Dataset(), Dataset()
+        position.PositionerPrimaryAngle = str(-40.0 + 40.0 * n)
+        position.PositionerSecondaryAngle = str(5.0 * n)
+        item.PositionerPositionSequence = Sequence([position])
+        frames.append(item)
+    ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
+    ds.PixelIntensityRelationship = "LOG"
+    ds.PixelIntensityRelationshipSign = 1
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.Rows = ds.Columns = 8
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds.PixelData = ramp((3, 8, 8)).tobytes()
+    path = _save(ds, tmp_path / "exa.dcm", EnhancedXAImageStorage)
+    assert dicom.read_xray_angles(path) == [(-40.0, 0.0), (0.0, 5.0), (40.0, 10.0)]
+    img = dicom.read_xray(path, frame=2)
+    g = img.geometry
+    assert (g.primary_deg, g.secondary_deg, g.sid_mm, g.sod_mm, g.pixel_mm) == (40.0, 10.0, 1195.0, 785.0, (0.3, 0.3))
+    assert img.meta["format"] == "enhanced XA"
+
+
+def test_field_of_view_rotation_is_undone(tmp_path: Path) -> None:
+    stored = ramp((6, 6))
+    path = xa_file(tmp_path / "rot.dcm", stored)
+    ds = pydicom.dcmread(path)
+    ds.FieldOfViewRotation = "90"
+    ds.FieldOfViewHorizontalFlip = "YES"
+    ds.save_as(path)
+    with pytest.warns(UserWarning, match="FieldOfViewRotation"):
+        img = dicom.read_xray(path)
+    expected = (4095 - np.rot90(stored[:, ::-1], k=1).astype(np.float64)) / dicom.LOG_UNITS_PER_ATTENUATION
+    np.testing.assert_allclose(img.image, expected, atol=1e-6)
+
+
 def _xray(geometry: CArm, seed: int = 0, kind: str = "fluoro") -> XRayImage:
     rng = np.random.default_rng(seed)
     image = rng.uniform(-0.5, 6.0, (geometry.rows, geometry.cols)).astype(np.float32)
@@ -460,6 +525,8 @@ def test_inspect_reports_and_never_raises(tmp_path: Path) -> None:
     assert not report["accepted"] and "wrong modality" in report["problem"]
     report = dicom.inspect(tmp_path / "nothing")
     assert not report["accepted"]
+    report = dicom.inspect("/dev/null")
+    assert not report["accepted"] and "regular file" in report["problem"]
 
 
 # --------------------------------------------------------------------------------------
