@@ -185,6 +185,10 @@ def _print_info(report: dict[str, Any]) -> None:
                 f"SID {g['sid_mm']:.1f} mm, SOD {g['sod_mm']:.1f} mm, {g['cols']}x{g['rows']} px of "
                 f"{g['pixel_mm'][1]:.4g}x{g['pixel_mm'][0]:.4g} mm, iso-center {g['isocenter_mm']}"
             )
+        elif key == "header" and isinstance(value, dict):
+            _say(f"{'header':>18}:")
+            for tag, text in value.items():
+                _say(f"{tag:>32}  {text[:80]}")
         elif key == "index_to_world":
             rows = ["[" + ", ".join(f"{v:9.4f}" for v in row) + "]" for row in value]
             _say(f"{'index_to_world':>18}: {rows[0]}")
@@ -194,8 +198,6 @@ def _print_info(report: dict[str, Any]) -> None:
             _say(f"{key:>18}: {value}")
     for message in report.get("warnings", []):
         _say(f"{'warning':>18}: {message}")
-    if not report.get("accepted"):
-        _say(f"{'not accepted':>18}: {report.get('problem')}")
 
 
 def run_info(path: Path, *, as_json: bool = False) -> int:

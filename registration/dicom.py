@@ -1415,10 +1415,32 @@ def _range(values: NDArray[Any]) -> list[float]:
     return [float(np.min(values)), float(np.max(values))] if values.size else []
 
 
+#: Header tags that ``inspect`` shows when present (what the readers look at).
+HEADER_TAGS = (
+    "Rows",
+    "Columns",
+    "NumberOfFrames",
+    "PixelSpacing",
+    "ImagerPixelSpacing",
+    "ImagePositionPatient",
+    "ImageOrientationPatient",
+    "RescaleSlope",
+    "RescaleIntercept",
+    "PositionerPrimaryAngle",
+    "PositionerSecondaryAngle",
+    "DistanceSourceToDetector",
+    "DistanceSourceToPatient",
+    "PixelIntensityRelationship",
+    "PixelIntensityRelationshipSign",
+    "ShutterShape",
+)
+
+
 def inspect(path: str | os.PathLike[str]) -> dict[str, Any]:
     """What the project reads from ``path``: kind, geometry, shape, spacing, value range.
 
-    Never raises for bad input: the result says ``accepted: False`` and gives the ``problem``.
+    Never raises for bad input: the result says ``accepted: False`` and gives the ``problem``;
+    for a DICOM file the ``header`` entry lists the tags the readers look at.
     """
     path = Path(path)
     out: dict[str, Any] = {"path": str(path)}
@@ -1431,6 +1453,9 @@ def inspect(path: str | os.PathLike[str]) -> dict[str, Any]:
                 ds = read_dataset(path, stop_before_pixels=True)
                 out["sop_class"] = UID(_sop_class(ds)).name if _sop_class(ds) else ""
                 out["modality"] = _text(ds, "Modality")
+                ts = _transfer_syntax(ds)
+                out["transfer_syntax"] = ts.name if ts is not None else ""
+                out["header"] = {k: _text(ds, k) for k in HEADER_TAGS if _text(ds, k)}
                 if _is_xray(ds):
                     out.update(_inspect_xray(path, ds))
                 else:
@@ -1453,27 +1478,28 @@ def _inspect_volume(volume: Volume) -> dict[str, Any]:
         "spacing_mm_ijk": [round(float(s), 6) for s in volume.spacing_mm],
         "index_to_world": np.round(volume.index_to_world, 6).tolist(),
         "center_mm": [round(float(c), 3) for c in volume.center_mm],
-        "value_range_hu": _range(volume.data),
+        "value_range_hu": [round(v, 1) for v in _range(volume.data)],
     }
 
 
 def _inspect_xray(path: Path, header: Dataset) -> dict[str, Any]:
     frames = _frames(path, header)
-    angles = read_xray_angles(path)
     image = read_xray(path, frame=0)
+    sign = image.meta.get("pixel_intensity_relationship_sign")
     out: dict[str, Any] = {
         "kind": "xray",
         "format": image.meta.get("format", ""),
         "image_kind": image.kind,
         "frames": frames,
         "geometry": image.geometry.to_dict(),
-        "angles_deg": [list(a) for a in angles[:10]] + ([["..."]] if frames > 10 else []),
         "field_pixels": int(image.mask.sum()),
         "mask_from": image.meta.get("mask_from"),
-        "pixel_intensity_relationship": image.meta.get("pixel_intensity_relationship"),
-        "pixel_intensity_relationship_sign": image.meta.get("pixel_intensity_relationship_sign"),
-        "attenuation_range": _range(image.image[image.mask]),
+        "intensity": f"{image.meta.get('pixel_intensity_relationship')}, sign {sign:+d}",
+        "attenuation_range": [round(v, 4) for v in _range(image.image[image.mask])],
     }
+    if frames > 1:
+        angles = read_xray_angles(path)
+        out["angles_deg"] = [[round(a, 3), round(b, 3)] for a, b in angles[:12]] + (["..."] if frames > 12 else [])
     return out
 
 
