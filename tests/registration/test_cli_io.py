@@ -138,7 +138,7 @@ def test_info(exported: Path, capsys) -> None:
     report = json.loads(out)
     assert code == 0 and report["kind"] == "volume" and report["shape_kji"] == [128, 128, 128]
     code, out, err = run(["info", get_testdata_file("MR_small.dcm")], capsys)
-    assert code == 2 and "accepted: False" in out and "Modality" in out
+    assert code == 2 and "accepted: False" in out and "modality: MR" in out
     assert err.startswith("error: ") and "wrong modality" in err
 
 
