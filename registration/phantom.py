@@ -141,13 +141,13 @@ def _segment_hits_sphere(ox, oy, oz, ex, ey, ez, ee, cx, cy, cz, r):  # pragma: 
 
 @nb.njit(cache=True)
 def _trace(
-    ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes, bsph, groups, gsph, cov_s, cov_e, vis_p, vis_s, vis_e
+    ox, oy, oz, ex, ey, ez, cands, nq, qcen, qmat, npl, planes, bsph, cov_s, cov_e, vis_p, vis_s, vis_e
 ):  # pragma: no cover - jit
     """Painter's algorithm along one segment o + t e, t in [0, 1].
 
-    Primitives are visited newest first; each contributes only where no newer primitive
-    already covers the segment. Writes the visible pieces (primitive, t_start, t_end) and
-    returns their count.
+    ``cands`` lists the primitives that may meet the segment, oldest first; they are visited
+    newest first and each contributes only where no newer primitive already covers the
+    segment. Writes the visible pieces (primitive, t_start, t_end); returns their count.
     """
     ee = ex * ex + ey * ey + ez * ez
     nc = 0
@@ -156,70 +156,66 @@ def _trace(
     vcap = vis_p.shape[0]
     if ee <= 0.0:
         return 0
-    for g in range(groups.shape[0] - 1, -1, -1):
+    for ci in range(cands.shape[0] - 1, -1, -1):
+        p = cands[ci]
         if not _segment_hits_sphere(
-            ox, oy, oz, ex, ey, ez, ee, gsph[g, 0], gsph[g, 1], gsph[g, 2], gsph[g, 3]
+            ox, oy, oz, ex, ey, ez, ee, bsph[p, 0], bsph[p, 1], bsph[p, 2], bsph[p, 3]
         ):
             continue
-        for p in range(groups[g, 1] - 1, groups[g, 0] - 1, -1):
-            if not _segment_hits_sphere(
-                ox, oy, oz, ex, ey, ez, ee, bsph[p, 0], bsph[p, 1], bsph[p, 2], bsph[p, 3]
-            ):
+        a, b = _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes)
+        if b <= a:
+            continue
+        # visible gaps of [a, b] between the sorted, disjoint covered intervals
+        cur = a
+        for c in range(nc):
+            if cov_e[c] <= cur:
                 continue
-            a, b = _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes)
-            if b <= a:
-                continue
-            # visible gaps of [a, b] between the sorted, disjoint covered intervals
-            cur = a
-            for c in range(nc):
-                if cov_e[c] <= cur:
-                    continue
-                if cov_s[c] >= b:
-                    break
-                if cov_s[c] > cur and nv < vcap:
-                    vis_p[nv] = p
-                    vis_s[nv] = cur
-                    vis_e[nv] = cov_s[c]
-                    nv += 1
-                cur = max(cur, cov_e[c])
-                if cur >= b:
-                    break
-            if cur < b and nv < vcap:
+            if cov_s[c] >= b:
+                break
+            if cov_s[c] > cur and nv < vcap:
                 vis_p[nv] = p
                 vis_s[nv] = cur
-                vis_e[nv] = b
+                vis_e[nv] = cov_s[c]
                 nv += 1
-            # insert [a, b] into the covered set, merging overlaps
-            lo = 0
-            while lo < nc and cov_e[lo] < a:
-                lo += 1
-            hi = lo
-            na = a
-            nb_ = b
-            while hi < nc and cov_s[hi] <= b:
-                na = min(na, cov_s[hi])
-                nb_ = max(nb_, cov_e[hi])
-                hi += 1
-            removed = hi - lo
-            if removed == 0:
-                if nc < cap:
-                    for c in range(nc, lo, -1):
-                        cov_s[c] = cov_s[c - 1]
-                        cov_e[c] = cov_e[c - 1]
-                    cov_s[lo] = na
-                    cov_e[lo] = nb_
-                    nc += 1
-            else:
+            cur = max(cur, cov_e[c])
+            if cur >= b:
+                break
+        if cur < b and nv < vcap:
+            vis_p[nv] = p
+            vis_s[nv] = cur
+            vis_e[nv] = b
+            nv += 1
+        # insert [a, b] into the covered set, merging what it overlaps
+        lo = 0
+        while lo < nc and cov_e[lo] < a:
+            lo += 1
+        hi = lo
+        na = a
+        nb_ = b
+        while hi < nc and cov_s[hi] <= b:
+            na = min(na, cov_s[hi])
+            nb_ = max(nb_, cov_e[hi])
+            hi += 1
+        removed = hi - lo
+        if removed == 0:
+            if nc < cap:
+                for c in range(nc, lo, -1):
+                    cov_s[c] = cov_s[c - 1]
+                    cov_e[c] = cov_e[c - 1]
                 cov_s[lo] = na
                 cov_e[lo] = nb_
-                shift = removed - 1
-                if shift > 0:
-                    for c in range(lo + 1, nc - shift):
-                        cov_s[c] = cov_s[c + shift]
-                        cov_e[c] = cov_e[c + shift]
-                    nc -= shift
-            if nc == 1 and cov_s[0] <= 0.0 and cov_e[0] >= 1.0:
-                return nv  # the whole segment is covered
+                nc += 1
+        else:
+            cov_s[lo] = na
+            cov_e[lo] = nb_
+            shift = removed - 1
+            if shift > 0:
+                for c in range(lo + 1, nc - shift):
+                    cov_s[c] = cov_s[c + shift]
+                    cov_e[c] = cov_e[c + shift]
+                nc -= shift
+        if nc == 1 and cov_s[0] <= 0.0 and cov_e[0] >= 1.0:
+            return nv  # the whole segment is covered
     return nv
 
 
@@ -228,87 +224,81 @@ _SCRATCH = 256  # covered intervals / visible pieces per segment
 
 @nb.njit(cache=True, parallel=True)
 def _line_integrals_kernel(
-    src, dst, nq, qcen, qmat, npl, planes, mu, bsph, groups, gsph
+    src, dst, order, tile_ptr, tile_perm, cand_ptr, cand_idx, nq, qcen, qmat, npl, planes, mu, bsph
 ):  # pragma: no cover - jit
+    """Line integrals of rays binned into tiles that share one candidate list each."""
     n = src.shape[0]
     out = np.zeros(n)
-    for i in nb.prange(n):
+    for ti in nb.prange(tile_perm.shape[0]):
+        t = tile_perm[ti]
+        cands = cand_idx[cand_ptr[t] : cand_ptr[t + 1]]
         cov_s = np.empty(_SCRATCH)
         cov_e = np.empty(_SCRATCH)
         vis_p = np.empty(_SCRATCH, np.int64)
         vis_s = np.empty(_SCRATCH)
         vis_e = np.empty(_SCRATCH)
-        ox, oy, oz = src[i, 0], src[i, 1], src[i, 2]
-        ex, ey, ez = dst[i, 0] - ox, dst[i, 1] - oy, dst[i, 2] - oz
-        nv = _trace(
-            ox,
-            oy,
-            oz,
-            ex,
-            ey,
-            ez,
-            nq,
-            qcen,
-            qmat,
-            npl,
-            planes,
-            bsph,
-            groups,
-            gsph,
-            cov_s,
-            cov_e,
-            vis_p,
-            vis_s,
-            vis_e,
-        )
-        acc = 0.0
-        for v in range(nv):
-            acc += mu[vis_p[v]] * (vis_e[v] - vis_s[v])
-        out[i] = acc * math.sqrt(ex * ex + ey * ey + ez * ez)
+        for k in range(tile_ptr[t], tile_ptr[t + 1]):
+            i = order[k]
+            ox, oy, oz = src[i, 0], src[i, 1], src[i, 2]
+            ex, ey, ez = dst[i, 0] - ox, dst[i, 1] - oy, dst[i, 2] - oz
+            nv = _trace(
+                ox,
+                oy,
+                oz,
+                ex,
+                ey,
+                ez,
+                cands,
+                nq,
+                qcen,
+                qmat,
+                npl,
+                planes,
+                bsph,
+                cov_s,
+                cov_e,
+                vis_p,
+                vis_s,
+                vis_e,
+            )
+            acc = 0.0
+            for v in range(nv):
+                acc += mu[vis_p[v]] * (vis_e[v] - vis_s[v])
+            out[i] = acc * math.sqrt(ex * ex + ey * ey + ez * ez)
     return out
 
 
 @nb.njit(cache=True, parallel=True)
-def _value_at_kernel(
-    pts, nq, qcen, qmat, npl, planes, value, background, bsph, groups, gsph
-):  # pragma: no cover
+def _value_at_kernel(pts, nq, qcen, qmat, npl, planes, value, background, bsph):  # pragma: no cover
     """``value`` of the newest primitive holding each point, else ``background``."""
     n = pts.shape[0]
     out = np.empty(n)
     for i in nb.prange(n):
         x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
         res = background
-        found = False
-        for g in range(groups.shape[0] - 1, -1, -1):
-            dx, dy, dz = x - gsph[g, 0], y - gsph[g, 1], z - gsph[g, 2]
-            if dx * dx + dy * dy + dz * dz > gsph[g, 3] * gsph[g, 3]:
+        for p in range(bsph.shape[0] - 1, -1, -1):
+            dx, dy, dz = x - bsph[p, 0], y - bsph[p, 1], z - bsph[p, 2]
+            if dx * dx + dy * dy + dz * dz > bsph[p, 3] * bsph[p, 3]:
                 continue
-            for p in range(groups[g, 1] - 1, groups[g, 0] - 1, -1):
-                dx, dy, dz = x - bsph[p, 0], y - bsph[p, 1], z - bsph[p, 2]
-                if dx * dx + dy * dy + dz * dz > bsph[p, 3] * bsph[p, 3]:
-                    continue
-                inside = True
-                for q in range(nq[p]):
-                    px = x - qcen[p, q, 0]
-                    py = y - qcen[p, q, 1]
-                    pz = z - qcen[p, q, 2]
-                    s = 0.0
-                    for r in range(3):
-                        lp = qmat[p, q, r, 0] * px + qmat[p, q, r, 1] * py + qmat[p, q, r, 2] * pz
-                        s += lp * lp
-                    if s > 1.0:
+            inside = True
+            for q in range(nq[p]):
+                px = x - qcen[p, q, 0]
+                py = y - qcen[p, q, 1]
+                pz = z - qcen[p, q, 2]
+                s = 0.0
+                for r in range(3):
+                    lp = qmat[p, q, r, 0] * px + qmat[p, q, r, 1] * py + qmat[p, q, r, 2] * pz
+                    s += lp * lp
+                if s > 1.0:
+                    inside = False
+                    break
+            if inside:
+                for k in range(npl[p]):
+                    if planes[p, k, 0] * x + planes[p, k, 1] * y + planes[p, k, 2] * z > planes[p, k, 3]:
                         inside = False
                         break
-                if inside:
-                    for k in range(npl[p]):
-                        if planes[p, k, 0] * x + planes[p, k, 1] * y + planes[p, k, 2] * z > planes[p, k, 3]:
-                            inside = False
-                            break
-                if inside:
-                    res = value[p]
-                    found = True
-                    break
-            if found:
+            if inside:
+                res = value[p]
                 break
         out[i] = res
     return out
@@ -316,66 +306,244 @@ def _value_at_kernel(
 
 @nb.njit(cache=True, parallel=True)
 def _voxelize_kernel(
-    shape, aff, ss, nq, qcen, qmat, npl, planes, hu, bsph, groups, gsph
+    shape, aff, ss, tile, tile_perm, ntj, cand_ptr, cand_idx, nq, qcen, qmat, npl, planes, hu, bsph
 ):  # pragma: no cover - jit
-    """Anti-aliased HU: exact box average along i, ss x ss supersampling in j and k."""
+    """Anti-aliased HU: exact box average along i, ss x ss supersampling in j and k.
+
+    Lines along i are grouped in ``tile`` x ``tile`` blocks of (j, k) sharing a candidate list.
+    """
     nk, nj, ni = shape[0], shape[1], shape[2]
     out = np.empty((nk, nj, ni), dtype=np.float32)
     ex = aff[0, 0] * ni
     ey = aff[1, 0] * ni
     ez = aff[2, 0] * ni
     scale = 1.0 / (ss * ss)
-    for k in nb.prange(nk):
+    for ti in nb.prange(tile_perm.shape[0]):
+        t = tile_perm[ti]
+        tj = t % ntj
+        tk = t // ntj
+        cands = cand_idx[cand_ptr[t] : cand_ptr[t + 1]]
         row = np.empty(ni)
         cov_s = np.empty(_SCRATCH)
         cov_e = np.empty(_SCRATCH)
         vis_p = np.empty(_SCRATCH, np.int64)
         vis_s = np.empty(_SCRATCH)
         vis_e = np.empty(_SCRATCH)
-        for j in range(nj):
-            row[:] = 0.0
-            for sk in range(ss):
-                kk = k + (sk + 0.5) / ss - 0.5
-                for sj in range(ss):
-                    jj = j + (sj + 0.5) / ss - 0.5
-                    ox = aff[0, 0] * -0.5 + aff[0, 1] * jj + aff[0, 2] * kk + aff[0, 3]
-                    oy = aff[1, 0] * -0.5 + aff[1, 1] * jj + aff[1, 2] * kk + aff[1, 3]
-                    oz = aff[2, 0] * -0.5 + aff[2, 1] * jj + aff[2, 2] * kk + aff[2, 3]
-                    nv = _trace(
-                        ox,
-                        oy,
-                        oz,
-                        ex,
-                        ey,
-                        ez,
-                        nq,
-                        qcen,
-                        qmat,
-                        npl,
-                        planes,
-                        bsph,
-                        groups,
-                        gsph,
-                        cov_s,
-                        cov_e,
-                        vis_p,
-                        vis_s,
-                        vis_e,
-                    )
-                    for v in range(nv):
-                        d = (hu[vis_p[v]] - HU_AIR) * scale
-                        x0 = vis_s[v] * ni
-                        x1 = vis_e[v] * ni
-                        i0 = max(int(math.floor(x0)), 0)
-                        i1 = min(int(math.ceil(x1)), ni)
-                        for i in range(i0, i1):
-                            lo = x0 if x0 > i else float(i)
-                            hi = x1 if x1 < i + 1.0 else i + 1.0
-                            if hi > lo:
-                                row[i] += d * (hi - lo)
-            for i in range(ni):
-                out[k, j, i] = HU_AIR + row[i]
+        for k in range(tk * tile, min((tk + 1) * tile, nk)):
+            for j in range(tj * tile, min((tj + 1) * tile, nj)):
+                row[:] = 0.0
+                for sk in range(ss):
+                    kk = k + (sk + 0.5) / ss - 0.5
+                    for sj in range(ss):
+                        jj = j + (sj + 0.5) / ss - 0.5
+                        ox = aff[0, 0] * -0.5 + aff[0, 1] * jj + aff[0, 2] * kk + aff[0, 3]
+                        oy = aff[1, 0] * -0.5 + aff[1, 1] * jj + aff[1, 2] * kk + aff[1, 3]
+                        oz = aff[2, 0] * -0.5 + aff[2, 1] * jj + aff[2, 2] * kk + aff[2, 3]
+                        nv = _trace(
+                            ox,
+                            oy,
+                            oz,
+                            ex,
+                            ey,
+                            ez,
+                            cands,
+                            nq,
+                            qcen,
+                            qmat,
+                            npl,
+                            planes,
+                            bsph,
+                            cov_s,
+                            cov_e,
+                            vis_p,
+                            vis_s,
+                            vis_e,
+                        )
+                        for v in range(nv):
+                            d = (hu[vis_p[v]] - HU_AIR) * scale
+                            x0 = vis_s[v] * ni
+                            x1 = vis_e[v] * ni
+                            i0 = max(int(math.floor(x0)), 0)
+                            i1 = min(int(math.ceil(x1)), ni)
+                            for i in range(i0, i1):
+                                lo = x0 if x0 > i else float(i)
+                                hi = x1 if x1 < i + 1.0 else i + 1.0
+                                if hi > lo:
+                                    row[i] += d * (hi - lo)
+                for i in range(ni):
+                    out[k, j, i] = HU_AIR + row[i]
     return out
+
+
+# --------------------------------------------------------------------------------------
+# Culling: which primitives may meet a bundle of rays
+# --------------------------------------------------------------------------------------
+def _csr(hits: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Row pointers and column indices (ascending) of a boolean (tiles, primitives) matrix."""
+    rows, cols = np.nonzero(hits)
+    ptr = np.zeros(hits.shape[0] + 1, np.int64)
+    np.cumsum(np.bincount(rows, minlength=hits.shape[0]), out=ptr[1:])
+    return ptr, cols.astype(np.int64)
+
+
+def _unit(v: Float) -> Float:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _bin_rays(src: Float, dst: Float, bsph: Float) -> tuple:
+    """Bin segments into tiles of similar direction with per-tile candidate primitives.
+
+    Rays from one common source (an X-ray image) are binned by direction (gnomonic
+    coordinates about their mean direction) and a primitive is a candidate of a tile when its
+    bounding sphere's cone from the source meets the tile's cone. Other ray sets fall back to a
+    single tile holding every primitive (still exact, only slower).
+    """
+    n = len(src)
+    everything = (
+        np.arange(n, dtype=np.int64),
+        np.array([0, n], np.int64),
+        np.zeros(1, np.int64),
+        np.array([0, len(bsph)], np.int64),
+        np.arange(len(bsph), dtype=np.int64),
+    )
+    if n < 64 or not np.all(src == src[0]):
+        return _split_single_tile(everything, n)
+    s = src[0]
+    w = dst - s
+    norm = np.linalg.norm(w, axis=1)
+    if np.any(norm <= 0):
+        return _split_single_tile(everything, n)
+    w = w / norm[:, None]
+    d0 = _unit(w.mean(axis=0))
+    helper = np.array([1.0, 0.0, 0.0]) if abs(d0[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = _unit(np.cross(helper, d0))
+    v = np.cross(d0, u)
+    wd = w @ d0
+    if np.any(wd < 0.2):  # too wide a fan for gnomonic binning
+        return _split_single_tile(everything, n)
+    order, tile_ptr, cand_ptr, cand_idx = _gnomonic_bins(s, dst, d0, u, v, bsph, 200.0)
+    perm = np.random.default_rng(0).permutation(len(tile_ptr) - 1).astype(np.int64)  # balance threads
+    return order, tile_ptr, perm, cand_ptr, cand_idx
+
+
+@nb.njit(cache=True)
+def _gnomonic_bins(s, dst, d0, u, v, bsph, target_per_tile):  # pragma: no cover - jit
+    """Counting-sort rays from source ``s`` into direction tiles; candidates per tile."""
+    n = dst.shape[0]
+    gx = np.empty(n)
+    gy = np.empty(n)
+    x0 = np.inf
+    x1 = -np.inf
+    y0 = np.inf
+    y1 = -np.inf
+    for i in range(n):
+        wx, wy, wz = dst[i, 0] - s[0], dst[i, 1] - s[1], dst[i, 2] - s[2]
+        wd = wx * d0[0] + wy * d0[1] + wz * d0[2]
+        gx[i] = (wx * u[0] + wy * u[1] + wz * u[2]) / wd
+        gy[i] = (wx * v[0] + wy * v[1] + wz * v[2]) / wd
+        x0 = min(x0, gx[i])
+        x1 = max(x1, gx[i])
+        y0 = min(y0, gy[i])
+        y1 = max(y1, gy[i])
+    nt = int(round(math.sqrt(n / target_per_tile)))
+    nt = min(max(nt, 1), 48)
+    sx = (x1 - x0) / nt + 1e-12
+    sy = (y1 - y0) / nt + 1e-12
+    ntt = nt * nt
+    tid = np.empty(n, np.int64)
+    tile_ptr = np.zeros(ntt + 1, np.int64)
+    for i in range(n):
+        ix = min(int((gx[i] - x0) / sx), nt - 1)
+        iy = min(int((gy[i] - y0) / sy), nt - 1)
+        tid[i] = iy * nt + ix
+        tile_ptr[tid[i] + 1] += 1
+    for t in range(ntt):
+        tile_ptr[t + 1] += tile_ptr[t]
+    fill = tile_ptr[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[tid[i]]] = i
+        fill[tid[i]] += 1
+    # primitive cones seen from the source
+    npr = bsph.shape[0]
+    qhat = np.empty((npr, 3))
+    alpha = np.empty(npr)
+    for p in range(npr):
+        qx, qy, qz = bsph[p, 0] - s[0], bsph[p, 1] - s[1], bsph[p, 2] - s[2]
+        dist = math.sqrt(qx * qx + qy * qy + qz * qz)
+        if dist <= bsph[p, 3]:
+            alpha[p] = np.pi
+            qhat[p, 0] = 1.0
+            qhat[p, 1] = 0.0
+            qhat[p, 2] = 0.0
+        else:
+            alpha[p] = math.asin(bsph[p, 3] / dist)
+            qhat[p, 0] = qx / dist
+            qhat[p, 1] = qy / dist
+            qhat[p, 2] = qz / dist
+    counts = np.zeros(ntt + 1, np.int64)
+    hits = np.zeros((ntt, npr), np.bool_)
+    corner = np.empty(3)
+    for t in range(ntt):
+        cxg = x0 + (t % nt + 0.5) * sx
+        cyg = y0 + (t // nt + 0.5) * sy
+        c = d0 + cxg * u + cyg * v
+        c /= math.sqrt(c[0] ** 2 + c[1] ** 2 + c[2] ** 2)
+        half = 0.0
+        for ox_ in (-0.5, 0.5):
+            for oy_ in (-0.5, 0.5):
+                corner[:] = d0 + (cxg + ox_ * sx) * u + (cyg + oy_ * sy) * v
+                corner /= math.sqrt(corner[0] ** 2 + corner[1] ** 2 + corner[2] ** 2)
+                cosang = min(1.0, max(-1.0, corner[0] * c[0] + corner[1] * c[1] + corner[2] * c[2]))
+                half = max(half, math.acos(cosang))
+        for p in range(npr):
+            lim = alpha[p] + half + 1e-9
+            if lim >= np.pi or c[0] * qhat[p, 0] + c[1] * qhat[p, 1] + c[2] * qhat[p, 2] >= math.cos(lim):
+                hits[t, p] = True
+                counts[t + 1] += 1
+    for t in range(ntt):
+        counts[t + 1] += counts[t]
+    cand_idx = np.empty(counts[ntt], np.int64)
+    for t in range(ntt):
+        k = counts[t]
+        for p in range(npr):
+            if hits[t, p]:
+                cand_idx[k] = p
+                k += 1
+    return order, tile_ptr, counts, cand_idx
+
+
+def _split_single_tile(everything: tuple, n: int) -> tuple:
+    """Everything in chunks of 256 rays (so threads share the work), all candidates each."""
+    order, _, _, cand_ptr_all, cand_idx_all = everything
+    chunks = max(1, (n + 255) // 256)
+    tile_ptr = np.minimum(np.arange(chunks + 1, dtype=np.int64) * 256, n)
+    cand_ptr = np.arange(chunks + 1, dtype=np.int64) * cand_ptr_all[1]
+    cand_idx = np.tile(cand_idx_all, chunks)
+    return order, tile_ptr, np.arange(chunks, dtype=np.int64), cand_ptr, cand_idx
+
+
+def _bin_lines(shape: tuple[int, int, int], aff: Float, bsph: Float, tile: int) -> tuple:
+    """Candidate primitives per (tile x tile) block of voxelisation lines along i."""
+    nk, nj, ni = shape
+    ntj = (nj + tile - 1) // tile
+    ntk = (nk + tile - 1) // tile
+    e = _unit(aff[:3, 0])
+    tj = (np.arange(ntj) + 0.5) * tile - 0.5
+    tk = (np.arange(ntk) + 0.5) * tile - 0.5
+    gk, gj = np.meshgrid(tk, tj, indexing="ij")  # tile index t = tk * ntj + tj
+    origin = aff[:3, 1] * gj.reshape(-1, 1) + aff[:3, 2] * gk.reshape(-1, 1) + aff[:3, 3] - 0.5 * aff[:3, 0]
+    # half extent of a tile across the lines (corner offset, perpendicular part)
+    corner = aff[:3, 1] * (tile / 2.0 + 0.5) + aff[:3, 2] * (tile / 2.0 + 0.5)
+    corner2 = aff[:3, 1] * (tile / 2.0 + 0.5) - aff[:3, 2] * (tile / 2.0 + 0.5)
+    reach = max(np.linalg.norm(c - (c @ e) * e) for c in (corner, corner2))
+    rel = bsph[None, :, :3] - origin[:, None, :]
+    perp = rel - (rel @ e)[..., None] * e
+    dist = np.linalg.norm(perp, axis=2)
+    hits = dist <= bsph[None, :, 3] + reach + 1e-9
+    cand_ptr, cand_idx = _csr(hits)
+    perm = np.random.default_rng(0).permutation(ntj * ntk).astype(np.int64)
+    return ntj, perm, cand_ptr, cand_idx
 
 
 # --------------------------------------------------------------------------------------
@@ -432,9 +600,6 @@ class HeadPhantom:
     def _geometry(self) -> tuple:
         return (self.nq, self.qcen, self.qmat, self.npl, self.planes)
 
-    def _culling(self) -> tuple:
-        return (self.bsph, self.groups, self.gsph)
-
     # ----- line integrals ------------------------------------------------------------
     def line_integrals(
         self, sources_mm: ArrayLike, targets_mm: ArrayLike, motion: ArrayLike | None = None
@@ -458,12 +623,11 @@ class HeadPhantom:
             inv = invert_rigid(check_rigid(motion, name="motion"))
             src = src @ inv[:3, :3].T + inv[:3, 3]
             dst = dst @ inv[:3, :3].T + inv[:3, 3]
+        src = np.ascontiguousarray(src)
+        dst = np.ascontiguousarray(dst)
+        order, tile_ptr, perm, cand_ptr, cand_idx = _bin_rays(src, dst, self.bsph)
         return _line_integrals_kernel(
-            np.ascontiguousarray(src),
-            np.ascontiguousarray(dst),
-            *self._geometry(),
-            self.mu_per_mm,
-            *self._culling(),
+            src, dst, order, tile_ptr, perm, cand_ptr, cand_idx, *self._geometry(), self.mu_per_mm, self.bsph
         )
 
     # ----- point values --------------------------------------------------------------
@@ -474,7 +638,7 @@ class HeadPhantom:
         if not np.all(np.isfinite(pts)):
             raise ValueError("points_mm contains NaN or infinite values")
         flat = np.ascontiguousarray(pts.reshape(-1, 3))
-        out = _value_at_kernel(flat, *self._geometry(), values, float(background), *self._culling())
+        out = _value_at_kernel(flat, *self._geometry(), values, float(background), self.bsph)
         return out.reshape(pts.shape[:-1])
 
     def hu_at(self, points_mm: ArrayLike) -> NDArray[np.float32]:
@@ -504,13 +668,20 @@ class HeadPhantom:
             raise ValueError("index_to_world must be a finite 4x4 matrix")
         if abs(np.linalg.det(aff[:3, :3])) < 1e-12:
             raise ValueError("index_to_world is singular")
+        tile = 8
+        ntj, perm, cand_ptr, cand_idx = _bin_lines(shp, aff, self.bsph, tile)
         return _voxelize_kernel(
             np.array(shp, dtype=np.int64),
             np.ascontiguousarray(aff),
             int(supersample),
+            tile,
+            perm,
+            ntj,
+            cand_ptr,
+            cand_idx,
             *self._geometry(),
             self.hu,
-            *self._culling(),
+            self.bsph,
         )
 
     # ----- vessels ---------------------------------------------------------------------
@@ -818,6 +989,8 @@ def _cached_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
 
 def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     var = _Variation(seed)
+    # texture: irregular small structure (air cells), fixed for a seed, canonical for seed 0
+    texture = np.random.default_rng(1000 + seed)
     b = _Builder()
     E, C = b.ellipsoid, b.cylinder
     P, S = var.pos, var.size
@@ -831,20 +1004,20 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     b.paint(E(P([0.0, -99.0, -45.0]), S([9.0, 12.0, 19.0]), _euler(rx=-15)), HU_SOFT, "face", "soft")  # nose
 
     # ----- skull vault: nested ellipsoids above the cranial floor -----------------------
-    floor_n = np.array([0.0, -0.32, -1.0])  # keep n . (x - p) <= 0: above the floor plane
-    floor_p = P([0.0, -80.0, -8.0]) + var.jitter(1.0)
+    # The cranial floor is the bowl of a large ellipsoid: high in front (anterior fossa,
+    # orbital roofs), low at the back (posterior fossa), curving down laterally (middle fossa).
+    bowl_c = P([0.0, 40.0, 75.0]) + var.jitter(1.0)
+    bowl_s = S([125.0, 160.0, 120.0])
 
-    def vault(semi_minus: float) -> dict:
-        return b.clip(E(cran_c, cran_s - semi_minus), floor_n, floor_p)
+    def vault(semi_minus: float, floor_minus: float) -> dict:
+        region = E(cran_c, cran_s - semi_minus)
+        bowl = E(bowl_c, bowl_s - floor_minus)
+        return {"quads": region["quads"] + bowl["quads"], "planes": [], "sphere": region["sphere"]}
 
-    b.paint(vault(5.0), HU_CORTICAL, "skull", "bone")  # outer table
-    b.paint(vault(7.0), HU_DIPLOE, "skull", "bone")  # diploe
-    b.paint(vault(10.5), HU_CORTICAL, "skull", "bone")  # inner table
-    b.paint(vault(12.5), HU_BRAIN, "skull", "brain")  # brain
-    # cranial floor: a 6 mm plate under the floor plane, inside the outer table
-    unit_n = floor_n / np.linalg.norm(floor_n)
-    plate = b.clip(b.clip(E(cran_c, cran_s - 5.0), -floor_n, floor_p), floor_n, floor_p + 6.0 * unit_n)
-    b.paint(plate, 1300.0, "skull", "bone")
+    b.paint(vault(5.0, 0.0), HU_CORTICAL, "skull", "bone")  # outer table
+    b.paint(vault(7.0, 1.5), HU_DIPLOE, "skull", "bone")  # diploe
+    b.paint(vault(10.5, 3.5), HU_CORTICAL, "skull", "bone")  # inner table
+    b.paint(vault(12.5, 5.0), HU_BRAIN, "skull", "brain")  # brain
 
     # ventricles (CSF)
     for side in (-1.0, 1.0):
@@ -867,7 +1040,7 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     for side in (-1.0, 1.0):  # anterior clinoid processes
         b.paint(E(P(_mirror([9.0, -8.0, -21.0], side)), S([4.0, 7.0, 2.5])), 1500.0, "sphenoid", "bone")
     b.paint(C(P([0.0, 9.0, -30.0]), P([0.0, 30.0, -60.0]), S([10.0, 5.0])), 1300.0, "clivus", "bone")
-    fm = b.clip(C(P([0.0, 48.0, -90.0]), P([0.0, 48.0, -20.0]), S([15.0, 18.0])), -floor_n, floor_p)
+    fm = C(P([0.0, 46.0, -55.0]), P([0.0, 46.0, -20.0]), S([15.0, 18.0]))
     b.paint(fm, HU_BRAIN, "clivus", "brain")  # foramen magnum: medulla through the floor plate
     for side in (-1.0, 1.0):
         g = f"petrous_{'l' if side > 0 else 'r'}"
@@ -887,16 +1060,7 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
         # mastoid process with air cells
         mc = P(_mirror([53.0, 30.0, -50.0], side))
         b.paint(E(mc, S([10.0, 13.0, 16.0])), 1000.0, g, "bone")
-        cells = []
-        for dx in (-3.0, 3.0):
-            for dy in np.arange(-9.0, 9.1, 6.0):
-                for dz in np.arange(-12.0, 12.1, 6.0):
-                    off = np.array([dx, dy, dz])
-                    if (off / np.array([8.0, 11.5, 14.0])) @ (off / np.array([8.0, 11.5, 14.0])) <= 1.0:
-                        cells.append(off)
-        for off in cells:
-            radius = 2.5 + (var.rng.uniform(-0.3, 0.3) if var.on else 0.0)
-            b.paint(E(mc + off + var.jitter(0.15), radius), HU_AIR, g, "air")
+        _air_cells(b, mc, S([8.0, 11.0, 14.0]), 26, (1.6, 3.4), texture, g)
         ear = P(_mirror([48.0, 17.0, -40.0], side))
         b.paint(C(ear, P(_mirror([80.0, 17.0, -41.0], side)), 3.5), HU_AIR, g, "air")  # ear canal
         b.paint(E(ear, S([3.0, 4.0, 5.0])), HU_AIR, g, "air")  # middle ear
@@ -924,7 +1088,7 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     b.tube(airway, float(S(7.0)), HU_AIR, "airway", "air")
 
     if facial:
-        _facial_skeleton(b, var)
+        _facial_skeleton(b, var, texture)
 
     aneurysm_c, aneurysm_r, paths = _arteries(b, var, contrast)
     return b.build(
@@ -936,14 +1100,28 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     )
 
 
-def _facial_skeleton(b: _Builder, var: _Variation) -> None:
+def _air_cells(
+    b: _Builder, center: Float, semi: Float, count: int, radii: tuple[float, float], rng, group: str
+) -> None:
+    """``count`` air cells of random radius at random places inside an ellipsoid."""
+    placed = 0
+    while placed < count:
+        off = rng.uniform(-1.0, 1.0, 3)
+        if off @ off > 1.0:
+            continue
+        radius = rng.uniform(*radii)
+        b.paint(b.ellipsoid(center + off * semi, radius), HU_AIR, group, "air")
+        placed += 1
+
+
+def _facial_skeleton(b: _Builder, var: _Variation, texture: np.random.Generator) -> None:
     E, C = b.ellipsoid, b.cylinder
     P, S = var.pos, var.size
     # orbits: bony cone (walls) behind the rim, fat, globe
     for side in (-1.0, 1.0):
         g = f"orbit_{'l' if side > 0 else 'r'}"
         axis = np.array([side * math.sin(math.radians(20)), -math.cos(math.radians(20)), -0.05])
-        c = P(_mirror([33.0, -62.0, -27.0], side))
+        c = P(_mirror([33.0, -62.0, -30.0], side))
         rot = _rot_to(axis)
         semi = S([16.5, 16.5, 24.0], 0.05)
         rim = c + axis * 17.0  # the orbital opening
@@ -967,12 +1145,7 @@ def _facial_skeleton(b: _Builder, var: _Variation) -> None:
     # ethmoid labyrinth: a block of thin septa with air cells
     ec = P([0.0, -52.0, -29.0])
     b.paint(E(ec, S([11.0, 22.0, 10.0])), 300.0, "ethmoid", "bone")
-    for dx in (-5.0, 5.0):
-        for dy in np.arange(-16.0, 16.1, 6.5):
-            for dz in (-3.5, 3.5):
-                off = np.array([dx, dy, dz])
-                if (off / np.array([8.0, 19.0, 7.0])) @ (off / np.array([8.0, 19.0, 7.0])) <= 1.0:
-                    b.paint(E(ec + off + var.jitter(0.2), 2.9), HU_AIR, "ethmoid", "air")
+    _air_cells(b, ec, S([8.5, 19.0, 7.5]), 30, (1.8, 3.2), texture, "ethmoid")
     # nasal cavity, septum, turbinates, hard palate
     b.paint(E(P([0.0, -58.0, -55.0]), S([12.0, 31.0, 14.0])), HU_AIR, "nasal", "air")
     b.paint(E(P([0.0, -58.0, -53.0]), S([1.2, 28.0, 13.0])), 600.0, "nasal", "bone")
