@@ -42,6 +42,11 @@ class Case:
     facial: bool = True
     image_pixels: int = 512
     volume_voxels: int = 256
+    #: "fdk": the 3DRA reconstructed from a simulated rotational run (issue 5);
+    #: "resampled": the phantom resampled to the 3DRA grid (a faster stand-in).
+    volume_source: str = "fdk"
+    #: Contrast in the rotational run of the 3DRA (the fluoro image never has contrast).
+    volume_contrast: bool = True
 
 
 @lru_cache(maxsize=4)
@@ -51,12 +56,30 @@ def _phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     return make_head_phantom(seed=seed, contrast=contrast, facial=facial)
 
 
-@lru_cache(maxsize=4)
-def _volume(phantom_seed: int, facial: bool, volume_format_cm: float, voxels: int) -> Volume:
-    from registration.phantom import registration_volume
+VOLUME_SOURCES = ("fdk", "resampled")
 
-    # The 3DRA is acquired with contrast in the vessels; the fluoro image later is not.
-    return registration_volume(_phantom(phantom_seed, True, facial), volume_format_cm, voxels=voxels)
+
+@lru_cache(maxsize=4)
+def load_volume(
+    phantom_seed: int,
+    facial: bool,
+    volume_format_cm: float,
+    voxels: int,
+    source: str = "fdk",
+    contrast: bool = True,
+) -> Volume:
+    """The registration volume of a phantom variant (cached on disk and in memory)."""
+    if source == "fdk":
+        if not facial:
+            raise ValueError("the FDK 3DRA is reconstructed from the full phantom (facial=True)")
+        from registration.reconstruct import reconstruct_3dra
+
+        return reconstruct_3dra(phantom_seed, volume_format_cm=volume_format_cm, contrast=contrast, voxels=voxels)
+    if source == "resampled":
+        from registration.phantom import registration_volume
+
+        return registration_volume(_phantom(phantom_seed, contrast, facial), volume_format_cm, voxels=voxels)
+    raise ValueError(f"volume source must be one of {VOLUME_SOURCES}, got {source!r}")
 
 
 def offset_vector(offset: str) -> np.ndarray:
@@ -83,7 +106,14 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         secondary_deg=case.secondary_deg,
     )
     truth = offsets_to_matrix(offset_vector(case.offset), geometry)
-    volume = _volume(case.phantom_seed, case.facial, case.volume_format_cm, case.volume_voxels)
+    volume = load_volume(
+        case.phantom_seed,
+        case.facial,
+        case.volume_format_cm,
+        case.volume_voxels,
+        case.volume_source,
+        case.volume_contrast,
+    )
     anatomy = _phantom(case.phantom_seed, False, case.facial)  # no contrast in the fluoro image
     xray = simulate_xray(anatomy, geometry, motion=truth, kind=case.image_kind, seed=case.seed)
     result = register(
