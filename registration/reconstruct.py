@@ -55,9 +55,15 @@ MU_WATER_PER_MM = 0.0206
 #: Label of reconstructed volumes (outputs repeat it).
 RECONSTRUCTION_LABEL = "FDK reconstruction of a simulated rotational run ({n} projections)"
 
-#: Width (pixels) of the cosine taper that extends projections beyond the collimated field
-#: before filtering (reduces truncation artefacts; the extension is never back-projected).
-TRUNCATION_TAPER_PX = 48
+#: Longest extension (detector mm) of a projection row beyond the collimated field by water
+#: cylinder extrapolation before filtering (reduces truncation artefacts of heads wider than
+#: the field of view; the extension itself is never back-projected).
+TRUNCATION_MAX_MM = 200.0
+#: Attenuation (1/mm) of the extrapolating cylinders: twice water, because the periphery of a
+#: head (scalp over skull) attenuates more than water; water itself over-extends the rows.
+TRUNCATION_MU_PER_MM = 2.0 * MU_WATER_PER_MM
+#: Pixels over which the slope at the field edge is measured for the extrapolation.
+TRUNCATION_FIT_PX = 4
 
 
 # --------------------------------------------------------------------------------------
@@ -249,21 +255,41 @@ def parker_weights(beta_rad: float, gamma_rad: NDArray[np.float64], half_fan_rad
     return np.clip(w, 0.0, 1.0)
 
 
-def _extend_truncated(image: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """Extend each row beyond the field with its edge value under a cosine taper."""
+def _extend_truncated(
+    image: NDArray[np.float64], mask: NDArray[np.bool_], *, pixel_mm: float, magnification: float, pad: int
+) -> NDArray[np.float64]:
+    """Water-cylinder extrapolation of each row beyond the collimated field (Hsieh et al. 2004).
+
+    At each end of a row's field, the line integral p and its outward slope s (over
+    :data:`TRUNCATION_FIT_PX` pixels) fix a water cylinder (attenuation mu_water / magnification
+    per detector mm) whose projection continues the row: center a = -s p / (4 mu^2) inside the
+    edge (a >= 0), radius sqrt((p / 2 mu)^2 + a^2). The row is returned padded by ``pad``
+    pixels on both sides so the extension can reach past the detector edge.
+    """
     rows, cols = image.shape
+    mu = TRUNCATION_MU_PER_MM / magnification
+    out = np.zeros((rows, cols + 2 * pad))
+    out[:, pad : pad + cols] = np.where(mask, image, 0.0)
     has = mask.any(axis=1)
-    lo = np.where(has, np.argmax(mask, axis=1), 0)
-    hi = np.where(has, cols - 1 - np.argmax(mask[:, ::-1], axis=1), cols - 1)
-    idx = np.arange(cols)[None, :]
-    r = np.arange(rows)
-    left_val = np.where(has, image[r, lo], 0.0)[:, None]
-    right_val = np.where(has, image[r, hi], 0.0)[:, None]
-    taper_l = np.cos(np.clip((lo[:, None] - idx) / TRUNCATION_TAPER_PX, 0, 1) * (math.pi / 2)) ** 2
-    taper_r = np.cos(np.clip((idx - hi[:, None]) / TRUNCATION_TAPER_PX, 0, 1) * (math.pi / 2)) ** 2
-    out = np.where(mask, image, 0.0)
-    out = np.where(idx < lo[:, None], left_val * taper_l, out)
-    out = np.where(idx > hi[:, None], right_val * taper_r, out)
+    if not has.any():
+        return out
+    r = np.flatnonzero(has)
+    m = mask[r]
+    lo = np.argmax(m, axis=1)
+    hi = cols - 1 - np.argmax(m[:, ::-1], axis=1)
+    idx = np.arange(cols + 2 * pad)[None, :] - pad
+    for edge, sign in ((lo, -1), (hi, 1)):
+        inner = np.clip(edge - sign * TRUNCATION_FIT_PX, lo, hi)
+        p_edge = np.maximum(0.5 * (image[r, edge] + image[r, np.clip(edge - sign, lo, hi)]), 0.0)
+        p_inner = image[r, inner]
+        run_mm = np.maximum(np.abs(edge - inner), 1) * pixel_mm
+        slope = (p_edge - p_inner) / run_mm  # outward derivative
+        a = np.maximum(-slope * p_edge / (4.0 * mu * mu), 0.0)
+        radius2 = (p_edge / (2.0 * mu)) ** 2 + a * a
+        t = sign * (idx - edge[:, None]) * pixel_mm  # outward distance from the edge (mm)
+        ext = 2.0 * mu * np.sqrt(np.maximum(radius2[:, None] - (a[:, None] + t) ** 2, 0.0))
+        beyond = t > 0
+        out[r] = np.where(beyond, ext, out[r])
     return out
 
 
@@ -299,27 +325,31 @@ def filter_projections(
     dbeta = arc / (angles.size - 1)
     nv, rows, cols = imgs.shape
     msk = None if masks is None else np.asarray(masks, dtype=bool)
-    size = 1 << int(math.ceil(math.log2(2 * cols)))
-    spectrum = ramp_kernel_spectrum(size, window=window)
     out = np.empty((nv, rows, cols), dtype=np.float32)
     for i in range(nv):
         g = geometries[i]
         if (g.rows, g.cols) != (rows, cols):
             raise ValueError(f"geometry {i} has {g.rows}x{g.cols} pixels, images {rows}x{cols}")
         frame = _view_frame(g)
+        proj = imgs[i].astype(np.float64)
+        pad = 0
+        if msk is not None:
+            pad = int(math.ceil(TRUNCATION_MAX_MM / g.pixel_mm[1]))
+            proj = _extend_truncated(proj, msk[i], pixel_mm=g.pixel_mm[1], magnification=g.magnification, pad=pad)
+        width = proj.shape[1]
         c0, r0 = frame.principal_px
-        x = (np.arange(cols) - c0) * g.pixel_mm[1]
+        x = (np.arange(width) - pad - c0) * g.pixel_mm[1]
         y = (np.arange(rows) - r0) * g.pixel_mm[0]
         d = frame.focal_mm
         cosine = d / np.sqrt(d * d + x[None, :] ** 2 + y[:, None] ** 2)
         gamma = np.arctan(x / d)
         parker = parker_weights(float(angles[i] - angles[order[0]]), gamma, half_fan)
-        proj = imgs[i].astype(np.float64) * cosine * parker[None, :]
-        if msk is not None:
-            proj = _extend_truncated(proj, msk[i])
+        proj *= cosine * parker[None, :]
+        size = 1 << int(math.ceil(math.log2(2 * width)))
+        spectrum = ramp_kernel_spectrum(size, window=window)
         filtered = sfft.irfft(sfft.rfft(proj, n=size, axis=1, workers=2) * spectrum, n=size, axis=1, workers=2)
         tau = g.pixel_mm[1] * frame.source_iso_mm / d
-        out[i] = (filtered[:, :cols] * (dbeta * frame.source_iso_mm**2 / tau)).astype(np.float32)
+        out[i] = (filtered[:, pad : pad + cols] * (dbeta * frame.source_iso_mm**2 / tau)).astype(np.float32)
     return out
 
 
@@ -448,7 +478,7 @@ def reconstruct_3dra(
     volume_format_cm: float,
     contrast: bool = True,
     voxels: int = 256,
-    pixels: int = 512,
+    pixels: int = 256,
     projections: int = 120,
     arc_deg: float = 200.0,
     kind: str = "exposure",
@@ -456,7 +486,13 @@ def reconstruct_3dra(
     cache: bool = True,
 ) -> Volume:
     """The 3DRA of a head phantom: rotational run at image format = ``volume_format_cm``,
-    calibrated geometry, FDK; cached under the user's cache directory by its parameters."""
+    calibrated geometry, FDK; cached under the user's cache directory by its parameters.
+
+    ``pixels`` defaults to 256: rotational runs use a 2x2-binned detector mode, whose pixel
+    (at the iso-center) matches the 256^3 voxel; each simulated pixel still integrates 2x2
+    sub-pixel rays. The first call simulates the whole run with the honest image model
+    (minutes); later calls load the cached volume.
+    """
     from registration.cache import cached_arrays
 
     params = {
