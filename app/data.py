@@ -7,6 +7,7 @@ its parameters, so a warm start only loads arrays.
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 from collections.abc import Callable
@@ -15,25 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from app import _standins  # TEMPORARY
 from registration.cache import cached_arrays
 from registration.drr import DRRRenderer
+from registration.meshes import surface_meshes
+from registration.phantom import HeadPhantom, make_head_phantom, registration_volume
 from registration.volume import Volume
-
-_standins.install()
-
-try:  # TEMPORARY until registration.phantom / registration.xray land
-    from registration.xray import XRayImage, simulate_xray
-
-    from registration.phantom import HeadPhantom, make_head_phantom, registration_volume
-except ImportError:  # pragma: no cover
-    from registration.xray import XRayImage, simulate_xray
-
-    from app._standins import (  # type: ignore[assignment]
-        HeadPhantom,
-        make_head_phantom,
-        registration_volume,
-    )
+from registration.xray import XRayImage, simulate_xray
 
 __all__ = ["AppConfig", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
 
@@ -50,8 +38,8 @@ class AppConfig:
 
     voxels: int = 256
     """Registration volume grid (voxels per axis)."""
-    pixels: int = 512
-    """X-ray image size (pixels per side)."""
+    pixels: int = 256
+    """X-ray image size (pixels per side); the registration's finest stage works at 256."""
     display_px: int = 384
     """Size of each 2-D tile in the panel."""
     seed: int = 0
@@ -81,44 +69,6 @@ def _meshes_from_arrays(arrays: dict[str, np.ndarray]) -> dict[str, trimesh.Trim
     return {name: trimesh.Trimesh(arrays[f"{name}.vertices"], arrays[f"{name}.faces"], process=False) for name in names}
 
 
-def surface_meshes(volume: Volume) -> dict[str, trimesh.Trimesh]:
-    """The vessel and bone surfaces of ``volume`` (the engine's, or a private fallback)."""
-    try:
-        from registration.meshes import surface_meshes as engine_meshes
-    except ImportError:
-        return _fallback_meshes(volume)
-    return engine_meshes(volume)
-
-
-def _fallback_meshes(volume: Volume) -> dict[str, trimesh.Trimesh]:
-    """Marching cubes of bone (> 600 HU) and contrast-filled vessels (250..900 HU, away from bone)."""
-    from scipy import ndimage
-    from skimage.measure import marching_cubes
-
-    vol = volume.downsample(2) if max(volume.shape) > 160 else volume
-    hu = vol.data
-    bone = hu > 600.0
-    near_bone = ndimage.binary_dilation(bone, iterations=2)
-    vessels = (hu > 250.0) & (hu < 900.0) & ~near_bone
-    labels, n = ndimage.label(vessels)
-    if n:
-        sizes = ndimage.sum_labels(vessels, labels, index=np.arange(1, n + 1))
-        keep = np.flatnonzero(sizes >= max(20, sizes.max() * 0.02)) + 1
-        vessels = np.isin(labels, keep)
-    out: dict[str, trimesh.Trimesh] = {}
-    for name, mask in (("bone", bone), ("vessels", vessels)):
-        if mask.sum() < 8:
-            continue
-        field = ndimage.gaussian_filter(mask.astype(np.float32), 0.8)
-        verts, faces, _, _ = marching_cubes(field, 0.5)
-        ijk = verts[:, ::-1]  # (k, j, i) -> (i, j, k)
-        world = ijk @ vol.index_to_world[:3, :3].T + vol.index_to_world[:3, 3]
-        if np.linalg.det(vol.index_to_world[:3, :3]) < 0:
-            faces = faces[:, ::-1]
-        out[name] = trimesh.Trimesh(world, faces[:, ::-1], process=False)
-    return out
-
-
 class PhantomData:
     """The built-in head phantom and what is derived from it, built lazily and cached."""
 
@@ -140,23 +90,15 @@ class PhantomData:
             return self._phantoms[contrast]
 
     def volume(self, volume_format_cm: float) -> Volume:
-        """The registration volume (3DRA stand-in) of one volume format."""
+        """The registration volume (3DRA stand-in) of one volume format (cached on disk by the engine)."""
         with self._lock:
             if volume_format_cm not in self._volumes:
-                params = {"format_cm": volume_format_cm, "voxels": self.config.voxels, "seed": self.config.seed}
-
-                def build() -> dict[str, np.ndarray]:
-                    self.progress(
-                        f"Voxelizing the phantom: {volume_format_cm:g} cm volume, {self.config.voxels}³ voxels",
-                        0.2,
-                    )
-                    vol = registration_volume(self.phantom(True), volume_format_cm, voxels=self.config.voxels)
-                    return {"data": vol.data, "index_to_world": vol.index_to_world, "label": np.array(vol.label)}
-
-                self.progress(f"Loading the {volume_format_cm:g} cm volume", 0.15)
-                arrays = cached_arrays("app-volume", params, build)
-                self._volumes[volume_format_cm] = Volume(
-                    arrays["data"], arrays["index_to_world"], label=str(arrays["label"])
+                phantom = self.phantom(True)
+                self.progress(
+                    f"Loading or voxelizing the {volume_format_cm:g} cm volume ({self.config.voxels}³ voxels)", 0.2
+                )
+                self._volumes[volume_format_cm] = registration_volume(
+                    phantom, volume_format_cm, voxels=self.config.voxels, seed=self.config.seed
                 )
             return self._volumes[volume_format_cm]
 
@@ -172,15 +114,34 @@ class PhantomData:
         with self._lock:
             if volume_format_cm not in self._meshes:
                 volume = self.volume(volume_format_cm)
-                params = {"format_cm": volume_format_cm, "voxels": self.config.voxels, "seed": self.config.seed}
+                params = {
+                    "format_cm": volume_format_cm,
+                    "voxels": self.config.voxels,
+                    "seed": self.config.seed,
+                    "steps": self.mesh_steps,
+                }
 
                 def build() -> dict[str, np.ndarray]:
                     self.progress("Extracting skull and vessel surfaces (marching cubes)", 0.4)
-                    return _mesh_arrays(surface_meshes(volume))
+                    vessel_step, bone_step = self.mesh_steps
+                    meshes = surface_meshes(volume, step=vessel_step)
+                    if bone_step != vessel_step:
+                        meshes["bone"] = surface_meshes(volume, step=bone_step).get("bone")
+                    return _mesh_arrays({k: v for k, v in meshes.items() if v is not None})
 
                 self.progress("Loading surface meshes", 0.35)
                 self._meshes[volume_format_cm] = _meshes_from_arrays(cached_arrays("app-meshes", params, build))
             return self._meshes[volume_format_cm]
+
+    @property
+    def mesh_steps(self) -> tuple[int, int]:
+        """Marching-cubes steps (vessels, bone): the skull is kept to ~120k faces for the browser."""
+        voxels = self.config.voxels
+        return max(1, round(voxels / 200)), max(1, math.ceil(voxels / 64))
+
+    def mesh_spacing_mm(self, volume_format_cm: float) -> float:
+        """Typical distance between neighbouring mesh vertices."""
+        return float(np.mean(self.volume(volume_format_cm).spacing_mm)) * self.mesh_steps[0]
 
     def vessel_points_mm(self) -> np.ndarray:
         with self._lock:

@@ -22,7 +22,6 @@ import viser
 from app import views
 from app.scene import Scene
 from app.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM, Session
-from registration.drr import DRRRenderer
 from registration.geometry import IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I, CArm
 
 log = logging.getLogger(__name__)
@@ -73,7 +72,10 @@ class RoadmapApp:
         self._autocorrect_due: float | None = None
         self._mesh_format: float | None = None
         self._shown_geometry: CArm | None = None
-        self._display_renderers: dict[float, DRRRenderer] = {}
+        self._shown_carm: tuple | None = None
+        self._tiles_of: object = None
+        self._tiles: dict[str, np.ndarray] = {}
+        self._preview_version = -1
         self.frames_shown = 0
         self.live_updates: list[float] = []
 
@@ -312,8 +314,10 @@ class RoadmapApp:
             self._thread.join(timeout=3.0)
 
     def _present_loop(self) -> None:
+        next_tick = time.monotonic()
         while not self._quit.is_set():
-            self._wake.wait(1.0 / LIVE_HZ)
+            next_tick = max(next_tick + 1.0 / LIVE_HZ, time.monotonic() - 1.0 / LIVE_HZ)
+            self._wake.wait(max(0.0, next_tick - time.monotonic()))
             self._wake.clear()
             if self._quit.is_set():
                 break
@@ -324,11 +328,6 @@ class RoadmapApp:
                 self.message(f"Cannot show this: {exc}", error=True)
                 with self.session.lock:
                     self._shown_version = self.session.version  # don't retry the same failure forever
-
-    def _display_renderer(self, volume_format: float) -> DRRRenderer:
-        if volume_format not in self._display_renderers:
-            self._display_renderers = {volume_format: DRRRenderer(self.session.data.volume(volume_format), levels=2)}
-        return self._display_renderers[volume_format]
 
     def _present(self) -> None:
         s = self.session
@@ -349,7 +348,14 @@ class RoadmapApp:
             self.message(f"Loading the {settings.volume_format_cm:g} cm volume…")
             self.scene.set_anatomy(s.data.meshes(settings.volume_format_cm))
             self._mesh_format = settings.volume_format_cm
-        xray = s.xray()
+        if not s.xray_ready() and self._preview_version != version:
+            # Forming the full image takes a moment: show a quick one first, then come back.
+            xray = s.xray_preview()
+            self._preview_version = version
+            self._wake.set()
+        else:
+            xray = s.xray()
+            self._shown_version = version
         with s.lock:
             estimate = s.estimate.copy()
             truth = s.true_motion.copy()
@@ -357,8 +363,7 @@ class RoadmapApp:
             progress = run.progress
             running = run.running
         shown = progress.best_motion if running and progress is not None else estimate
-        self._show(xray, np.asarray(shown, np.float64), truth, settings.volume_format_cm)
-        self._shown_version = version
+        self._show(xray, np.asarray(shown, np.float64), truth, settings.volume_format_cm, live=running)
         self._shown_progress = progress
         if live:
             self._last_live = now
@@ -373,38 +378,54 @@ class RoadmapApp:
             self._autocorrect_due = None
             self.start_registration()
 
-    def _show(self, xray: Any, motion: np.ndarray, truth: np.ndarray, volume_format: float) -> None:
+    def _image_tiles(self, xray: Any) -> dict[str, np.ndarray]:
+        """What depends on the X-ray image only, computed once per image."""
+        if self._tiles_of is not xray:
+            size = self.session.config.display_px
+            mask_u8 = xray.mask.astype(np.uint8)
+            self._tiles = {
+                "fluoro": views.resize(views.to_gray(xray.image, xray.mask), size),
+                "mask": views.resize(mask_u8, size).astype(bool),
+                "mask_half": views.resize(mask_u8, size // 2).astype(bool),
+                "gradient": views.resize(views.gradient_image(xray.image, xray.mask), size),
+            }
+            self._tiles_of = xray
+        return self._tiles
+
+    def _show(self, xray: Any, motion: np.ndarray, truth: np.ndarray, volume_format: float, *, live: bool) -> None:
         s = self.session
         size = s.config.display_px
         geometry: CArm = xray.geometry
-        shown_geometry = geometry.resized(size, size)
-        mask = views.resize(xray.mask.astype(np.uint8), size).astype(bool)
+        tiles = self._image_tiles(xray)
 
-        fluoro = views.gray_rgb(views.resize(views.to_gray(xray.image, xray.mask), size))
+        fluoro = views.gray_rgb(tiles["fluoro"])
         meshes = s.data.meshes(volume_format)
-        vessels = next((m for name, m in meshes.items() if "vessel" in name), None)
+        vessels = meshes.get("vessels")
         if vessels is not None:
-            spacing = float(np.mean(s.data.volume(volume_format).spacing_mm)) * 2.0
-            silhouette = views.vessel_silhouette(np.asarray(vessels.vertices), motion, shown_geometry, spacing)
+            spacing = s.data.mesh_spacing_mm(volume_format)
+            silhouette = views.vessel_silhouette(
+                np.asarray(vessels.vertices), motion, geometry.resized(size, size), spacing
+            )
             views.draw_outline(fluoro, silhouette, thickness=1 if size <= 400 else 2)
-        views.label(fluoro, f"{xray.kind.upper()}  {geometry.primary_deg:+.0f}° / {geometry.secondary_deg:+.0f}°")
-        views.label(fluoro, "red: roadmap (estimate)", corner="bottom-left")
+        views.label(fluoro, f"{xray.kind.upper()}  {views.angles_text(geometry)}")
+        views.label(fluoro, "red: roadmap at the estimate", corner="bottom-left")
 
-        drr_geometry = geometry.resized(size // 2, size // 2)
-        drr = self._display_renderer(volume_format).render(drr_geometry, motion, level=1)
-        drr_small_mask = views.resize(xray.mask.astype(np.uint8), size // 2).astype(bool)
-        drr_gray = views.resize(views.to_gray(drr, drr_small_mask), size)
-        drr_gray[~mask] = 0
-        drr_tile = views.label(views.gray_rgb(drr_gray), "DRR at estimate")
+        # The DRR thumbnail: coarser while the optimizer runs (it competes for the same cores).
+        drr = s.data.renderer(volume_format).render(
+            geometry.resized(size // 2, size // 2), motion, level=2 if live else 1
+        )
+        drr_gray = views.resize(views.to_gray(drr, tiles["mask_half"]), size)
+        drr_gray[~tiles["mask"]] = 0
+        drr_tile = views.label(views.gray_rgb(drr_gray), "DRR at the estimate")
         composite = views.side_by_side(fluoro, drr_tile)
         if self.show_gradients.value:
-            g1 = views.label(
-                views.gray_rgb(views.resize(views.gradient_image(xray.image, xray.mask), size)), "gradient: image"
-            )
+            g1 = views.label(views.gray_rgb(tiles["gradient"]), "gradient: image")
             g2 = views.label(
-                views.gray_rgb(views.resize(views.gradient_image(drr, drr_small_mask), size)), "gradient: DRR"
+                views.gray_rgb(views.resize(views.gradient_image(drr, tiles["mask_half"]), size)), "gradient: DRR"
             )
             composite = views.stacked(composite, views.side_by_side(g1, g2))
+        carm_key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, round(geometry.field_diameter_mm, 3))
+        detector_image = views.resize(fluoro, 256)
 
         readout, badge, details = self._texts(motion, truth)
         with s.lock:
@@ -413,11 +434,12 @@ class RoadmapApp:
             sim = list(run.similarity or [])
             temp = list(run.temperature or [])
         with self.server.atomic():
-            if self._shown_geometry != geometry:
-                self.scene.set_carm(geometry, views.resize(fluoro, 256))
+            if self._shown_carm != carm_key:
+                self.scene.set_carm(geometry, detector_image)
+                self._shown_carm = carm_key
                 self._shown_geometry = geometry
             else:
-                self.scene.set_detector_image(views.resize(fluoro, 256))
+                self.scene.set_detector_image(detector_image)
             self.scene.place(motion, truth, show_ghost=bool(self.show_ghost.value))
             for handle in self.scene.patient:
                 if "vessel" not in handle.name:

@@ -65,10 +65,13 @@ def build_app(
     session = Session(data, config)
     fmt = session.settings.volume_format_cm
     data.volume(fmt)
+    # Two cores: the renderer's pyramid and the surfaces + first image are prepared side by side.
+    renderer = threading.Thread(target=data.renderer, args=(fmt,), name="prepare-renderer")
+    renderer.start()
     data.meshes(fmt)
-    data.renderer(fmt)
-    progress("Forming the first X-ray image", 0.85)
+    progress("Forming the first X-ray image", 0.7)
     session.xray()
+    renderer.join()
     progress("Ready", 1.0)
     note.remove()
     bar.remove()

@@ -102,25 +102,39 @@ class Session:
         with self.lock:
             return self.settings.geometry(self.config.pixels)
 
-    def xray(self) -> XRayImage:
-        """The X-ray image for the current settings and true motion (re-rendered on change)."""
+    def _xray_state(self) -> tuple[CArmSettings, Array, tuple]:
         with self.lock:
             settings, motion = self.settings, self.true_motion.copy()
-        key = (settings, motion.tobytes())
+        return settings, motion, (settings, motion.tobytes())
+
+    def _simulate(self, settings: CArmSettings, motion: Array, *, pixels: int, supersample: int) -> XRayImage:
+        return simulate_xray(
+            self.data.phantom(settings.contrast),
+            settings.geometry(pixels),
+            motion=motion,
+            kind=settings.kind,
+            catheter=settings.catheter,
+            seed=self.config.seed,
+            supersample=supersample,
+        )
+
+    def xray(self) -> XRayImage:
+        """The X-ray image for the current settings and true motion (re-formed on change)."""
+        settings, motion, key = self._xray_state()
         with self._xray_lock:
             if key != self._xray_key or self._xray is None:
-                geometry = settings.geometry(self.config.pixels)
-                phantom = self.data.phantom(settings.contrast)
-                self._xray = simulate_xray(
-                    phantom,
-                    geometry,
-                    motion=motion,
-                    kind=settings.kind,
-                    catheter=settings.catheter,
-                    seed=self.config.seed,
-                )
+                self._xray = self._simulate(settings, motion, pixels=self.config.pixels, supersample=2)
                 self._xray_key = key
             return self._xray
+
+    def xray_ready(self) -> bool:
+        """Whether :meth:`xray` would return at once."""
+        return self._xray_key == self._xray_state()[2]
+
+    def xray_preview(self) -> XRayImage:
+        """A quick, coarser image of the current state (shown while :meth:`xray` is formed)."""
+        settings, motion, _ = self._xray_state()
+        return self._simulate(settings, motion, pixels=max(64, self.config.pixels // 2), supersample=1)
 
     def residual(self, estimate: Array | None = None) -> Residual:
         with self.lock:

@@ -96,6 +96,12 @@ def label(rgb: RGB, text: str, *, corner: str = "top-left") -> RGB:
     return rgb
 
 
+def angles_text(geometry: CArm) -> str:
+    """C-arm angles the way the console shows them, e.g. "LAO 30 CRAN 10" (ASCII for OpenCV)."""
+    a, b = geometry.primary_deg, geometry.secondary_deg
+    return f"{'LAO' if a >= 0 else 'RAO'} {abs(a):.0f}  {'CRAN' if b >= 0 else 'CAUD'} {abs(b):.0f}"
+
+
 def gray_rgb(gray: np.ndarray) -> RGB:
     return np.ascontiguousarray(np.repeat(gray[:, :, None], 3, axis=2))
 

@@ -1,0 +1,57 @@
+"""A small, fast configuration of the app shared by the app tests."""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from app.data import AppConfig
+from app.gui import RoadmapApp
+from app.main import build_app, make_server
+
+#: Small grids so the suite stays fast; registration still has to reach < 1 mm in-plane.
+TEST_CONFIG = AppConfig(voxels=128, pixels=256, display_px=256)
+
+READOUT = re.compile(r"Residual: (\d+\.\d\d) mm in-plane, (\d+\.\d\d) mm total, (\d+\.\d\d)° rotation")
+
+
+def parse_readout(text: str) -> tuple[float, float, float]:
+    match = READOUT.search(text)
+    assert match, f"readout not in the expected form: {text!r}"
+    return float(match[1]), float(match[2]), float(match[3])
+
+
+def wait_until(predicate, timeout: float, step: float = 0.05) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(step)
+    return predicate()
+
+
+@pytest.fixture(scope="session")
+def app() -> Iterator[RoadmapApp]:
+    server = make_server("127.0.0.1", 0)
+    built = build_app(server, TEST_CONFIG)
+    yield built
+    built.close()
+    server.stop()
+
+
+@pytest.fixture()
+def fresh(app: RoadmapApp) -> RoadmapApp:
+    """The shared app, idle, with no patient motion and the default C-arm."""
+    app.session.stop_registration(wait=True)
+    app.autocorrect.value = False
+    app.primary.value = 0.0
+    app.secondary.value = 0.0
+    app.sid.value = 1200.0
+    app.image_format.value = "27 cm"
+    app.volume_format.value = "27 cm"
+    app.kind.value = "fluoro"
+    app.reset_button.value = True
+    return app

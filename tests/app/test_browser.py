@@ -1,0 +1,98 @@
+"""End to end in Debian's headless Chromium: the page renders, T4 + Register converge.
+
+Skipped with a message when /usr/bin/chromium is missing (``apt-get install chromium``);
+``.ci/run`` installs it so CI runs this test.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.gui import RoadmapApp
+from app.main import url_of
+
+from .conftest import READOUT, parse_readout
+
+CHROMIUM = Path("/usr/bin/chromium")
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(
+        not CHROMIUM.exists() and shutil.which("chromium") is None,
+        reason="Debian chromium not installed (apt-get install chromium): browser test skipped",
+    ),
+]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
+    with sync_api.sync_playwright() as pw:
+        chromium = pw.chromium.launch(
+            executable_path=str(CHROMIUM if CHROMIUM.exists() else shutil.which("chromium")),
+            args=["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader"],
+        )
+        yield chromium
+        chromium.close()
+
+
+def canvas_is_drawn(page) -> bool:
+    import io
+
+    from PIL import Image
+
+    # A clip of the page, not Locator.screenshot: that waits for the (always animating) canvas to be "stable".
+    box = page.locator("canvas").first.bounding_box()
+    assert box is not None and box["width"] > 100 and box["height"] > 100, f"no 3D canvas: {box}"
+    png = page.screenshot(clip=box)
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("L"), dtype=np.float32)
+    return float(pixels.std()) > 5.0  # a blank canvas is one flat colour
+
+
+def readout_of(page) -> str:
+    return page.get_by_text(READOUT).first.inner_text()
+
+
+def test_page_renders_and_t4_register_converges(fresh: RoadmapApp, browser) -> None:
+    app = fresh
+    url = url_of(app.server)
+    page = browser.new_page(viewport={"width": 1500, "height": 900})
+    second = browser.new_page(viewport={"width": 1200, "height": 800})
+    try:
+        page.goto(url)
+        page.get_by_role("button", name="Register").wait_for(timeout=30_000)
+        deadline = time.monotonic() + 20
+        while not canvas_is_drawn(page) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert canvas_is_drawn(page), "the 3D canvas stayed blank"
+
+        page.get_by_role("button", name="T4", exact=True).click()
+        page.get_by_text(re.compile(r"Residual: [3-9]\.\d\d mm in-plane")).wait_for(timeout=15_000)
+
+        second.goto(url)  # a second tab joins: it shares the session
+        second.get_by_role("button", name="Register").wait_for(timeout=30_000)
+
+        page.get_by_role("button", name="Register").click()
+        page.get_by_text("REGISTERING…", exact=True).wait_for(timeout=10_000)
+        second.close()  # a tab closed mid-run breaks nothing
+        page.get_by_text(re.compile(r"· done")).wait_for(timeout=120_000)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            inplane, _, rotation = parse_readout(readout_of(page))
+            if inplane < 1.0:
+                break
+            time.sleep(0.2)
+        assert inplane < 1.0, readout_of(page)
+        assert rotation < 3.0
+        page.get_by_text("REGISTERED").first.wait_for(timeout=5_000)
+        assert page.get_by_role("button", name="Register").is_enabled()
+    finally:
+        page.close()
+        if not second.is_closed():
+            second.close()

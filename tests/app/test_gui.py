@@ -1,0 +1,120 @@
+"""Drive the app through its GUI handles, as a browser would (no browser needed)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from app.gui import RoadmapApp
+from registration.geometry import TABLE_I
+
+from .conftest import parse_readout, wait_until
+
+
+def shown(app: RoadmapApp) -> bool:
+    """The presenter has caught up with the session."""
+    return app._shown_version == app.session.version  # noqa: SLF001
+
+
+def test_t4_then_register_reaches_sub_millimetre(fresh: RoadmapApp) -> None:
+    app = fresh
+    app.table_buttons["T4"].value = True
+    assert np.allclose([s.value for s in app.offset_sliders], TABLE_I["T4"], atol=0.01)
+    assert wait_until(lambda: shown(app), 10)
+    inplane_before, _, _ = parse_readout(app.readout.content)
+    assert inplane_before > 3.0  # T4 moves the head 5.7 mm in-plane
+
+    app.register_button.value = True
+    assert app.session.running
+    # Conflicting controls are disabled for the run, Stop is enabled.
+    assert app.register_button.disabled and not app.stop_button.disabled
+    assert all(c.disabled for c in app.carm_controls + app.motion_controls)
+    start = time.monotonic()
+    assert app.session.wait(120), "registration did not finish"
+    duration = time.monotonic() - start
+    assert wait_until(lambda: shown(app) and not app.register_button.disabled, 5)
+
+    inplane, total, rotation = parse_readout(app.readout.content)
+    assert inplane < 1.0, app.readout.content  # the paper's success criterion (single view: in-plane)
+    assert rotation < 3.0, app.readout.content
+    assert "REGISTERED" in app.badge.content
+    assert "DRRs" in app.details.content and "done" in app.details.content
+    # The overlay and readout were refreshed live (>= 5 per second) while it ran.
+    live = [t for t in app.live_updates if start <= t <= start + duration]
+    if duration > 2.0:
+        assert len(live) / duration >= 5.0, f"{len(live)} live updates in {duration:.1f} s"
+    assert not any(c.disabled for c in app.carm_controls + app.motion_controls)
+
+
+def test_stop_cancels_quickly(fresh: RoadmapApp) -> None:
+    app = fresh
+    app.table_buttons["T2"].value = True
+    app.register_button.value = True
+    time.sleep(1.0)
+    assert app.session.running
+    start = time.monotonic()
+    app.stop_button.value = True
+    assert app.session.wait(5)
+    latency = time.monotonic() - start
+    assert latency < 1.0, f"stop took {latency:.2f} s"  # the issue asks 0.5 s; margin for a loaded CI machine
+    assert app.session.run.result is not None and app.session.run.result.stopped
+    assert wait_until(lambda: not app.register_button.disabled, 3)
+
+
+def test_carm_change_keeps_the_patient_in_the_room(fresh: RoadmapApp) -> None:
+    app = fresh
+    app.table_buttons["T1"].value = True
+    truth = app.session.true_motion.copy()
+    app.primary.value = 30.0
+    assert app.session.settings.primary_deg == 30.0
+    assert np.allclose(app.session.true_motion, truth)  # the patient did not move
+    # ...but its offsets in the new view frame did, and the sliders show them.
+    assert not np.allclose([s.value for s in app.offset_sliders], TABLE_I["T1"], atol=0.05)
+    assert app.session.xray().geometry.primary_deg == 30.0
+    assert wait_until(lambda: shown(app), 10)
+    assert app._shown_geometry is not None and app._shown_geometry.primary_deg == 30.0  # noqa: SLF001
+
+
+def test_absurd_input_gives_a_message_not_a_traceback(fresh: RoadmapApp) -> None:
+    app = fresh
+    # A 48 cm image of a 15 cm volume with the head pushed to the corner of the field.
+    app.image_format.value = "48 cm"
+    app.volume_format.value = "15 cm"
+    for slider in app.offset_sliders:
+        slider.value = slider.max
+    app.secondary.value = 50.0
+    assert wait_until(lambda: shown(app), 30)
+    # Something the session refuses reaches the page as a message.
+    app.session.run.running = True  # pretend a run is in progress
+    try:
+        app.offset_sliders[0].value = 1.0
+    finally:
+        app.session.run.running = False
+    assert "Stop first" in app.status.content or "press Stop" in app.status.content
+    app.register_button.value = True
+    assert app.session.wait(120)
+    assert wait_until(lambda: shown(app), 10)
+    parse_readout(app.readout.content)  # still a readout, whatever the outcome
+
+
+def test_random_stays_within_25_mm_and_10_degrees(fresh: RoadmapApp) -> None:
+    app = fresh
+    for _ in range(20):
+        app.random_button.value = True
+        o = np.array([s.value for s in app.offset_sliders])
+        assert np.linalg.norm(o[:3]) <= 25.0 + 0.05
+        assert np.linalg.norm(o[3:]) <= 10.0 + 0.05
+        assert np.allclose(app.session.estimate, np.eye(4))  # roadmap restarts from the sensors
+
+
+def test_autocorrect_reregisters_when_the_patient_moves(fresh: RoadmapApp) -> None:
+    app = fresh
+    app.autocorrect.value = True
+    app.offset_sliders[0].value = 6.0
+    assert wait_until(lambda: app.session.running, 5), "auto-correct did not start"
+    assert app.session.wait(120)
+    assert wait_until(lambda: shown(app), 10)
+    inplane, _, _ = parse_readout(app.readout.content)
+    assert inplane < 1.0
+    app.autocorrect.value = False
