@@ -27,6 +27,12 @@ BONE_HU = 700.0
 BONE_MARGIN_VOXELS = 2
 #: Vessel components smaller than this many voxels are dropped (noise, isolated bone specks).
 MIN_VESSEL_VOXELS = 20
+#: Arteries run in brain and soft tissue; thin facial bones and sinus walls whose partial-volume
+#: values fall between the thresholds border air. A component whose 2-voxel shell holds more
+#: than this fraction of air (< AIR_HU) is not a vessel. (On the phantom the vessel components'
+#: shells hold no air at all and every other component's at least 7 %.)
+MAX_SHELL_AIR_FRACTION = 0.02
+AIR_HU = -300.0
 
 COLORS = {"vessels": (200, 40, 40, 255), "bone": (228, 218, 196, 255)}
 MESH_SUFFIXES = (".stl", ".ply", ".glb")
@@ -47,6 +53,25 @@ def _surface(
     return trimesh.Trimesh(vertices=world, faces=faces, process=False)
 
 
+def _vessel_components(hu: NDArray[np.float32], candidate: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Keep the candidate components big enough and surrounded by tissue, not air."""
+    labels, count = ndimage.label(candidate)
+    if not count:
+        return candidate
+    sizes = np.bincount(labels.ravel())
+    keep = np.zeros(count + 1, dtype=bool)
+    margin = 2
+    for index, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None or sizes[index] < MIN_VESSEL_VOXELS:
+            continue
+        grown = tuple(slice(max(0, b.start - margin), b.stop + margin) for b in box)
+        inside = labels[grown] == index
+        shell = ndimage.binary_dilation(inside, iterations=margin) & ~inside
+        air = float(np.mean(hu[grown][shell] < AIR_HU)) if shell.any() else 0.0
+        keep[index] = air <= MAX_SHELL_AIR_FRACTION
+    return keep[labels]
+
+
 def surface_meshes(
     volume: Volume,
     *,
@@ -56,9 +81,10 @@ def surface_meshes(
 ) -> dict[str, trimesh.Trimesh]:
     """The ``"vessels"`` and ``"bone"`` surfaces of ``volume`` (absent keys: nothing found).
 
-    Vessels are the iso-surface at ``vessel_hu`` of the voxels below ``bone_hu`` that lie more
-    than BONE_MARGIN_VOXELS from bone, without components smaller than MIN_VESSEL_VOXELS;
-    bone is the iso-surface at ``bone_hu``. ``step`` > 1 trades detail for speed.
+    Vessels are the iso-surface at ``vessel_hu`` of the voxels that lie more than
+    BONE_MARGIN_VOXELS from bone, in components of at least MIN_VESSEL_VOXELS surrounded by
+    tissue rather than air (MAX_SHELL_AIR_FRACTION); bone is the iso-surface at ``bone_hu``.
+    ``step`` > 1 trades detail for speed.
     """
     if not vessel_hu < bone_hu:
         raise ValueError(f"vessel_hu ({vessel_hu}) must be below bone_hu ({bone_hu})")
@@ -69,12 +95,7 @@ def surface_meshes(
     bone = hu >= bone_hu
     near_bone = ndimage.binary_dilation(bone, iterations=BONE_MARGIN_VOXELS) if bone.any() else bone
     candidate = (hu > vessel_hu) & ~near_bone
-    labels, count = ndimage.label(candidate)
-    if count:
-        sizes = np.bincount(labels.ravel())
-        keep = sizes >= MIN_VESSEL_VOXELS
-        keep[0] = False
-        candidate = keep[labels]
+    candidate = _vessel_components(hu, candidate)
     vessel_field = np.where(ndimage.binary_dilation(candidate, iterations=1) & ~near_bone, hu, floor)
     # Padding by one voxel of "nothing" closes surfaces that touch the volume's border; the
     # padded grid's index 0 is the volume's index -1.
