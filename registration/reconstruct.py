@@ -256,41 +256,48 @@ def parker_weights(beta_rad: float, gamma_rad: NDArray[np.float64], half_fan_rad
 
 
 def _extend_truncated(
-    image: NDArray[np.float64], mask: NDArray[np.bool_], *, pixel_mm: float, magnification: float, pad: int
-) -> NDArray[np.float64]:
+    image: NDArray[np.float64], mask: NDArray[np.bool_], *, pixel_mm: float, magnification: float
+) -> tuple[NDArray[np.float64], int]:
     """Water-cylinder extrapolation of each row beyond the collimated field (Hsieh et al. 2004).
 
     At each end of a row's field, the line integral p and its outward slope s (over
-    :data:`TRUNCATION_FIT_PX` pixels) fix a water cylinder (attenuation mu_water / magnification
-    per detector mm) whose projection continues the row: center a = -s p / (4 mu^2) inside the
-    edge (a >= 0), radius sqrt((p / 2 mu)^2 + a^2). The row is returned padded by ``pad``
-    pixels on both sides so the extension can reach past the detector edge.
+    :data:`TRUNCATION_FIT_PX` pixels) fix a cylinder of :data:`TRUNCATION_MU_PER_MM` (per
+    detector mm: divided by the magnification) whose projection continues the row: center
+    a = -s p / (4 mu^2) inside the edge (a >= 0), radius sqrt((p / 2 mu)^2 + a^2), at most
+    :data:`TRUNCATION_MAX_MM` long. Returns the rows padded on both sides so the extension can
+    reach past the detector edge, and the pad (pixels).
     """
     rows, cols = image.shape
     mu = TRUNCATION_MU_PER_MM / magnification
-    out = np.zeros((rows, cols + 2 * pad))
-    out[:, pad : pad + cols] = np.where(mask, image, 0.0)
+    inside = np.where(mask, image, 0.0)
     has = mask.any(axis=1)
     if not has.any():
-        return out
+        return inside, 0
     r = np.flatnonzero(has)
     m = mask[r]
     lo = np.argmax(m, axis=1)
     hi = cols - 1 - np.argmax(m[:, ::-1], axis=1)
-    idx = np.arange(cols + 2 * pad)[None, :] - pad
+    sides = []
+    longest_mm = 0.0
     for edge, sign in ((lo, -1), (hi, 1)):
         inner = np.clip(edge - sign * TRUNCATION_FIT_PX, lo, hi)
         p_edge = np.maximum(0.5 * (image[r, edge] + image[r, np.clip(edge - sign, lo, hi)]), 0.0)
-        p_inner = image[r, inner]
         run_mm = np.maximum(np.abs(edge - inner), 1) * pixel_mm
-        slope = (p_edge - p_inner) / run_mm  # outward derivative
+        slope = (p_edge - image[r, inner]) / run_mm  # outward derivative
         a = np.maximum(-slope * p_edge / (4.0 * mu * mu), 0.0)
-        radius2 = (p_edge / (2.0 * mu)) ** 2 + a * a
+        radius = np.sqrt((p_edge / (2.0 * mu)) ** 2 + a * a)
+        longest_mm = max(longest_mm, float(np.max(radius - a)))
+        sides.append((edge, sign, a, radius))
+    pad = int(math.ceil(min(longest_mm, TRUNCATION_MAX_MM) / pixel_mm)) + 1
+    out = np.zeros((rows, cols + 2 * pad))
+    out[:, pad : pad + cols] = inside
+    idx = np.arange(cols + 2 * pad)[None, :] - pad
+    for edge, sign, a, radius in sides:
         t = sign * (idx - edge[:, None]) * pixel_mm  # outward distance from the edge (mm)
-        ext = 2.0 * mu * np.sqrt(np.maximum(radius2[:, None] - (a[:, None] + t) ** 2, 0.0))
-        beyond = t > 0
-        out[r] = np.where(beyond, ext, out[r])
-    return out
+        ext = 2.0 * mu * np.sqrt(np.maximum(radius[:, None] ** 2 - (a[:, None] + t) ** 2, 0.0))
+        ext[t > TRUNCATION_MAX_MM] = 0.0
+        out[r] = np.where(t > 0, ext, out[r])
+    return out, pad
 
 
 def filter_projections(
@@ -334,8 +341,7 @@ def filter_projections(
         proj = imgs[i].astype(np.float64)
         pad = 0
         if msk is not None:
-            pad = int(math.ceil(TRUNCATION_MAX_MM / g.pixel_mm[1]))
-            proj = _extend_truncated(proj, msk[i], pixel_mm=g.pixel_mm[1], magnification=g.magnification, pad=pad)
+            proj, pad = _extend_truncated(proj, msk[i], pixel_mm=g.pixel_mm[1], magnification=g.magnification)
         width = proj.shape[1]
         c0, r0 = frame.principal_px
         x = (np.arange(width) - pad - c0) * g.pixel_mm[1]
