@@ -315,6 +315,8 @@ def filter_projections(
     extended beyond the field (taper), ramp-filtered along rows with the Hann window, and
     scaled by dbeta R^2 / tau (tau the pixel spacing at the iso-center, R the source-iso
     distance) so that :func:`backproject` with weight 1/w^2 gives attenuation in 1/mm.
+    The run must be a propeller rotation (secondary 0): the Parker weights assume rotation
+    about the world z axis, increasing with ``primary_deg``.
     """
     imgs = np.asarray(images, dtype=np.float32)
     if imgs.ndim != 3 or imgs.shape[0] != len(geometries):
@@ -330,6 +332,8 @@ def filter_projections(
         raise ValueError(f"the run covers {math.degrees(arc):.1f} deg; FDK needs more than 180")
     half_fan = (arc - math.pi) / 2.0
     dbeta = arc / (angles.size - 1)
+    if any(abs(g.secondary_deg) > 1e-9 for g in geometries):
+        raise ValueError("FDK here expects a propeller run (secondary angle 0 in every view)")
     nv, rows, cols = imgs.shape
     msk = None if masks is None else np.asarray(masks, dtype=bool)
     out = np.empty((nv, rows, cols), dtype=np.float32)

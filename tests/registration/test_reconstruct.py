@@ -132,6 +132,9 @@ def test_fdk_validates_inputs():
         fdk(np.zeros((3, 16, 16)), geoms, [-80, 0, 80], volume_format_cm=15.0, voxels=8)
     with pytest.raises(ValueError, match="pixels"):
         fdk(np.zeros((3, 8, 8)), geoms, [-100, 0, 100], volume_format_cm=15.0, voxels=8)
+    tilted = [g.with_angles(g.primary_deg, 10.0) for g in geoms]
+    with pytest.raises(ValueError, match="propeller"):
+        fdk(np.zeros((3, 16, 16)), tilted, [-100, 0, 100], volume_format_cm=15.0, voxels=8)
 
 
 # ----- the run ---------------------------------------------------------------------------
