@@ -51,6 +51,8 @@ class PhantomStudy:
     """Parallel processes (default: all cores)."""
     scheduler: str | None = None
     """Run on a Dask cluster, e.g. tcp://HOST:PORT."""
+    volume_source: Literal["fdk", "resampled"] = "fdk"
+    """Registration volume: the FDK 3DRA, or the phantom resampled to its grid (faster)."""
 
 
 @dataclass
@@ -90,11 +92,11 @@ def validate(study: Study) -> int:
 
         return run_table1(study)
     if isinstance(study, PhantomStudy):
-        from registration.validation import run_phantom_study
+        from registration.studies import run_phantom_study
 
         return run_phantom_study(study)
     if isinstance(study, ClinicalStudy):
-        from registration.validation import run_clinical_study
+        from registration.studies import run_clinical_study
 
         return run_clinical_study(study)
     from registration.calibration import run_calibration_study

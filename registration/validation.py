@@ -47,6 +47,9 @@ class Case:
     volume_source: str = "fdk"
     #: Contrast in the rotational run of the 3DRA (the fluoro image never has contrast).
     volume_contrast: bool = True
+    #: Center of the 3DRA grid (world mm); non-zero for a 3DRA made with the table moved, e.g.
+    #: the alternative 22 cm volume containing the facial structures (registration.studies).
+    volume_center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @lru_cache(maxsize=4)
@@ -106,14 +109,26 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         secondary_deg=case.secondary_deg,
     )
     truth = offsets_to_matrix(offset_vector(case.offset), geometry)
-    volume = load_volume(
-        case.phantom_seed,
-        case.facial,
-        case.volume_format_cm,
-        case.volume_voxels,
-        case.volume_source,
-        case.volume_contrast,
-    )
+    if any(case.volume_center_mm):
+        from registration.studies import offcenter_volume
+
+        volume = offcenter_volume(
+            case.phantom_seed,
+            case.volume_format_cm,
+            tuple(case.volume_center_mm),
+            voxels=case.volume_voxels,
+            source=case.volume_source,
+            contrast=case.volume_contrast,
+        )
+    else:
+        volume = load_volume(
+            case.phantom_seed,
+            case.facial,
+            case.volume_format_cm,
+            case.volume_voxels,
+            case.volume_source,
+            case.volume_contrast,
+        )
     anatomy = _phantom(case.phantom_seed, False, case.facial)  # no contrast in the fluoro image
     xray = simulate_xray(anatomy, geometry, motion=truth, kind=case.image_kind, seed=case.seed)
     result = register(
