@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from registration.geometry import CArm, check_rigid, invert_rigid
+from registration.geometry import CArm, check_rigid
 from registration.volume import Volume, hu_to_mu_per_mm
 
 FloatImage = NDArray[np.float32]
@@ -42,34 +42,81 @@ FloatImage = NDArray[np.float32]
 REFERENCE_STEP_VOXELS = 0.5
 
 
+#: Image rows per work item of the parallel loop (small: balances threads when the machine
+#: is shared and the mask or the clipped volume makes some rows cheaper than others).
+_ROW_CHUNK = 4
+
+#: Zero voxels padded on every side of the volume copies the kernels read (see _render_joseph).
+_PAD = 2
+
+
 # --------------------------------------------------------------------------------------
 # Ray set-up shared by both renderers
 # --------------------------------------------------------------------------------------
+@numba.njit(cache=True)
+def _ray_setup(p: np.ndarray, index_from_world: np.ndarray, motion: np.ndarray, out_source, out_a) -> int:
+    """Source and ray directions in voxel indices; returns 0, or 1 if ``motion`` is not rigid.
+
+    ``P = K [I | -S]``: S = -inv(K) p4 and the ray through (c, r) runs along inv(K) (c, r, 1).
+    The volume moved by M is seen through P @ M, so source and rays are moved by inv(M).
+    """
+    # rigidity of the motion: finite, last row (0, 0, 0, 1), orthonormal block, det > 0
+    for i in range(4):
+        for j in range(4):
+            if not np.isfinite(motion[i, j]):
+                return 1
+    if abs(motion[3, 0]) > 1e-9 or abs(motion[3, 1]) > 1e-9 or abs(motion[3, 2]) > 1e-9:
+        return 1
+    if abs(motion[3, 3] - 1.0) > 1e-9:
+        return 1
+    for i in range(3):
+        for j in range(3):
+            dot = motion[0, i] * motion[0, j] + motion[1, i] * motion[1, j] + motion[2, i] * motion[2, j]
+            if abs(dot - (1.0 if i == j else 0.0)) > 1e-6:
+                return 1
+    det = (
+        motion[0, 0] * (motion[1, 1] * motion[2, 2] - motion[1, 2] * motion[2, 1])
+        - motion[0, 1] * (motion[1, 0] * motion[2, 2] - motion[1, 2] * motion[2, 0])
+        + motion[0, 2] * (motion[1, 0] * motion[2, 1] - motion[1, 1] * motion[2, 0])
+    )
+    if det <= 0:
+        return 1
+    k_inv = np.ascontiguousarray(np.linalg.inv(np.ascontiguousarray(p[:, :3])))
+    source_world = -(k_inv @ np.ascontiguousarray(p[:, 3]))
+    # volume_from_world = inv(M) = [R^T | -R^T t]
+    rt = motion[:3, :3].T.copy()
+    t = motion[:3, 3].copy()
+    src_vol = rt @ (source_world - t)
+    lin = index_from_world[:3, :3].copy()
+    out_source[:] = lin @ src_vol + index_from_world[:3, 3]
+    out_a[:, :] = lin @ (rt @ k_inv)
+    return 0
+
+
+_IDENTITY = np.eye(4)
+
+
 def _rays_in_index_space(
-    volume: Volume, geometry: CArm, motion: ArrayLike | None
+    index_from_world: NDArray[np.float64], geometry: CArm, motion: ArrayLike | None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Source (3,) and the 3x3 ``A`` with direction(col, row) = A @ (col, row, 1), in voxel indices.
 
-    The ray parameter t runs from the source (t = 0) with X(t) = S + t * A @ (c, r, 1); t is the
-    homogeneous depth w of ``P``, so the detector is at t = focal length.
+    The ray parameter t runs from the source (t = 0): X(t) = S + t * A @ (c, r, 1).
     """
-    p = geometry.projection_matrix
-    k = p[:, :3]
-    k_inv = np.linalg.inv(k)
-    source_world = -k_inv @ p[:, 3]  # null space of P: K S + p4 = 0
-    if motion is None:
-        volume_from_world = np.eye(4)
-    else:
-        volume_from_world = invert_rigid(check_rigid(motion, name="motion"))
-    index_from_world = volume.world_to_index @ volume_from_world
-    source_index = index_from_world[:3, :3] @ source_world + index_from_world[:3, 3]
-    directions = index_from_world[:3, :3] @ k_inv
-    return source_index, directions
-
-
-def _check_geometry(geometry: CArm) -> None:
     if not isinstance(geometry, CArm):
         raise ValueError(f"geometry must be a CArm, got {type(geometry).__name__}")
+    if motion is None:
+        m = _IDENTITY
+    else:
+        m = np.asarray(motion, dtype=np.float64)
+        if m.shape != (4, 4):
+            raise ValueError(f"motion must be a 4x4 matrix, got shape {m.shape}")
+    source = np.empty(3)
+    a_mat = np.empty((3, 3))
+    if _ray_setup(geometry.projection_matrix, index_from_world, m, source, a_mat) != 0:
+        check_rigid(m, name="motion")  # raises with the reason
+        raise ValueError("motion is not a rigid transform")
+    return source, a_mat
 
 
 # --------------------------------------------------------------------------------------
@@ -101,22 +148,57 @@ def _clip(
     return tmin, tmax
 
 
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _bilinear(arr: np.ndarray, base_m: np.uint64, pf: np.float32, qf: np.float32, usq: np.uint64) -> np.float32:
+    """Bilinear sample of the slice starting at ``base_m`` at (p, q) = (pf, qf) (padded indices).
+
+    p is the contiguous axis, q has stride ``usq``; pf, qf >= 0 (the padding keeps them so).
+    """
+    ip = np.int32(pf)
+    iq = np.int32(qf)
+    fp = pf - np.float32(ip)
+    fq = qf - np.float32(iq)
+    base = base_m + np.uint64(iq) * usq + np.uint64(ip)
+    v00 = arr[base]
+    v10 = arr[base + np.uint64(1)]
+    v01 = arr[base + usq]
+    v11 = arr[base + usq + np.uint64(1)]
+    a0 = v00 + fp * (v10 - v00)
+    a1 = v01 + fp * (v11 - v01)
+    return a0 + fq * (a1 - a0)
+
+
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def _render_joseph(
-    mu: np.ndarray,  # float32, flat, C order of (nk, nj, ni)
-    shape_ijk: np.ndarray,  # int64 (ni, nj, nk)
-    lo: np.ndarray,  # float64 (3,) clip box in index space
+    mu: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD) volume
+    mu_t: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, ni + 2 PAD, nj + 2 PAD) volume
+    shape_ijk: np.ndarray,  # int64 (ni, nj, nk), unpadded
+    lo: np.ndarray,  # float64 (3,) clip box in (unpadded) index space
     hi: np.ndarray,
-    source: np.ndarray,  # float64 (3,) source in index space
+    source: np.ndarray,  # float64 (3,) source in (unpadded) index space
     a_mat: np.ndarray,  # float64 (3, 3): direction = A @ (c, r, 1)
     i2w: np.ndarray,  # float64 (3, 3): index -> world linear part (lengths in mm)
     mask: np.ndarray,  # uint8 (rows, cols); ignored when use_mask is False
     use_mask: bool,
     out: np.ndarray,  # float32 (rows, cols)
 ) -> None:
+    """Joseph's method: bilinear samples on the slices of each ray's dominant axis m.
+
+    The samples at the integer slices inside the clipped ray [e0, e1], plus one beyond each
+    end, are integrated as a function linear between slices: the trapezoid rule inside, and
+    the exact area of the interpolated ends over the partial slices. So a ray leaving through
+    a cut (non-air) face of the volume, or ending a hair before a slice by rounding, is
+    integrated correctly, and the result is continuous in the pose (no slice-count jumps).
+
+    The volume is padded by PAD = 2 zero voxels on every side, so every sample (including
+    the two beyond the ends) has its bilinear footprint in memory without clamping; indices
+    are unsigned (no negative-index wraparound code in the inner loop). Rays dominated by the
+    i axis read ``mu_t``, the copy whose fastest axis is j, so the two samples of a bilinear
+    pair are always adjacent in memory.
+    """
     rows, cols = out.shape
-    n = (shape_ijk[0], shape_ijk[1], shape_ijk[2])
-    stride = (1, shape_ijk[0], shape_ijk[0] * shape_ijk[1])
+    ni, nj, nk = shape_ijk[0], shape_ijk[1], shape_ijk[2]
+    ni_p, nj_p = ni + 2 * _PAD, nj + 2 * _PAD
     s0, s1, s2 = source[0], source[1], source[2]
     for r in numba.prange(rows):
         for c in range(cols):
@@ -127,78 +209,100 @@ def _render_joseph(
             d1 = a_mat[1, 0] * c + a_mat[1, 1] * r + a_mat[1, 2]
             d2 = a_mat[2, 0] * c + a_mat[2, 1] * r + a_mat[2, 2]
             tmin, tmax = _clip(s0, s1, s2, d0, d1, d2, lo, hi)
-            if tmin >= tmax:
+            if not tmin < tmax:
                 continue
-            # dominant axis m, minor axes p, q
+            # dominant axis m; minor axes p (contiguous in memory) and q
             ad0, ad1, ad2 = abs(d0), abs(d1), abs(d2)
-            if ad0 >= ad1 and ad0 >= ad2:
-                m, p, q = 0, 1, 2
+            if ad0 >= ad1 and ad0 >= ad2:  # m = i: mu_t, p = j, q = k
+                arr = mu_t
+                nm, np_, nq = ni, nj, nk
                 dm, dp, dq, sm, sp, sq = d0, d1, d2, s0, s1, s2
-            elif ad1 >= ad2:
-                m, p, q = 1, 0, 2
+                str_m = nj_p
+                str_q = nj_p * ni_p
+            elif ad1 >= ad2:  # m = j: p = i, q = k
+                arr = mu
+                nm, np_, nq = nj, ni, nk
                 dm, dp, dq, sm, sp, sq = d1, d0, d2, s1, s0, s2
-            else:
-                m, p, q = 2, 0, 1
+                str_m = ni_p
+                str_q = ni_p * nj_p
+            else:  # m = k: p = i, q = j
+                arr = mu
+                nm, np_, nq = nk, ni, nj
                 dm, dp, dq, sm, sp, sq = d2, d0, d1, s2, s0, s1
+                str_m = ni_p * nj_p
+                str_q = ni_p
             e0 = sm + tmin * dm
             e1 = sm + tmax * dm
             if e0 > e1:
                 e0, e1 = e1, e0
-            m_first = int(math.ceil(e0 - 1e-9))
-            m_last = int(math.floor(e1 + 1e-9))
-            if m_first < 0:
-                m_first = 0
-            if m_last > n[m] - 1:
-                m_last = n[m] - 1
-            if m_last < m_first:
+            e0 = max(e0, 0.0)
+            e1 = min(e1, nm - 1.0)
+            if not e0 < e1:
                 continue
-            # minor coordinates as linear functions of the dominant index
+            m_first = int(math.ceil(e0))
+            m_last = int(math.floor(e1))
+            n_inner = max(m_last - m_first, 0)  # m_last = m_first - 1: within one slice interval
             rp = dp / dm
             rq = dq / dm
-            p0 = sp - sm * rp
-            q0 = sq - sm * rq
-            # world length of one step (one unit of the dominant index)
+            # p, q one slice before the first sample and one after the last
+            p_before = sp + (m_first - 1 - sm) * rp
+            q_before = sq + (m_first - 1 - sm) * rq
+            p_after = p_before + (n_inner + 2) * rp
+            q_after = q_before + (n_inner + 2) * rq
+            # Guard the memory footprint against any numerical surprise (never taken for rays
+            # clipped to the box: the samples lie within one voxel of it).
+            if (
+                min(p_before, p_after) < -1.5
+                or max(p_before, p_after) > np_ + 0.5
+                or min(q_before, q_after) < -1.5
+                or max(q_before, q_after) > nq + 0.5
+            ):
+                continue
             w0 = i2w[0, 0] * d0 + i2w[0, 1] * d1 + i2w[0, 2] * d2
             w1 = i2w[1, 0] * d0 + i2w[1, 1] * d1 + i2w[1, 2] * d2
             w2 = i2w[2, 0] * d0 + i2w[2, 1] * d1 + i2w[2, 2] * d2
             step_mm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / abs(dm)
-            str_m, str_p, str_q = stride[m], stride[p], stride[q]
-            pmax = n[p] - 2
-            qmax = n[q] - 2
-            pf = np.float32(p0 + m_first * rp)
-            qf = np.float32(q0 + m_first * rq)
+            usm = np.uint64(str_m)
+            usq = np.uint64(str_q)
+            base_m = np.uint64(m_first - 1 + _PAD) * usm
+            pf = np.float32(p_before + _PAD)
+            qf = np.float32(q_before + _PAD)
             rpf = np.float32(rp)
             rqf = np.float32(rq)
-            acc = np.float32(0.0)
-            for mi in range(m_first, m_last + 1):
-                ip = int(pf)
-                iq = int(qf)
-                if ip < 0:
-                    ip = 0
-                elif ip > pmax:
-                    ip = pmax
-                if iq < 0:
-                    iq = 0
-                elif iq > qmax:
-                    iq = qmax
-                fp = pf - ip
-                fq = qf - iq
-                base = mi * str_m + ip * str_p + iq * str_q
-                v00 = mu[base]
-                v10 = mu[base + str_p]
-                v01 = mu[base + str_q]
-                v11 = mu[base + str_p + str_q]
-                a0 = v00 + fp * (v10 - v00)
-                a1 = v01 + fp * (v11 - v01)
-                acc += a0 + fq * (a1 - a0)
+            v_before = _bilinear(arr, base_m, pf, qf, usq)
+            pf += rpf
+            qf += rqf
+            base_m += usm
+            v_first = _bilinear(arr, base_m, pf, qf, usq)
+            v_last = v_first
+            acc = v_first
+            for _ in range(n_inner):
                 pf += rpf
                 qf += rqf
-            out[r, c] = acc * np.float32(step_mm)
+                base_m += usm
+                v_last = _bilinear(arr, base_m, pf, qf, usq)
+                acc += v_last
+            pf += rpf
+            qf += rqf
+            base_m += usm
+            v_after = _bilinear(arr, base_m, pf, qf, usq)
+            if e1 < m_first:  # inside one slice interval [m_first - 1, m_first]
+                f = np.float32(0.5 * (e0 + e1) - (m_first - 1))
+                total = np.float32(e1 - e0) * (v_before + f * (v_first - v_before))
+            else:
+                # trapezoid over [m_first, m_last], then the partial slices at both ends
+                f0 = np.float32(m_first - e0)
+                f1 = np.float32(e1 - m_last)
+                v_e0 = v_first + f0 * (v_before - v_first)
+                v_e1 = v_last + f1 * (v_after - v_last)
+                total = acc - np.float32(0.5) * (v_first + v_last)
+                total += np.float32(0.5) * (f0 * (v_e0 + v_first) + f1 * (v_e1 + v_last))
+            out[r, c] = total * np.float32(step_mm)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def _render_trilinear(
-    mu: np.ndarray,
+    mu: np.ndarray,  # float32, flat, padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD)
     shape_ijk: np.ndarray,
     lo: np.ndarray,
     hi: np.ndarray,
@@ -210,11 +314,13 @@ def _render_trilinear(
     step_voxels: float,
     out: np.ndarray,
 ) -> None:
-    """Trilinear marcher at ``step_voxels`` along the dominant axis (midpoint rule)."""
+    """Trilinear marcher, ``step_voxels`` along the dominant axis (midpoint rule)."""
     rows, cols = out.shape
-    ni, nj = shape_ijk[0], shape_ijk[1]
-    s0, s1, s2 = source[0], source[1], source[2]
-    imax, jmax, kmax = shape_ijk[0] - 2, shape_ijk[1] - 2, shape_ijk[2] - 2
+    ni, nj = shape_ijk[0] + 2 * _PAD, shape_ijk[1] + 2 * _PAD
+    s0, s1, s2 = source[0] + _PAD, source[1] + _PAD, source[2] + _PAD  # padded indices
+    imax, jmax, kmax = ni - 2, nj - 2, shape_ijk[2] + 2 * _PAD - 2
+    lo_p = lo + _PAD
+    hi_p = hi + _PAD
     for r in numba.prange(rows):
         for c in range(cols):
             out[r, c] = 0.0
@@ -223,13 +329,11 @@ def _render_trilinear(
             d0 = a_mat[0, 0] * c + a_mat[0, 1] * r + a_mat[0, 2]
             d1 = a_mat[1, 0] * c + a_mat[1, 1] * r + a_mat[1, 2]
             d2 = a_mat[2, 0] * c + a_mat[2, 1] * r + a_mat[2, 2]
-            tmin, tmax = _clip(s0, s1, s2, d0, d1, d2, lo, hi)
-            if tmin >= tmax:
+            tmin, tmax = _clip(s0, s1, s2, d0, d1, d2, lo_p, hi_p)
+            if not tmin < tmax:
                 continue
             dmax = max(abs(d0), abs(d1), abs(d2))
-            nsteps = int(math.ceil((tmax - tmin) * dmax / step_voxels))
-            if nsteps < 1:
-                nsteps = 1
+            nsteps = max(int(math.ceil((tmax - tmin) * dmax / step_voxels)), 1)
             dt = (tmax - tmin) / nsteps
             w0 = i2w[0, 0] * d0 + i2w[0, 1] * d1 + i2w[0, 2] * d2
             w1 = i2w[1, 0] * d0 + i2w[1, 1] * d1 + i2w[1, 2] * d2
@@ -267,15 +371,18 @@ def _render_trilinear(
 # The fast renderer
 # --------------------------------------------------------------------------------------
 class _Level:
-    """One pyramid level ready for the kernels."""
+    """One pyramid level ready for the kernels: padded attenuation arrays and the clip box."""
 
     def __init__(self, volume: Volume) -> None:
         self.volume = volume
-        mu = hu_to_mu_per_mm(volume.data)
-        self.mu = np.ascontiguousarray(mu).reshape(-1)
+        mu = hu_to_mu_per_mm(volume.data)  # (nk, nj, ni)
+        padded = np.pad(mu, _PAD)
+        self.mu = padded.reshape(-1)
+        # copy with j fastest, for rays dominated by the i axis
+        self.mu_t = np.ascontiguousarray(padded.transpose(0, 2, 1)).reshape(-1)
         nk, nj, ni = volume.shape
         self.shape_ijk = np.array([ni, nj, nk], dtype=np.int64)
-        self.world_to_index = volume.world_to_index
+        self.index_from_world = np.ascontiguousarray(volume.world_to_index)
         self.index_to_world3 = np.ascontiguousarray(volume.index_to_world[:3, :3])
         # box of voxels that can contribute: non-zero attenuation, padded by one voxel
         nz = np.nonzero(mu > 0)
@@ -285,10 +392,8 @@ class _Level:
         else:
             lo_kji = np.array([ax.min() for ax in nz]) - 1
             hi_kji = np.array([ax.max() for ax in nz]) + 1
-            lo = np.maximum(lo_kji[::-1], 0)
-            hi = np.minimum(hi_kji[::-1], self.shape_ijk - 1)
-            self.lo = lo.astype(np.float64)
-            self.hi = hi.astype(np.float64)
+            self.lo = np.maximum(lo_kji[::-1], 0).astype(np.float64)
+            self.hi = np.minimum(hi_kji[::-1], self.shape_ijk - 1).astype(np.float64)
 
 
 class DRRRenderer:
@@ -336,7 +441,7 @@ class DRRRenderer:
         return self._levels[self._check_level(level)].volume
 
     def _check_level(self, level: int) -> int:
-        if int(level) != level or not 0 <= level < len(self._levels):
+        if isinstance(level, bool) or int(level) != level or not 0 <= level < len(self._levels):
             raise ValueError(f"level must be an integer in [0, {len(self._levels) - 1}], got {level}")
         return int(level)
 
@@ -351,11 +456,14 @@ class DRRRenderer:
     ) -> FloatImage:
         """DRR (rows, cols) float32 of the volume moved by ``motion`` seen through ``geometry``.
 
+        ``motion``: 4x4 rigid patient motion M (CONVENTIONS.md §4), identity when None.
+        ``level``: pyramid level of the volume (0 = full resolution); the image size is the
+        geometry's (pass ``geometry.resized(rows, cols)`` for coarser images).
         ``mask`` (bool, rows x cols): pixels where it is False are not rendered and set to 0.
         ``out``: a C-contiguous float32 (rows, cols) buffer to fill and return (no allocation).
         """
-        _check_geometry(geometry)
         lev = self._levels[self._check_level(level)]
+        source, a_mat = _rays_in_index_space(lev.index_from_world, geometry, motion)
         shape = (geometry.rows, geometry.cols)
         if out is None:
             out = np.empty(shape, dtype=np.float32)
@@ -376,17 +484,21 @@ class DRRRenderer:
             if mask.dtype != np.bool_:
                 raise ValueError(f"mask must be boolean, got dtype {mask.dtype}")
             mask_u8, use_mask = np.ascontiguousarray(mask).view(np.uint8), True
-        source, a_mat = _rays_in_index_space(lev.volume, geometry, motion)
-        if self.step_voxels == 1.0:
-            _render_joseph(
-                lev.mu, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
-                mask_u8, use_mask, out,
-            )  # fmt: skip
-        else:
-            _render_trilinear(
-                lev.mu, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
-                mask_u8, use_mask, self.step_voxels, out,
-            )  # fmt: skip
+        previous_chunk = numba.get_parallel_chunksize()
+        numba.set_parallel_chunksize(_ROW_CHUNK)
+        try:
+            if self.step_voxels == 1.0:
+                _render_joseph(
+                    lev.mu, lev.mu_t, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
+                    mask_u8, use_mask, out,
+                )  # fmt: skip
+            else:
+                _render_trilinear(
+                    lev.mu, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
+                    mask_u8, use_mask, self.step_voxels, out,
+                )  # fmt: skip
+        finally:
+            numba.set_parallel_chunksize(previous_chunk)
         self.count += 1
         return out
 
@@ -408,7 +520,6 @@ def render_reference(
     ``step_mm`` (default: half the smallest voxel spacing); the sum times the sub-interval
     length approximates the integral of attenuation per mm.
     """
-    _check_geometry(geometry)
     if step_mm is None:
         step_mm = REFERENCE_STEP_VOXELS * float(volume.spacing_mm.min())
     step_mm = float(step_mm)
@@ -416,7 +527,7 @@ def render_reference(
         raise ValueError(f"step_mm must be positive and finite, got {step_mm}")
     mu = hu_to_mu_per_mm(volume.data)
     nk, nj, ni = volume.shape
-    source, a_mat = _rays_in_index_space(volume, geometry, motion)
+    source, a_mat = _rays_in_index_space(volume.world_to_index, geometry, motion)
     rr, cc = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
     pix = np.stack([cc.ravel(), rr.ravel(), np.ones(cc.size)]).astype(np.float64)  # (3, N)
     dirs = a_mat @ pix  # index-space directions, (3, N)
