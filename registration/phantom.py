@@ -38,6 +38,10 @@ MAX_PLANES = 12
 #: Bump when the anatomy changes (it is part of every cache key).
 PHANTOM_MODEL_VERSION = 1
 
+#: Length of the straight, mitred pieces that make up an artery (mm); the bends between
+#: pieces stay small (a few degrees), so the tubes look smooth at any image resolution.
+VESSEL_STEP_MM = 4.0
+
 #: Label every output of :func:`registration_volume` carries.
 STAND_IN_LABEL = "phantom resampled to the 3DRA grid (stand-in for a reconstruction)"
 
@@ -64,26 +68,38 @@ Float = NDArray[np.float64]
 # Compiled kernels
 # --------------------------------------------------------------------------------------
 @nb.njit(cache=True, inline="always")
-def _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes):  # pragma: no cover - jit
-    """Parameter interval [t0, t1] within [0, 1] of o + t e inside primitive p (t0 >= t1: miss)."""
+def _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes, pre, qpre, ppre):  # pragma: no cover
+    """Parameter interval [t0, t1] within [0, 1] of o + t e inside primitive p (t0 >= t1: miss).
+
+    With ``pre``, every segment starts at the same point, whose local coordinates per quadric
+    (``qpre[p, q] = (A (o - c), |A (o - c)|^2 - 1)``) and plane offsets
+    (``ppre[p, k] = d - n . o``) were computed once.
+    """
     t0 = 0.0
     t1 = 1.0
     for q in range(nq[p]):
-        px = ox - qcen[p, q, 0]
-        py = oy - qcen[p, q, 1]
-        pz = oz - qcen[p, q, 2]
         a = 0.0
         b = 0.0
-        c = -1.0
-        for r in range(3):
-            m0 = qmat[p, q, r, 0]
-            m1 = qmat[p, q, r, 1]
-            m2 = qmat[p, q, r, 2]
-            lp = m0 * px + m1 * py + m2 * pz
-            le = m0 * ex + m1 * ey + m2 * ez
-            a += le * le
-            b += lp * le
-            c += lp * lp
+        if pre:
+            c = qpre[p, q, 3]
+            for r in range(3):
+                le = qmat[p, q, r, 0] * ex + qmat[p, q, r, 1] * ey + qmat[p, q, r, 2] * ez
+                a += le * le
+                b += qpre[p, q, r] * le
+        else:
+            px = ox - qcen[p, q, 0]
+            py = oy - qcen[p, q, 1]
+            pz = oz - qcen[p, q, 2]
+            c = -1.0
+            for r in range(3):
+                m0 = qmat[p, q, r, 0]
+                m1 = qmat[p, q, r, 1]
+                m2 = qmat[p, q, r, 2]
+                lp = m0 * px + m1 * py + m2 * pz
+                le = m0 * ex + m1 * ey + m2 * ez
+                a += le * le
+                b += lp * le
+                c += lp * lp
         if a < 1e-300:
             if c > 0.0:
                 return 0.0, 0.0
@@ -104,9 +120,11 @@ def _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes):  # pragma: n
         nx = planes[p, k, 0]
         ny = planes[p, k, 1]
         nz = planes[p, k, 2]
-        d = planes[p, k, 3]
         nd = nx * ex + ny * ey + nz * ez
-        rhs = d - (nx * ox + ny * oy + nz * oz)
+        if pre:
+            rhs = ppre[p, k]
+        else:
+            rhs = planes[p, k, 3] - (nx * ox + ny * oy + nz * oz)
         if abs(nd) < 1e-300:
             if rhs < 0.0:
                 return 0.0, 0.0
@@ -121,6 +139,31 @@ def _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes):  # pragma: n
         if t0 >= t1:
             return 0.0, 0.0
     return t0, t1
+
+
+@nb.njit(cache=True)
+def _source_terms(s, nq, qcen, qmat, npl, planes):  # pragma: no cover - jit
+    """Per-primitive constants of segments that all start at ``s`` (see ``_chord``)."""
+    n = nq.shape[0]
+    qpre = np.zeros((n, qcen.shape[1], 4))
+    ppre = np.zeros((n, planes.shape[1]))
+    for p in range(n):
+        for q in range(nq[p]):
+            c = -1.0
+            for r in range(3):
+                lp = (
+                    qmat[p, q, r, 0] * (s[0] - qcen[p, q, 0])
+                    + qmat[p, q, r, 1] * (s[1] - qcen[p, q, 1])
+                    + qmat[p, q, r, 2] * (s[2] - qcen[p, q, 2])
+                )
+                qpre[p, q, r] = lp
+                c += lp * lp
+            qpre[p, q, 3] = c
+        for k in range(npl[p]):
+            ppre[p, k] = planes[p, k, 3] - (
+                planes[p, k, 0] * s[0] + planes[p, k, 1] * s[1] + planes[p, k, 2] * s[2]
+            )
+    return qpre, ppre
 
 
 @nb.njit(cache=True, inline="always")
@@ -141,7 +184,27 @@ def _segment_hits_sphere(ox, oy, oz, ex, ey, ez, ee, cx, cy, cz, r):  # pragma: 
 
 @nb.njit(cache=True)
 def _trace(
-    ox, oy, oz, ex, ey, ez, cands, nq, qcen, qmat, npl, planes, bsph, cov_s, cov_e, vis_p, vis_s, vis_e
+    ox,
+    oy,
+    oz,
+    ex,
+    ey,
+    ez,
+    cands,
+    nq,
+    qcen,
+    qmat,
+    npl,
+    planes,
+    bsph,
+    pre,
+    qpre,
+    ppre,
+    cov_s,
+    cov_e,
+    vis_p,
+    vis_s,
+    vis_e,
 ):  # pragma: no cover - jit
     """Painter's algorithm along one segment o + t e, t in [0, 1].
 
@@ -162,7 +225,7 @@ def _trace(
             ox, oy, oz, ex, ey, ez, ee, bsph[p, 0], bsph[p, 1], bsph[p, 2], bsph[p, 3]
         ):
             continue
-        a, b = _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes)
+        a, b = _chord(p, ox, oy, oz, ex, ey, ez, nq, qcen, qmat, npl, planes, pre, qpre, ppre)
         if b <= a:
             continue
         # visible gaps of [a, b] between the sorted, disjoint covered intervals
@@ -224,7 +287,23 @@ _SCRATCH = 256  # covered intervals / visible pieces per segment
 
 @nb.njit(cache=True, parallel=True)
 def _line_integrals_kernel(
-    src, dst, order, tile_ptr, tile_perm, cand_ptr, cand_idx, nq, qcen, qmat, npl, planes, mu, bsph
+    src,
+    dst,
+    order,
+    tile_ptr,
+    tile_perm,
+    cand_ptr,
+    cand_idx,
+    nq,
+    qcen,
+    qmat,
+    npl,
+    planes,
+    mu,
+    bsph,
+    pre,
+    qpre,
+    ppre,
 ):  # pragma: no cover - jit
     """Line integrals of rays binned into tiles that share one candidate list each."""
     n = src.shape[0]
@@ -255,6 +334,9 @@ def _line_integrals_kernel(
                 npl,
                 planes,
                 bsph,
+                pre,
+                qpre,
+                ppre,
                 cov_s,
                 cov_e,
                 vis_p,
@@ -318,6 +400,8 @@ def _voxelize_kernel(
     ey = aff[1, 0] * ni
     ez = aff[2, 0] * ni
     scale = 1.0 / (ss * ss)
+    qpre = np.zeros((1, 1, 4))
+    ppre = np.zeros((1, 1))
     for ti in nb.prange(tile_perm.shape[0]):
         t = tile_perm[ti]
         tj = t % ntj
@@ -353,6 +437,9 @@ def _voxelize_kernel(
                             npl,
                             planes,
                             bsph,
+                            False,
+                            qpre,
+                            ppre,
                             cov_s,
                             cov_e,
                             vis_p,
@@ -553,12 +640,11 @@ def _bin_lines(shape: tuple[int, int, int], aff: Float, bsph: Float, tile: int) 
 class HeadPhantom:
     """An analytic head: ordered primitives painted one over another (module docstring).
 
-    Arrays (P primitives, G groups): ``nq`` (P,) quadric counts, ``qcen`` (P, Q, 3) quadric
+    Arrays (P primitives): ``nq`` (P,) quadric counts, ``qcen`` (P, Q, 3) quadric
     centers (mm), ``qmat`` (P, Q, 3, 3) world-to-unit matrices (1/mm), ``npl`` (P,) plane
     counts, ``planes`` (P, K, 4) half-spaces ``n . x <= d``, ``hu`` (P,) the value inside each
     primitive, ``bsph`` (P, 4) bounding spheres (center, radius mm), ``tags`` (P,) tissue codes
-    (``TAGS``), ``groups`` (G, 2) consecutive primitive ranges with bounding spheres ``gsph``
-    (G, 4). Later primitives are painted over earlier ones. ``paths`` holds the named artery
+    (``TAGS``). Later primitives are painted over earlier ones. ``paths`` holds the named artery
     centerlines (name, (N, 3) mm, radius mm).
     """
 
@@ -570,8 +656,6 @@ class HeadPhantom:
     hu: Float
     bsph: Float
     tags: NDArray[np.int64]
-    groups: NDArray[np.int64]
-    gsph: Float
     paths: tuple[tuple[str, Float, float], ...] = ()
     seed: int = 0
     contrast: bool = True
@@ -625,9 +709,25 @@ class HeadPhantom:
             dst = dst @ inv[:3, :3].T + inv[:3, 3]
         src = np.ascontiguousarray(src)
         dst = np.ascontiguousarray(dst)
+        if len(src) == 0:
+            return np.zeros(0)
         order, tile_ptr, perm, cand_ptr, cand_idx = _bin_rays(src, dst, self.bsph)
+        pre = bool(np.all(src == src[0]))  # one common source: precompute its terms once
+        qpre, ppre = _source_terms(src[0] if pre else np.zeros(3), *self._geometry())
         return _line_integrals_kernel(
-            src, dst, order, tile_ptr, perm, cand_ptr, cand_idx, *self._geometry(), self.mu_per_mm, self.bsph
+            src,
+            dst,
+            order,
+            tile_ptr,
+            perm,
+            cand_ptr,
+            cand_idx,
+            *self._geometry(),
+            self.mu_per_mm,
+            self.bsph,
+            pre,
+            qpre,
+            ppre,
         )
 
     # ----- point values --------------------------------------------------------------
@@ -859,18 +959,6 @@ class _Builder:
             bsph[i, :3] = p.sphere[0]
             bsph[i, 3] = p.sphere[1]
             tags[i] = TAGS[p.tag]
-        # groups: runs of consecutive primitives with the same group name (order matters)
-        groups = []
-        gsph = []
-        start = 0
-        for i in range(1, n + 1):
-            if i == n or self.prims[i].group != self.prims[start].group:
-                cs = bsph[start:i, :3]
-                center = cs.mean(axis=0)
-                radius = float(np.max(np.linalg.norm(cs - center, axis=1) + bsph[start:i, 3]))
-                groups.append((start, i))
-                gsph.append((*center, radius * (1 + 1e-9) + 1e-9))
-                start = i
         return HeadPhantom(
             nq=nq,
             qcen=qcen,
@@ -880,8 +968,6 @@ class _Builder:
             hu=hu,
             bsph=bsph,
             tags=tags,
-            groups=np.array(groups, np.int64).reshape(-1, 2),
-            gsph=np.array(gsph, np.float64).reshape(-1, 4),
             **kwargs,
         )
 
@@ -1204,7 +1290,7 @@ def _arteries(b: _Builder, var: _Variation, contrast: bool) -> tuple[Float, floa
     paths: list[tuple[str, Float, float]] = []
 
     def vessel(name: str, ctrl: list, radius: float) -> Float:
-        pts = _catmull_rom(var.vessel(ctrl), 2.5)
+        pts = _catmull_rom(var.vessel(ctrl), VESSEL_STEP_MM)
         r = float(var.size(radius))
         b.tube(pts, r, lumen_hu, "vessels", "vessel")
         paths.append((name, pts, r))
