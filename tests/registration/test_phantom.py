@@ -104,17 +104,17 @@ def test_motion_moves_the_phantom(head: HeadPhantom) -> None:
 
 
 def test_common_source_binning_matches_unbinned(head: HeadPhantom) -> None:
-    # an image's rays share one source and go through the binned fast path; ray by ray they
-    # must equal the same rays given with distinct sources (the unbinned path)
+    # an image's rays share one source and go through the binned fast path; the same segments
+    # reversed start at distinct points and take the unbinned path: the integrals must agree
     geom = CArm.for_format(27, pixels=32, primary_deg=30.0, secondary_deg=-10.0)
     rr, cc = np.mgrid[0:32, 0:32]
     targets = geom.pixel_to_world(cc.ravel(), rr.ravel())
     src = np.broadcast_to(geom.source_mm, targets.shape)
     binned = head.line_integrals(src, targets)
-    one_by_one = np.array(
-        [head.line_integrals(s[None], t[None])[0] for s, t in zip(src, targets, strict=True)]
-    )
-    np.testing.assert_allclose(binned, one_by_one, rtol=1e-12, atol=1e-12)
+    reversed_ = head.line_integrals(targets, src)
+    assert binned.max() > 3.0
+    # same chords, computed from the other end: equal to rounding
+    np.testing.assert_allclose(binned, reversed_, rtol=1e-9, atol=1e-9)
 
 
 def test_voxelize_a_ball_gives_its_hu_and_volume() -> None:
