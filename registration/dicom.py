@@ -104,10 +104,13 @@ LOG_ZERO_VALUE = 1000
 #: The stored value written outside the collimated field (LOG, sign -1: no intensity).
 NO_SIGNAL_VALUE = 65535
 
-#: Slice positions may deviate this much (mm) from an even, untilted stack.
-POSITION_TOLERANCE_MM = 1e-3
-#: ... plus this fraction of the slice spacing (DS values carry ~6 significant digits).
-SPACING_TOLERANCE = 0.005
+#: Slice positions may deviate this much (mm) from an even, untilted stack (scanners round
+#: ImagePositionPatient, often to 0.01 mm) ...
+POSITION_TOLERANCE_MM = 0.01
+#: ... plus this fraction of the slice spacing along the normal (a missing slice is 100 %) ...
+SPACING_TOLERANCE = 0.02
+#: ... and this fraction of the pixel spacing within the slice plane (gantry tilt).
+IN_PLANE_TOLERANCE = 0.05
 #: Direction cosines of different slices may differ this much.
 ORIENTATION_TOLERANCE = 1e-4
 #: Refuse headers that claim more pixel data than this (bytes) before decoding.
@@ -420,9 +423,10 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
             f"two slices at the same {tag_name('ImagePositionPatient')} ({slices[i].source} and "
             f"{slices[i + 1].source}): several series, time points or echoes mixed?",
         )
-    step = float(np.median(steps))
-    tolerance = POSITION_TOLERANCE_MM + SPACING_TOLERANCE * step
-    if np.max(np.abs(steps - step)) > tolerance:
+    # Fit along = start + k * step; every slice must sit on that line.
+    k = np.arange(len(slices), dtype=np.float64)
+    step, start = (float(v) for v in np.polyfit(k, along, 1))
+    if np.max(np.abs(along - (start + k * step))) > POSITION_TOLERANCE_MM + SPACING_TOLERANCE * step:
         raise DicomError(
             source,
             f"uneven slice spacing along the slice normal ({tag_name('ImagePositionPatient')}): steps from "
@@ -430,9 +434,8 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
             "not resampled",
         )
     first = slices[0].position
-    offsets = np.array([s.position - first for s in slices])
-    lateral = offsets - np.outer(along - along[0], normal)
-    if np.max(np.linalg.norm(lateral, axis=1)) > POSITION_TOLERANCE_MM + SPACING_TOLERANCE * (along[-1] - along[0]):
+    lateral = np.array([s.position - first for s in slices]) - np.outer(along - along[0], normal)
+    if np.max(np.linalg.norm(lateral, axis=1)) > POSITION_TOLERANCE_MM + IN_PLANE_TOLERANCE * min(ref.spacing):
         tilt = math.degrees(math.atan2(float(np.linalg.norm(lateral[-1])), float(along[-1] - along[0])))
         raise DicomError(
             source,
@@ -451,7 +454,7 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
     affine[:3, 0] = row_dir * ref.spacing[1]  # i: along a row (increasing column index)
     affine[:3, 1] = col_dir * ref.spacing[0]  # j: down a column (increasing row index)
     affine[:3, 2] = normal * step
-    affine[:3, 3] = first
+    affine[:3, 3] = first + (start - along[0]) * normal
     meta = dict(meta, slices=len(slices), slice_spacing_mm=step, pixel_spacing_mm=list(ref.spacing))
     try:
         return Volume(data=data, index_to_world=affine, label=label, meta=meta)

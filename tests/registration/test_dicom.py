@@ -266,6 +266,13 @@ def test_bad_stacks_are_rejected_naming_the_tag(tmp_path: Path, positions, messa
     assert str(folder) in str(info.value)
 
 
+def test_positions_rounded_by_the_scanner_are_accepted(tmp_path: Path) -> None:
+    # 0.625 mm slices with positions written to 0.01 mm (as some scanners do): an even stack.
+    positions = [(0.0, 0.0, round(-50.0 + 0.625 * k, 2)) for k in range(9)]
+    vol = dicom.read_volume(_series(tmp_path, positions))
+    assert vol.spacing_mm[2] == pytest.approx(0.625, abs=2e-3)
+
+
 def test_mixed_series_and_orientations_are_rejected(tmp_path: Path) -> None:
     folder = _series(tmp_path, [(0, 0, 0), (0, 0, 1)])
     ct_slice(folder / "other.dcm", ramp((4, 4)), ipp=(0, 0, 2), series_uid="9.9.9")
