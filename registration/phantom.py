@@ -36,7 +36,7 @@ MAX_QUADRICS = 6
 MAX_PLANES = 12
 
 #: Bump when the anatomy changes (it is part of every cache key).
-PHANTOM_MODEL_VERSION = 1
+PHANTOM_MODEL_VERSION = 2
 
 #: Length of the straight, mitred pieces that make up an artery (mm); the bends between
 #: pieces stay small (a few degrees), so the tubes look smooth at any image resolution.
@@ -959,6 +959,8 @@ class _Builder:
             bsph[i, :3] = p.sphere[0]
             bsph[i, 3] = p.sphere[1]
             tags[i] = TAGS[p.tag]
+        for arr in (nq, qcen, qmat, npl, planes, hu, bsph, tags):
+            arr.flags.writeable = False  # phantoms are shared (cached): keep them immutable
         return HeadPhantom(
             nq=nq,
             qcen=qcen,

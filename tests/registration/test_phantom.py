@@ -175,6 +175,24 @@ def test_tissue_values(head: HeadPhantom) -> None:
     assert head.hu_at([0.0, 0.0, 250.0]) == HU_AIR
 
 
+def test_head_size(head: HeadPhantom) -> None:
+    def extent(direction: list[float], through: list[float]) -> float:
+        t = np.arange(-200.0, 200.0, 0.5)
+        pts = np.asarray(through) + t[:, None] * np.asarray(direction)
+        inside = t[head.hu_at(pts) > HU_AIR]
+        return float(inside.max() - inside.min())
+
+    # ~150 mm left-right, ~190 mm front-back (forehead to occiput), ~220 mm vertex to chin;
+    # 0.5 mm probe steps, anatomical sizes within ~5 %
+    assert extent([1.0, 0.0, 0.0], [0.0, 5.0, 18.0]) == pytest.approx(150.0, rel=0.05)
+    assert extent([0.0, 1.0, 0.0], [0.0, 0.0, 18.0]) == pytest.approx(190.0, rel=0.05)
+    z = np.arange(-200.0, 200.0, 0.5)
+    top = z[head.hu_at(np.stack([np.zeros_like(z), np.full_like(z, 5.0), z], 1)) > HU_AIR].max()
+    # the chin, in front of the neck (which runs on to z = -300 behind y = -46)
+    bottom = z[head.hu_at(np.stack([np.zeros_like(z), np.full_like(z, -75.0), z], 1)) > HU_AIR].min()
+    assert top - bottom == pytest.approx(220.0, rel=0.05)
+
+
 def test_vessels_and_centerline(head: HeadPhantom) -> None:
     pts = head.vessel_centerline_mm()
     assert pts.shape[1] == 3 and len(pts) > 500
