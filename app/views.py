@@ -86,12 +86,14 @@ def gradient_image(attenuation: np.ndarray, mask: np.ndarray | None = None) -> n
 
 
 def label(rgb: RGB, text: str, *, corner: str = "top-left") -> RGB:
-    """A small caption in a corner of a tile (in place)."""
+    """A small caption on a dark strip in a corner of a tile (in place)."""
     scale = max(0.4, rgb.shape[0] / 800.0)
     (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-    x = 8 if corner.endswith("left") else rgb.shape[1] - w - 8
-    y = h + 8 if corner.startswith("top") else rgb.shape[0] - base - 6
-    cv2.putText(rgb, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    x = 6 if corner.endswith("left") else rgb.shape[1] - w - 10
+    y = h + 7 if corner.startswith("top") else rgb.shape[0] - base - 5
+    y0, y1 = max(0, y - h - 4), min(rgb.shape[0], y + base + 3)
+    x0, x1 = max(0, x - 4), min(rgb.shape[1], x + w + 4)
+    rgb[y0:y1, x0:x1] = (rgb[y0:y1, x0:x1] * 0.35).astype(np.uint8)
     cv2.putText(rgb, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, LABEL_RGB, 1, cv2.LINE_AA)
     return rgb
 

@@ -17,6 +17,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def dismiss_notifications(page) -> None:
+    """Close viser's notices (e.g. "Software WebGL rendering detected" in headless Chromium)."""
+    for close in page.locator(".mantine-Notification-closeButton").all():
+        try:
+            close.click(timeout=1_000)
+        except Exception:
+            pass
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "app.png")
@@ -49,14 +58,10 @@ def main() -> int:
                 page.get_by_role("button", name="Register").click()
                 page.get_by_text(re.compile(r"Time [0-9.]+ s · \d+ DRRs · done")).wait_for(timeout=120_000)
             time.sleep(1.5)  # let the last frame and the 3D view settle
-            for close in page.get_by_role("button", name=re.compile("close", re.I)).all():
-                try:  # viser's "software WebGL" notice
-                    close.click(timeout=500)
-                except Exception:
-                    pass
+            dismiss_notifications(page)
             time.sleep(0.5)
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            page.screenshot(path=str(args.out))
+            page.screenshot(path=str(args.out), timeout=180_000)
             browser.close()
     finally:
         app.close()

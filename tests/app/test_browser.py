@@ -50,7 +50,7 @@ def canvas_is_drawn(page) -> bool:
     # A clip of the page, not Locator.screenshot: that waits for the (always animating) canvas to be "stable".
     box = page.locator("canvas").first.bounding_box()
     assert box is not None and box["width"] > 100 and box["height"] > 100, f"no 3D canvas: {box}"
-    png = page.screenshot(clip=box)
+    png = page.screenshot(clip=box, timeout=180_000)  # software WebGL on 2 busy cores is slow
     pixels = np.asarray(Image.open(io.BytesIO(png)).convert("L"), dtype=np.float32)
     return float(pixels.std()) > 5.0  # a blank canvas is one flat colour
 
@@ -62,36 +62,44 @@ def readout_of(page) -> str:
 def test_page_renders_and_t4_register_converges(fresh: RoadmapApp, browser) -> None:
     app = fresh
     url = url_of(app.server)
-    page = browser.new_page(viewport={"width": 1500, "height": 900})
-    second = browser.new_page(viewport={"width": 1200, "height": 800})
+    # Generous timeouts: Chromium draws WebGL in software here, on the same 2 cores as the app.
+    page = browser.new_page(viewport={"width": 1280, "height": 760})
+    second = browser.new_page(viewport={"width": 800, "height": 500})
     try:
         page.goto(url)
-        page.get_by_role("button", name="Register").wait_for(timeout=30_000)
-        deadline = time.monotonic() + 20
+        page.get_by_role("button", name="Register").wait_for(timeout=90_000)
+        deadline = time.monotonic() + 90
         while not canvas_is_drawn(page) and time.monotonic() < deadline:
-            time.sleep(0.5)
+            time.sleep(1.0)
         assert canvas_is_drawn(page), "the 3D canvas stayed blank"
 
         page.get_by_role("button", name="T4", exact=True).click()
-        page.get_by_text(re.compile(r"Residual: [3-9]\.\d\d mm in-plane")).wait_for(timeout=15_000)
+        page.get_by_text(re.compile(r"Residual: [3-9]\.\d\d mm in-plane")).wait_for(timeout=60_000)
 
-        second.goto(url)  # a second tab joins: it shares the session
-        second.get_by_role("button", name="Register").wait_for(timeout=30_000)
-
+        second.goto(url)  # a second tab joins the shared session...
         page.get_by_role("button", name="Register").click()
-        page.get_by_text("REGISTERING…", exact=True).wait_for(timeout=10_000)
-        second.close()  # a tab closed mid-run breaks nothing
-        page.get_by_text(re.compile(r"· done")).wait_for(timeout=120_000)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
+        page.get_by_text("REGISTERING…", exact=True).wait_for(timeout=60_000)
+        second.close()  # ...and is closed mid-run: nothing breaks
+        page.get_by_text(re.compile(r"· done")).wait_for(timeout=240_000)
+        deadline = time.monotonic() + 30
+        while True:
             inplane, _, rotation = parse_readout(readout_of(page))
-            if inplane < 1.0:
+            if inplane < 1.0 or time.monotonic() > deadline:
                 break
-            time.sleep(0.2)
+            time.sleep(0.5)
         assert inplane < 1.0, readout_of(page)
         assert rotation < 3.0
-        page.get_by_text("REGISTERED").first.wait_for(timeout=5_000)
+        page.get_by_text("REGISTERED").first.wait_for(timeout=30_000)
         assert page.get_by_role("button", name="Register").is_enabled()
+
+        # A tab opened now shows the same, shared state.
+        third = browser.new_page(viewport={"width": 800, "height": 500})
+        try:
+            third.goto(url)
+            third.get_by_text(READOUT).first.wait_for(timeout=90_000)
+            assert parse_readout(readout_of(third)) == parse_readout(readout_of(page))
+        finally:
+            third.close()
     finally:
         page.close()
         if not second.is_closed():
