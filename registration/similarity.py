@@ -19,13 +19,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-#: Golden-section iterations refining the intensity scale of gradient difference
-#: (the bracket shrinks by 0.618 per iteration: 0.618**24 ~ 1e-5 of the initial bracket).
-SCALE_REFINE_ITERATIONS = 24
+#: Candidate intensity scales of gradient difference, as multiples of the least-squares scale
+#: <dX, dD> / <dD, dD>; the best one starts the Newton refinement (GD is not concave in s).
+SCALE_GRID = np.array([0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0])
 
-#: Candidate scales, as multiples of the least-squares scale, from which the golden-section
-#: refinement starts (gradient difference is not concave in the scale).
-SCALE_GRID = np.array([0.0, 0.125, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 3.0, 4.0])
+#: Safeguarded Newton iterations refining the scale, and their relative tolerance on s.
+SCALE_NEWTON_ITERATIONS = 12
+SCALE_TOLERANCE = 1e-7
+
+#: The coarse search over SCALE_GRID uses every _GRID_STRIDE-th pixel (it only picks a bracket).
+_GRID_STRIDE = 4
 
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}  # no nnan/ninf: keep NaN semantics
 
@@ -83,9 +86,10 @@ def sobel_gradients(image: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.f
 # Gradient difference (Penney et al. 1998)
 # --------------------------------------------------------------------------------------
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _gd_value(xv, xh, dv, dh, av, ah, s):  # pragma: no cover - compiled
+def _gd_value(xv, xh, dv, dh, av, ah, s, stride=1):  # pragma: no cover - compiled
+    """sum_p A_v / (A_v + (xv - s dv)^2) + A_h / (A_h + (xh - s dh)^2), every ``stride``-th pixel."""
     total = 0.0
-    for n in range(xv.size):
+    for n in range(0, xv.size, stride):
         ev = xv[n] - s * dv[n]
         eh = xh[n] - s * dh[n]
         total += av / (av + ev * ev) + ah / (ah + eh * eh)
@@ -93,8 +97,36 @@ def _gd_value(xv, xh, dv, dh, av, ah, s):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _gd_prepared(drr, rows_idx, cols_idx, xv, xh, av, ah, grid, iters, dv, dh):  # pragma: no cover
-    """Sobel of ``drr`` at the listed pixels, then max over the scale s of the GD sum."""
+def _gd_derivatives(xv, xh, dv, dh, av, ah, s):  # pragma: no cover - compiled
+    """GD(s) and its first and second derivatives in s (one pass)."""
+    f = 0.0
+    g = 0.0
+    h = 0.0
+    for n in range(xv.size):
+        ev = xv[n] - s * dv[n]
+        iv = 1.0 / (av + ev * ev)
+        tv = av * iv
+        eh = xh[n] - s * dh[n]
+        ih = 1.0 / (ah + eh * eh)
+        th = ah * ih
+        f += tv + th
+        # d/ds A/(A + e^2) = 2 A e d / (A + e^2)^2, with e = x - s d
+        g += 2.0 * (tv * iv * ev * dv[n] + th * ih * eh * dh[n])
+        # d2/ds2 = 2 A d^2 (3 e^2 - A) / (A + e^2)^3
+        h += 2.0 * (
+            tv * iv * iv * dv[n] * dv[n] * (3.0 * ev * ev - av) + th * ih * ih * dh[n] * dh[n] * (3.0 * eh * eh - ah)
+        )
+    return f, g, h
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _gd_prepared(drr, rows_idx, cols_idx, xv, xh, av, ah, grid, iters, tol, dv, dh):  # pragma: no cover
+    """Sobel of ``drr`` at the listed pixels, then the maximum over the scale s of the GD sum.
+
+    Returns (GD sum, s). The scale: the best of ``grid`` x the least-squares scale, then a
+    safeguarded Newton iteration on dGD/ds = 0 inside the bracket of the neighbouring grid
+    points (bisection whenever Newton would leave it or the curvature is not negative).
+    """
     npix = rows_idx.size
     sxd = 0.0
     sdd = 0.0
@@ -115,48 +147,51 @@ def _gd_prepared(drr, rows_idx, cols_idx, xv, xh, av, ah, grid, iters, dv, dh): 
         dh[n] = gh
         sxd += xv[n] * gv + xh[n] * gh
         sdd += gv * gv + gh * gh
-    if sdd <= 0.0:
+    if not sdd > 0.0:
         return _gd_value(xv, xh, dv, dh, av, ah, 0.0), 0.0
     s_ls = sxd / sdd
     if s_ls == 0.0:
-        s_ls = 1e-12
-    # coarse grid of candidate scales, then golden section around the best one
-    best_i = 0
-    best_f = -1.0
+        s_ls = 1e-300
+    # coarse search on every GRID_STRIDE-th pixel: it only picks the bracket
     ng = grid.size
+    best_i = 0
+    best_coarse = -1.0
     for i in range(ng):
-        fv = _gd_value(xv, xh, dv, dh, av, ah, grid[i] * s_ls)
+        fv = _gd_value(xv, xh, dv, dh, av, ah, grid[i] * s_ls, _GRID_STRIDE)
+        if fv > best_coarse:
+            best_coarse = fv
+            best_i = i
+    # bracket (in units of s_ls): two grid points either side of the best candidate, as the
+    # subsampled values may rank neighbouring candidates of a flat maximum wrongly
+    lo = grid[best_i - 2] if best_i > 1 else grid[0] - 2.0 * (grid[1] - grid[0])
+    hi = grid[best_i + 2] if best_i < ng - 2 else grid[ng - 1] + 2.0 * (grid[ng - 1] - grid[ng - 2])
+    u = grid[best_i]
+    best_f = -1.0
+    best_u = u
+    for _ in range(iters):
+        fv, g1, g2 = _gd_derivatives(xv, xh, dv, dh, av, ah, u * s_ls)
         if fv > best_f:
             best_f = fv
-            best_i = i
-    lo = grid[best_i - 1] if best_i > 0 else grid[0] - (grid[1] - grid[0])
-    hi = grid[best_i + 1] if best_i < ng - 1 else grid[ng - 1] + (grid[ng - 1] - grid[ng - 2])
-    best_s = grid[best_i]
-    invphi = 0.6180339887498949
-    x1 = hi - invphi * (hi - lo)
-    x2 = lo + invphi * (hi - lo)
-    f1 = _gd_value(xv, xh, dv, dh, av, ah, x1 * s_ls)
-    f2 = _gd_value(xv, xh, dv, dh, av, ah, x2 * s_ls)
-    for _ in range(iters):
-        if f1 >= f2:
-            hi = x2
-            x2 = x1
-            f2 = f1
-            x1 = hi - invphi * (hi - lo)
-            f1 = _gd_value(xv, xh, dv, dh, av, ah, x1 * s_ls)
+            best_u = u
+        g1 *= s_ls  # derivatives in u = s / s_ls
+        g2 *= s_ls * s_ls
+        if g1 > 0.0:
+            lo = u
+        elif g1 < 0.0:
+            hi = u
         else:
-            lo = x1
-            x1 = x2
-            f1 = f2
-            x2 = lo + invphi * (hi - lo)
-            f2 = _gd_value(xv, xh, dv, dh, av, ah, x2 * s_ls)
-    if f1 > best_f:
-        best_f = f1
-        best_s = x1
-    if f2 > best_f:
-        best_f = f2
-        best_s = x2
-    return best_f, best_s * s_ls
+            break
+        if g2 < 0.0:
+            nxt = u - g1 / g2
+            if not (lo < nxt < hi):
+                nxt = 0.5 * (lo + hi)
+        else:
+            nxt = 0.5 * (lo + hi)
+        if abs(nxt - u) <= tol * max(abs(u), 1.0):
+            # converged: GD is flat here, the value at u is the maximum to ~tol^2
+            break
+        u = nxt
+    return best_f, best_u * s_ls
 
 
 class GradientDifference:
@@ -168,9 +203,10 @@ class GradientDifference:
     The value is normalised by the number of pixels used, so it lies in (0, 2] (2 = the
     scaled DRR gradients equal the X-ray gradients everywhere) and is comparable across
     image sizes (pyramid levels). The intensity scale s of the DRR is chosen to maximise the
-    measure: a grid of multiples of the least-squares scale, refined by golden-section
-    search around the best candidate (``SCALE_GRID``, ``SCALE_REFINE_ITERATIONS``). The
-    scale found by the last call is in ``last_scale``.
+    measure: the best of a grid of multiples of the least-squares scale (``SCALE_GRID``),
+    refined by a safeguarded Newton iteration on dGD/ds = 0 within the neighbouring grid
+    points (``SCALE_NEWTON_ITERATIONS``, ``SCALE_TOLERANCE``). The scale found by the last
+    call is in ``last_scale``.
 
     References
     ----------
@@ -213,7 +249,7 @@ class GradientDifference:
             raise ValueError("drr contains NaN or infinite values")
         value, scale = _gd_prepared(
             d, self._rows, self._cols, self._xv, self._xh, self.a_v, self.a_h,
-            SCALE_GRID, SCALE_REFINE_ITERATIONS, self._dv, self._dh,
+            SCALE_GRID, SCALE_NEWTON_ITERATIONS, SCALE_TOLERANCE, self._dv, self._dh,
         )  # fmt: skip
         self.last_scale = float(scale)
         return float(value) / self.n_pixels
