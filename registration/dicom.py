@@ -611,6 +611,12 @@ def read_series(folder: str | os.PathLike[str], *, label: str | None = None) -> 
     if not datasets:
         why = f" ({skipped[0]})" if skipped else ""
         raise DicomError(folder, f"no DICOM files in the folder{why}")
+    projections = [(p, ds) for p, ds in datasets if _is_xray(ds)]
+    if len(projections) == len(datasets):
+        _check_volume_modality(*projections[0])  # raises: a projection image is not a volume
+    if projections:  # an XA/RF file beside the slices (an upload holding both): not a slice
+        datasets = [(p, ds) for p, ds in datasets if not _is_xray(ds)]
+        skipped += [f"{p}: {XRAY_CLASSES.get(_sop_class(ds), 'X-ray')} projection image" for p, ds in projections]
     by_series: dict[str, list[tuple[Path, Dataset]]] = {}
     for p, ds in datasets:
         by_series.setdefault(_text(ds, "SeriesInstanceUID") or "(no SeriesInstanceUID)", []).append((p, ds))
@@ -1509,7 +1515,7 @@ def _inspect_xray(path: Path, header: Dataset) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------
 # Uploads (the web app): unpack a zip safely
 # --------------------------------------------------------------------------------------
-def _safe_member_name(name: str) -> PurePosixPath:
+def _safe_member_name(name: str) -> PurePosixPath | None:
     if "\x00" in name:
         raise UploadError(f"refused archive member {name!r}: NUL character in the name")
     normalized = name.replace("\\", "/")
@@ -1518,9 +1524,7 @@ def _safe_member_name(name: str) -> PurePosixPath:
     parts = [p for p in normalized.split("/") if p not in ("", ".")]
     if any(p == ".." for p in parts):
         raise UploadError(f"refused archive member {name!r}: '..' in the path")
-    if not parts:
-        raise UploadError(f"refused archive member {name!r}: empty name")
-    return PurePosixPath(*parts)
+    return PurePosixPath(*parts) if parts else None
 
 
 def unpack_upload(
@@ -1568,6 +1572,8 @@ def unpack_upload(
         root = dest.resolve()
         for member in members:
             relative = _safe_member_name(member.filename)
+            if relative is None:  # "./" and the like: the upload folder itself
+                continue
             mode = (member.external_attr >> 16) & 0o170000
             if mode == stat.S_IFLNK:
                 raise UploadError(f"refused archive member {member.filename!r}: symbolic link")
@@ -1642,7 +1648,7 @@ def classify_upload(folder: str | os.PathLike[str]) -> dict[str, Path | None]:
     volume: Path | None = npz
     if volume is None and volume_files:
         parents = {p.parent for p in volume_files}
-        volume = volume_files[0] if len(volume_files) == 1 else (parents.pop() if len(parents) == 1 else folder)
+        volume = volume_files[0] if len(volume_files) == 1 else Path(os.path.commonpath(sorted(parents)))
     return {"volume": volume, "image": xray}
 
 

@@ -664,6 +664,16 @@ def test_upload_of_a_written_phantom_is_classified(tmp_path: Path) -> None:
     assert found["volume"] == tmp_path / "up" / "volume"
     assert dicom.read_volume(found["volume"]).shape == vol.shape
     shutil.rmtree(tmp_path / "up")
+    # A flat archive: slices and the XA side by side (and a "./" entry); the XA is not a slice.
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("./", b"")
+        for p in sorted((tmp_path / "data").rglob("*.dcm")):
+            archive.write(p, p.name)
+    dicom.unpack_upload(buffer.getvalue(), tmp_path / "flat", max_bytes=10**7)
+    found = dicom.classify_upload(tmp_path / "flat")
+    assert found == {"volume": tmp_path / "flat", "image": tmp_path / "flat" / "xa.dcm"}
+    assert dicom.read_volume(found["volume"]).shape == vol.shape
 
 
 # --------------------------------------------------------------------------------------
