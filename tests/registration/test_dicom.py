@@ -650,6 +650,22 @@ def test_unpack_upload_limits(tmp_path: Path) -> None:
         dicom.unpack_upload(_zip([(f"{n}.dcm", b"") for n in range(5)]), tmp_path / "c", max_bytes=10**6, max_files=3)
 
 
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_fuzz_unpack_upload(tmp_path_factory: pytest.TempPathFactory, data: st.DataObject) -> None:
+    archive = bytearray(_zip([("series/a.dcm", b"a" * 300), ("b.dcm", bytes(range(256)) * 4)]))
+    for position, value in data.draw(st.lists(st.tuples(st.integers(0, len(archive) - 1), st.integers(0, 255)))):
+        archive[position] = value
+    root = tmp_path_factory.mktemp("fuzzup")
+    try:
+        files = dicom.unpack_upload(bytes(archive), root / "up", max_bytes=4000)
+    except UploadError:
+        assert not any((root / "up").iterdir())
+        return
+    assert all(f.resolve().is_relative_to((root / "up").resolve()) for f in files)
+    assert sum(f.stat().st_size for f in files) <= 4000
+
+
 def test_upload_of_a_written_phantom_is_classified(tmp_path: Path) -> None:
     vol = oblique_volume()
     dicom.write_series(vol, tmp_path / "data" / "volume")
