@@ -1128,6 +1128,19 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     for side in (-1.0, 1.0):  # anterior clinoid processes
         b.paint(E(P(_mirror([9.0, -8.0, -21.0], side)), S([4.0, 7.0, 2.5])), 1500.0, "sphenoid", "bone")
     b.paint(C(P([0.0, 9.0, -30.0]), P([0.0, 30.0, -60.0]), S([10.0, 5.0])), 1300.0, "clivus", "bone")
+    for side in (-1.0, 1.0):
+        # greater wings of the sphenoid: oblique plates from the sphenoid body to the temple
+        # (the innominate lines of a frontal view)
+        wing = E(P(_mirror([30.0, -30.0, -27.0], side)), S([2.5, 21.0, 14.0]), _euler(rz=side * 40.0))
+        b.paint(wing, 1200.0, "sphenoid", "bone")
+        # styloid processes, pointing down and forward from under the petrous bones
+        b.paint(
+            C(P(_mirror([40.0, 16.0, -50.0], side)), P(_mirror([34.0, 2.0, -82.0], side)), 1.6),
+            1300.0,
+            "clivus",
+            "bone",
+        )
+    b.paint(E(P([0.0, 85.0, -20.0]), S([10.0, 5.0, 7.0])), 1500.0, "skull", "bone")  # occipital protuberance
     fm = C(P([0.0, 46.0, -55.0]), P([0.0, 46.0, -20.0]), S([15.0, 18.0]))
     b.paint(fm, HU_BRAIN, "clivus", "brain")  # foramen magnum: medulla through the floor plate
     for side in (-1.0, 1.0):
@@ -1174,6 +1187,12 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
         P([[0.0, -26.0, -50.0], [0.0, -12.0, -72.0], [0.0, -9.0, -130.0], [0.0, -14.0, -300.0]])
     )
     b.tube(airway, float(S(7.0)), HU_AIR, "airway", "air")
+    for side in (-1.0, 1.0):  # occipital condyles, resting on the atlas
+        b.paint(E(P(_mirror([13.0, 36.0, -58.0], side)), S([6.0, 10.0, 5.0])), 1300.0, "spine", "bone")
+    hyoid = np.stack(
+        [20.0 * (u := np.linspace(-1.0, 1.0, 9)), -38.0 + 26.0 * u**2, np.full_like(u, -125.0)], axis=1
+    )
+    b.tube(P(hyoid), float(S(2.2)), 1000.0, "spine", "bone")
 
     if facial:
         _facial_skeleton(b, var, texture)
@@ -1234,6 +1253,13 @@ def _facial_skeleton(b: _Builder, var: _Variation, texture: np.random.Generator)
     ec = P([0.0, -52.0, -29.0])
     b.paint(E(ec, S([11.0, 22.0, 10.0])), 300.0, "ethmoid", "bone")
     _air_cells(b, ec, S([8.5, 19.0, 7.5]), 30, (1.8, 3.2), texture, "ethmoid")
+    for side in (-1.0, 1.0):  # nasal bones at the bridge of the nose
+        b.paint(
+            E(P(_mirror([4.0, -92.0, -30.0], side)), S([2.5, 2.0, 10.0]), _euler(rx=-20.0)),
+            1100.0,
+            "nasal",
+            "bone",
+        )
     # nasal cavity, septum, turbinates, hard palate
     b.paint(E(P([0.0, -58.0, -55.0]), S([12.0, 31.0, 14.0])), HU_AIR, "nasal", "air")
     b.paint(E(P([0.0, -58.0, -53.0]), S([1.2, 28.0, 13.0])), 600.0, "nasal", "bone")
@@ -1373,7 +1399,7 @@ def _arteries(b: _Builder, var: _Variation, contrast: bool) -> tuple[Float, floa
     m1 = var.vessel(_mirror([[37, -8, 2], [45, -8, 4]], 1.0))
     direction = (m1[1] - m1[0]) / np.linalg.norm(m1[1] - m1[0])
     radius = 3.5 + (var.rng.uniform(-0.3, 0.3) if var.on else 0.0)
-    center = m1[1] + direction * (radius + 0.5)
+    center = m1[1] + direction * (radius - 1.0)  # the neck overlaps the bifurcation by 1 mm
     b.paint(b.ellipsoid(center, radius), lumen_hu, "vessels", "vessel")
     return center, radius, paths
 
