@@ -92,6 +92,7 @@ def read_motion_json(path: Path, *, what: str) -> tuple[np.ndarray, dict[str, An
 
 def _format_offsets(motion: np.ndarray, geometry: CArm) -> str:
     o = matrix_to_offsets(motion, geometry)
+    o = np.where(np.abs(o) < 5e-3, 0.0, o)  # no "-0.00"
     return (
         f"t = ({o[0]:+.2f}, {o[1]:+.2f}, {o[2]:+.2f}) mm, r = ({o[3]:+.2f}, {o[4]:+.2f}, {o[5]:+.2f}) deg "
         "in the view frame"
