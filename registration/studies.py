@@ -84,7 +84,8 @@ def clinically_relevant(volume_format_cm: float, image_format_cm: float) -> bool
 
 
 def _stable_seed(base: int, key: str) -> int:
-    """A per-case seed that depends only on the study seed and the case id (not on the grid)."""
+    """A per-case seed that depends only on the study seed and the case's identity (not on the
+    grid or its resolution: the quick study repeats the full study's draws at lower resolution)."""
     return int((int(base) * 1_000_003 + zlib.crc32(key.encode())) % (2**31 - 1))
 
 
@@ -201,13 +202,14 @@ def phantom_tasks(config: PhantomConfig, options: RegistrationOptions | None = N
         for kind in config.kinds:
             for img in images:
                 for offset in config.offsets:
-                    case_id = f"phantom/{variant}/{kind}/v{vol:g}/i{img:g}/{offset}/{tag}/s{config.seed}"
+                    ident = f"phantom/{variant}/{kind}/v{vol:g}/i{img:g}/{offset}"
+                    case_id = f"{ident}/{tag}/s{config.seed}"
                     case = Case(
                         offset=offset,
                         image_kind=kind,
                         volume_format_cm=vol,
                         image_format_cm=img,
-                        seed=_stable_seed(config.seed, case_id),
+                        seed=_stable_seed(config.seed, ident),
                         image_pixels=config.image_pixels,
                         volume_voxels=config.volume_voxels,
                         volume_source=config.volume_source,
@@ -249,7 +251,8 @@ def clinical_tasks(config: ClinicalConfig, options: RegistrationOptions | None =
             translation = length * random_unit_vector(rng)
             axis = random_unit_vector(rng)
             angle = rng.uniform(0.0, config.max_rotation_deg)
-            case_id = f"clinical/patient{patient}/r{number}/{tag}/s{config.seed}"
+            ident = f"clinical/patient{patient}/r{number}"
+            case_id = f"{ident}/{tag}/s{config.seed}"
             case = ClinicalCase(
                 patient=patient,
                 phantom_seed=phantom_seed,
@@ -259,7 +262,7 @@ def clinical_tasks(config: ClinicalConfig, options: RegistrationOptions | None =
                 translation_mm=tuple(float(t) for t in translation),  # type: ignore[arg-type]
                 rotation_axis=tuple(float(a) for a in axis),  # type: ignore[arg-type]
                 rotation_deg=float(angle),
-                seed=_stable_seed(config.seed, case_id),
+                seed=_stable_seed(config.seed, ident),
                 projections=config.projections,
                 arc_deg=config.arc_deg,
                 run_pixels=config.run_pixels,
