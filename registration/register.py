@@ -63,9 +63,9 @@ class RegistrationOptions:
     bound_deg: float = 15.0
     #: Final local polish at the last level (Powell), and its evaluation budget.
     polish: bool = True
-    polish_evaluations: int = 120
-    polish_image_px: int = 256
-    polish_volume_level: int = 0
+    polish_evaluations: int = 60
+    polish_image_px: int = 128
+    polish_volume_level: int = 1
 
     def __post_init__(self) -> None:
         if not self.levels:
