@@ -545,7 +545,10 @@ def reconstruct_3dra(
 
 def bench_reconstruction(*, projections: int = 120, pixels: int = 512, voxels: int = 256) -> dict:
     """Time FDK (filtering + back-projection) of ``projections`` views of ``pixels``^2 into
-    ``voxels``^3 (analytic sphere projections; the numba kernel is compiled beforehand)."""
+    ``voxels``^3 (analytic sphere projections; the numba kernel is compiled beforehand).
+
+    Returns ``{"seconds", "cpu_seconds", "projections", "volume_px", "pixels", "threads"}``.
+    """
     from registration.calibration import SpherePhantom, simulate_sphere_image
 
     spheres = SpherePhantom(np.array([[0.0, 0.0, 0.0], [20.0, -10.0, 5.0]]), np.array([60.0, 5.0]), [0.0206, 0.01])
@@ -554,7 +557,14 @@ def bench_reconstruction(*, projections: int = 120, pixels: int = 512, voxels: i
     images = np.stack([simulate_sphere_image(spheres, g, supersample=1, full_frame=True) for g in geoms])
     backproject(np.zeros((1, 4, 4), np.float32), [geoms[0].resized(4, 4)], (2, 2, 2), np.eye(4))  # compile
     masks = np.stack([g.field_mask() for g in geoms])
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     fdk(images, geoms, angles, volume_format_cm=27.0, voxels=voxels, masks=masks)
-    seconds = time.perf_counter() - start
-    return {"seconds": round(seconds, 3), "projections": projections, "volume_px": voxels, "pixels": pixels}
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    return {
+        "seconds": round(seconds, 3),
+        "cpu_seconds": round(cpu, 3),  # all threads; on a shared machine, wall time / load
+        "projections": projections,
+        "volume_px": voxels,
+        "pixels": pixels,
+        "threads": numba.get_num_threads(),
+    }
