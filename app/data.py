@@ -23,7 +23,7 @@ from registration.phantom import HeadPhantom, make_head_phantom, registration_vo
 from registration.volume import Volume
 from registration.xray import XRayImage, simulate_xray
 
-__all__ = ["AppConfig", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
+__all__ = ["AppConfig", "FileData", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
 
 ProgressFn = Callable[[str, float], None]
 
@@ -71,6 +71,10 @@ def _meshes_from_arrays(arrays: dict[str, np.ndarray]) -> dict[str, trimesh.Trim
 
 class PhantomData:
     """The built-in head phantom and what is derived from it, built lazily and cached."""
+
+    has_truth = True
+    fixed_xray: XRayImage | None = None
+    source = "built-in head phantom"
 
     def __init__(self, config: AppConfig, progress: ProgressFn = _quiet) -> None:
         self.config = config
@@ -148,3 +152,70 @@ class PhantomData:
             if self._vessel_points is None:
                 self._vessel_points = np.asarray(self.phantom(True).vessel_centerline_mm(), dtype=np.float64)
             return self._vessel_points
+
+
+class FileData:
+    """The user's own volume and X-ray image (from the command line or an upload).
+
+    The image is fixed (its geometry comes from the file) and there is no ground truth: the
+    patient-motion controls move the roadmap (the estimate) instead of the patient.
+    """
+
+    has_truth = False
+
+    def __init__(self, volume: Volume, xray: XRayImage, *, source: str, config: AppConfig) -> None:
+        self.config = config
+        self.source = source
+        self._volume = volume
+        self.fixed_xray = xray
+        self._lock = threading.RLock()
+        self._renderer: DRRRenderer | None = None
+        self._meshes: dict[str, trimesh.Trimesh] | None = None
+
+    @classmethod
+    def from_paths(
+        cls, volume_path: str | os.PathLike[str], image_path: str | os.PathLike[str], *, frame: int | None,
+        config: AppConfig,
+    ) -> FileData:  # fmt: skip
+        """Read with the engine's DICOM readers (their errors name the file and the tag)."""
+        from registration.dicom import read_volume, read_xray
+
+        volume = read_volume(volume_path)
+        xray = read_xray(image_path, frame=frame)
+        return cls(volume, xray, source=f"{volume_path} + {image_path}", config=config)
+
+    @property
+    def label(self) -> str:
+        return self._volume.label
+
+    def volume(self, _volume_format_cm: float | None = None) -> Volume:
+        return self._volume
+
+    def renderer(self, _volume_format_cm: float | None = None) -> DRRRenderer:
+        with self._lock:
+            if self._renderer is None:
+                self._renderer = DRRRenderer(self._volume, levels=3)
+            return self._renderer
+
+    @property
+    def mesh_steps(self) -> tuple[int, int]:
+        voxels = max(self._volume.shape)
+        return max(1, round(voxels / 200)), max(1, math.ceil(voxels / 64))
+
+    def meshes(self, _volume_format_cm: float | None = None) -> dict[str, trimesh.Trimesh]:
+        with self._lock:
+            if self._meshes is None:
+                vessel_step, bone_step = self.mesh_steps
+                meshes = surface_meshes(self._volume, step=vessel_step)
+                if bone_step != vessel_step and "bone" in meshes:
+                    bone = surface_meshes(self._volume, step=bone_step).get("bone")
+                    if bone is not None:
+                        meshes["bone"] = bone
+                self._meshes = meshes
+            return self._meshes
+
+    def mesh_spacing_mm(self, _volume_format_cm: float | None = None) -> float:
+        return float(np.mean(self._volume.spacing_mm)) * self.mesh_steps[0]
+
+    def vessel_points_mm(self) -> None:
+        return None

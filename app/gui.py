@@ -20,9 +20,11 @@ import numpy as np
 import viser
 
 from app import views
+from app.data import PhantomData
 from app.scene import Scene
 from app.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM, Session
-from registration.geometry import IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I, CArm
+from app.upload import limit_uploads
+from registration.geometry import IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I, CArm, matrix_to_offsets
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +59,18 @@ def _badge(text: str, color: str) -> str:
 class RoadmapApp:
     """Builds the GUI on ``server`` for ``session`` and runs the presenter thread."""
 
-    def __init__(self, server: viser.ViserServer, session: Session) -> None:
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        session: Session,
+        *,
+        phantom: PhantomData | None = None,
+        max_upload_mb: float = 512.0,
+    ) -> None:
         self.server = server
         self.session = session
+        self.max_upload_bytes = int(max_upload_mb * 1e6)
+        self._phantom_data = phantom if phantom is not None else session.data
         self.gui = server.gui
         self._sync_depth = 0
         self._sync_lock = threading.RLock()
@@ -70,7 +81,7 @@ class RoadmapApp:
         self._last_live = 0.0
         self._ui_running = False
         self._autocorrect_due: float | None = None
-        self._mesh_format: float | None = None
+        self._mesh_key: tuple | None = None
         self._shown_geometry: CArm | None = None
         self._shown_carm: tuple | None = None
         self._tiles_of: object = None
@@ -153,6 +164,19 @@ class RoadmapApp:
             self.kind = gui.add_dropdown("Image type", ("fluoro", "exposure"), initial_value="fluoro")
             self.contrast = gui.add_checkbox("Contrast in vessels", True)
             self.catheter = gui.add_checkbox("Catheter", False)
+        with tabs.add_tab("Data", viser.Icon.DATABASE):
+            self.source = gui.add_markdown("")
+            self.upload = gui.add_upload_button(
+                "Upload your DICOM (.zip)",
+                icon=viser.Icon.UPLOAD,
+                mime_type="application/zip",
+                hint="A zip with a 3DRA/CT volume (series, multi-frame or .npz) and one XA/RF image",
+            )
+            gui.add_markdown(
+                f"<small>Limit {self.max_upload_bytes / 1e6:g} MB. Unpacked into a private temporary folder, read, "
+                "then deleted. Your data has no ground truth: the motion controls move the roadmap.</small>"
+            )
+            self.phantom_button = gui.add_button("Back to the phantom", visible=False)
         with tabs.add_tab("Display", viser.Icon.EYE):
             self.show_ghost = gui.add_checkbox("True position (ghost)", False)
             self.show_skull = gui.add_checkbox("Skull", True)
@@ -208,6 +232,14 @@ class RoadmapApp:
         for box in (self.show_ghost, self.show_skull, self.show_gradients):
             box.on_update(on(lambda _e: self._force_refresh()))
         self.autocorrect.on_update(on(lambda _e: self._on_autocorrect()))
+        self.upload.on_upload(on(self._on_upload))
+        self.phantom_button.on_click(on(lambda _e: self._use_data(self._phantom_data)))
+        self._show_source()
+
+        def refused(client_id: Any, text: str) -> None:
+            self.message(text, error=True)
+
+        limit_uploads(self.server, self.max_upload_bytes, refused)
 
     def _on_offsets(self, _event: Any) -> None:
         if self._syncing():
@@ -276,6 +308,30 @@ class RoadmapApp:
             finally:
                 self._sync_depth -= 1
 
+    # ----- the user's data ----------------------------------------------------------------
+    def _on_upload(self, event: Any) -> None:
+        from app.upload import read_upload
+
+        uploaded = self.upload.value
+        self.message(f"Reading {uploaded.name} ({len(uploaded.content) / 1e6:.1f} MB)…")
+        data = read_upload(uploaded.name, uploaded.content, max_bytes=self.max_upload_bytes, config=self.session.config)
+        self._use_data(data)
+        self.message(f"Loaded {uploaded.name}: {data.label}. Press **Register**.")
+
+    def _use_data(self, data: Any) -> None:
+        self.session.use_data(data)
+        self.autocorrect.value = False
+        self._sync_controls()
+        self._set_running_ui(self.session.running)
+        self._show_source()
+
+    def _show_source(self) -> None:
+        data = self.session.data
+        label = data.volume(self.session.settings.volume_format_cm).label
+        self.source.content = f"**Showing:** {data.source}  \n<small>{label}</small>"
+        self.phantom_button.visible = data is not self._phantom_data
+        self.show_ghost.disabled = not self.session.has_truth
+
     # ----- registration -----------------------------------------------------------------
     def start_registration(self) -> bool:
         self._autocorrect_due = None
@@ -287,7 +343,10 @@ class RoadmapApp:
 
     def _set_running_ui(self, running: bool) -> None:
         self._ui_running = running
-        for control in self.carm_controls + self.motion_controls:
+        fixed_geometry = self.session.data.fixed_xray is not None  # the user's image sets the C-arm
+        for control in self.carm_controls:
+            control.disabled = running or fixed_geometry
+        for control in self.motion_controls:
             control.disabled = running
         self.register_button.disabled = running
         self.stop_button.disabled = not running
@@ -344,26 +403,29 @@ class RoadmapApp:
                 self._set_running_ui(False)
             self._maybe_autocorrect(now)
             return
-        if settings.volume_format_cm != self._mesh_format:
-            self.message(f"Loading the {settings.volume_format_cm:g} cm volume…")
+        mesh_key = (id(s.data), settings.volume_format_cm)
+        if mesh_key != self._mesh_key:
+            self.message("Loading the volume and its surfaces…")
             self.scene.set_anatomy(s.data.meshes(settings.volume_format_cm))
-            self._mesh_format = settings.volume_format_cm
-        if not s.xray_ready() and self._preview_version != version:
+            self._mesh_key = mesh_key
+        is_preview = not s.xray_ready() and self._preview_version != version
+        if is_preview:
             # Forming the full image takes a moment: show a quick one first, then come back.
             xray = s.xray_preview()
             self._preview_version = version
             self._wake.set()
         else:
             xray = s.xray()
-            self._shown_version = version
         with s.lock:
             estimate = s.estimate.copy()
-            truth = s.true_motion.copy()
+            truth = s.true_motion.copy() if s.has_truth else None
             run = s.run
             progress = run.progress
             running = run.running
         shown = progress.best_motion if running and progress is not None else estimate
         self._show(xray, np.asarray(shown, np.float64), truth, settings.volume_format_cm, live=running)
+        if not is_preview:
+            self._shown_version = version  # only now: tests and the loop read it as "on screen"
         self._shown_progress = progress
         if live:
             self._last_live = now
@@ -392,7 +454,9 @@ class RoadmapApp:
             self._tiles_of = xray
         return self._tiles
 
-    def _show(self, xray: Any, motion: np.ndarray, truth: np.ndarray, volume_format: float, *, live: bool) -> None:
+    def _show(
+        self, xray: Any, motion: np.ndarray, truth: np.ndarray | None, volume_format: float, *, live: bool
+    ) -> None:
         s = self.session
         size = s.config.display_px
         geometry: CArm = xray.geometry
@@ -456,15 +520,24 @@ class RoadmapApp:
                 self.plot.data = (np.asarray(it[:n], np.float64), sim_arr, temp_arr)
         self.frames_shown += 1
 
-    def _texts(self, motion: np.ndarray, truth: np.ndarray) -> tuple[str, str, str]:
+    def _texts(self, motion: np.ndarray, truth: np.ndarray | None) -> tuple[str, str, str]:
         s = self.session
         residual = s.residual(motion)
         with s.lock:
             run = s.run
             progress, result, running, error = run.progress, run.result, run.running, run.error
-        readout = f"**{residual.readout()}**"
+        if residual is None:
+            o = matrix_to_offsets(motion, s.geometry())
+            readout = (
+                f"**Roadmap offset: {o[0]:+.2f}, {o[1]:+.2f}, {o[2]:+.2f} mm; "
+                f"{o[3]:+.2f}, {o[4]:+.2f}, {o[5]:+.2f}°** (no ground truth for your data)"
+            )
+        else:
+            readout = f"**{residual.readout()}**"
         if running:
             badge = _badge("REGISTERING…", "#1c7ed6")
+        elif residual is None:
+            badge = _badge("REGISTERED" if result is not None else "SENSOR ALIGNMENT ONLY", "#495057")
         elif residual.success:
             badge = _badge("✓ REGISTERED  (< 1 mm, < 3°)", "#2b8a3e")
         else:
@@ -484,6 +557,6 @@ class RoadmapApp:
             lines.append("Roadmap from the C-arm sensors (machine-based registration).")
         if error:
             lines.append(f"<span style='color:#ff6b6b'>⚠ {error}</span>")
-        if self._mesh_format is not None and self.status.content.startswith("Loading"):
+        if self._mesh_key is not None and self.status.content.startswith("Loading"):
             self.status.content = "Ready."
         return readout, badge, "  \n".join(lines)

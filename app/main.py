@@ -13,7 +13,7 @@ from types import FrameType
 
 import viser
 
-from app.data import AppConfig, PhantomData
+from app.data import AppConfig, FileData, PhantomData
 from app.gui import RoadmapApp
 from app.session import Session
 from app.share import refuse_share_requests
@@ -47,9 +47,14 @@ def build_app(
     server: viser.ViserServer,
     config: AppConfig | None = None,
     *,
+    data: FileData | None = None,
+    max_upload_mb: float = 512.0,
     announce: bool = False,
 ) -> RoadmapApp:
-    """Prepare the phantom data (showing progress in the page) and build the app on ``server``."""
+    """Prepare the data (showing progress in the page) and build the app on ``server``.
+
+    ``data``: the user's volume and image; None starts on the built-in phantom.
+    """
     config = config or AppConfig.from_env()
     gui = server.gui
     note = gui.add_markdown("**Preparing the 3D roadmap…**")
@@ -62,23 +67,28 @@ def build_app(
         if announce:
             print(f"  [{time.perf_counter() - start:5.1f} s] {message}", file=sys.stderr, flush=True)
 
-    data = PhantomData(config, progress)
-    session = Session(data, config)
+    phantom = PhantomData(config, progress)
+    session = Session(data if data is not None else phantom, config)
     fmt = session.settings.volume_format_cm
-    data.volume(fmt)
+    source = session.data
+    source.volume(fmt)
     # Two cores: the renderer's pyramid and the surfaces + first image are prepared side by side.
-    renderer = threading.Thread(target=data.renderer, args=(fmt,), name="prepare-renderer")
+    renderer = threading.Thread(target=source.renderer, args=(fmt,), name="prepare-renderer")
     renderer.start()
-    data.meshes(fmt)
+    progress("Extracting or loading the skull and vessel surfaces", 0.4)
+    source.meshes(fmt)
     progress("Forming the first X-ray image", 0.7)
     session.xray()
     renderer.join()
     progress("Ready", 1.0)
     note.remove()
     bar.remove()
-    app = RoadmapApp(server, session)
+    app = RoadmapApp(server, session, phantom=phantom, max_upload_mb=max_upload_mb)
     app.start()
-    app.message("Ready. Press **T4**, then **Register**.")
+    if data is None:
+        app.message("Ready. Press **T4**, then **Register**.")
+    else:
+        app.message("Your data is loaded. Press **Register** to correct the roadmap.")
     return app
 
 
@@ -93,11 +103,17 @@ def run_app(
     open_browser: bool = False,
 ) -> int:
     """Serve the app until Ctrl-C (or SIGTERM); returns the exit code."""
-    if volume is not None or image is not None:
-        raise ValueError("--volume/--image are not supported yet by this build of the app")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config = AppConfig.from_env()
     start = time.perf_counter()
+    if (volume is None) != (image is None):
+        raise ValueError("--volume and --image go together (or neither, for the built-in phantom)")
+    if max_upload_mb <= 0:
+        raise ValueError(f"--max-upload-mb must be positive, got {max_upload_mb}")
+    data = None
+    if volume is not None and image is not None:
+        # Read (and reject with a message naming the file and tag) before serving anything.
+        data = FileData.from_paths(volume, image, frame=frame, config=config)
     server = make_server(host, port, allow_share=allow_share)
     url = url_of(server)
     print(f"roadmap3d: serving on {url}  (Ctrl-C to stop)", flush=True)
@@ -111,7 +127,7 @@ def run_app(
         signal.signal(signal.SIGTERM, terminate)
     app: RoadmapApp | None = None
     try:
-        app = build_app(server, config, announce=True)
+        app = build_app(server, config, data=data, max_upload_mb=max_upload_mb, announce=True)
         print(f"roadmap3d: ready after {time.perf_counter() - start:.1f} s at {url}", flush=True)
         while True:
             time.sleep(0.5)

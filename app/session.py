@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from app.data import AppConfig, PhantomData, XRayImage, simulate_xray
+from app.data import AppConfig, FileData, PhantomData, XRayImage, simulate_xray
 from registration.geometry import TABLE_I, CArm, default_system, matrix_to_offsets, offsets_to_matrix
 from registration.metrics import Residual, residuals
 from registration.register import Progress, RegistrationResult, register
@@ -80,8 +80,8 @@ class RunState:
 class Session:
     """The shared state of the demo and its registration worker."""
 
-    def __init__(self, data: PhantomData, config: AppConfig | None = None) -> None:
-        self.data = data
+    def __init__(self, data: PhantomData | FileData, config: AppConfig | None = None) -> None:
+        self.data: PhantomData | FileData = data
         self.config = config or data.config
         self.lock = threading.RLock()
         self.settings = CArmSettings()
@@ -98,9 +98,26 @@ class Session:
         self._rng = np.random.default_rng(self.config.seed + 1)
 
     # ----- geometry and images ----------------------------------------------------------
+    @property
+    def has_truth(self) -> bool:
+        """The built-in phantom knows the true motion; the user's data does not."""
+        return self.data.has_truth
+
     def geometry(self) -> CArm:
         with self.lock:
+            if self.data.fixed_xray is not None:
+                return self.data.fixed_xray.geometry.nominal()
             return self.settings.geometry(self.config.pixels)
+
+    def use_data(self, data: PhantomData | FileData) -> None:
+        """Switch to other data (an upload): motion, estimate and run start afresh."""
+        with self.lock:
+            self._refuse_while_running()
+            self.data = data
+            self.true_motion = np.eye(4)
+            self.estimate = np.eye(4)
+            self.run = RunState()
+            self._changed()
 
     def _xray_state(self) -> tuple[CArmSettings, Array, tuple]:
         with self.lock:
@@ -120,6 +137,8 @@ class Session:
 
     def xray(self) -> XRayImage:
         """The X-ray image for the current settings and true motion (re-formed on change)."""
+        if self.data.fixed_xray is not None:
+            return self.data.fixed_xray
         settings, motion, key = self._xray_state()
         with self._xray_lock:
             if key != self._xray_key or self._xray is None:
@@ -129,6 +148,8 @@ class Session:
 
     def xray_ready(self) -> bool:
         """Whether :meth:`xray` would return at once."""
+        if self.data.fixed_xray is not None:
+            return True
         return self._xray_key == self._xray_state()[2]
 
     def xray_preview(self) -> XRayImage:
@@ -136,7 +157,10 @@ class Session:
         settings, motion, _ = self._xray_state()
         return self._simulate(settings, motion, pixels=max(64, self.config.pixels // 2), supersample=1)
 
-    def residual(self, estimate: Array | None = None) -> Residual:
+    def residual(self, estimate: Array | None = None) -> Residual | None:
+        """Residual of ``estimate`` (default: the current one) against the truth; None without truth."""
+        if not self.has_truth:
+            return None
         with self.lock:
             est = self.estimate if estimate is None else estimate
             return residuals(est, self.true_motion, self.geometry(), self.data.vessel_points_mm())
@@ -149,15 +173,22 @@ class Session:
         """Change C-arm settings; the patient stays where it is in the room (world frame)."""
         with self.lock:
             self._refuse_while_running()
+            if self.data.fixed_xray is not None:
+                raise ValueError("the C-arm geometry comes from your X-ray file and cannot be changed here")
             new = replace(self.settings, **changes)  # type: ignore[arg-type]
             new.geometry(self.config.pixels)  # validate before accepting
             self.settings = new
             self._changed()
 
     def offsets(self) -> Array:
-        """The true motion as (tx, ty, tz, rx, ry, rz) in the current view frame."""
+        """The motion the sliders show, (tx, ty, tz, rx, ry, rz) in the current view frame.
+
+        The true patient motion for the phantom; the roadmap's pose (the estimate) for the
+        user's data, which has no truth.
+        """
         with self.lock:
-            return matrix_to_offsets(self.true_motion, self.geometry())
+            moved = self.true_motion if self.has_truth else self.estimate
+            return matrix_to_offsets(moved, self.geometry())
 
     def set_offsets(self, offsets: Array | tuple[float, ...], *, reset_estimate: bool = False) -> None:
         """Move the patient: offsets in the current view frame (Table I convention)."""
@@ -170,6 +201,11 @@ class Session:
             )
         with self.lock:
             self._refuse_while_running()
+            if not self.has_truth:
+                self.estimate = offsets_to_matrix(o, self.geometry())
+                self.run = RunState()
+                self._changed()
+                return
             self.true_motion = offsets_to_matrix(o, self.geometry())
             if reset_estimate:
                 self.estimate = np.eye(4)
@@ -213,7 +249,7 @@ class Session:
                 running=True, iterations=[], similarity=[], temperature=[], started_s=time.perf_counter()
             )
             initial = self.estimate.copy()
-            truth = self.true_motion.copy()
+            truth = self.true_motion.copy() if self.has_truth else None
             volume_format = self.settings.volume_format_cm
             run = self.run
             self._changed()
@@ -227,7 +263,7 @@ class Session:
         self,
         run: RunState,
         initial: Array,
-        truth: Array,
+        truth: Array | None,
         volume_format: float,
         on_done: Callable[[], None] | None,
     ) -> None:
@@ -246,15 +282,16 @@ class Session:
 
         try:
             xray = self.xray()
+            data = self.data
             result = register(
-                self.data.volume(volume_format),
+                data.volume(volume_format),
                 xray,
                 initial_motion=initial,
                 seed=self.config.seed,
                 callback=callback,
                 truth=truth,
-                vessel_points_mm=self.data.vessel_points_mm(),
-                renderer=self.data.renderer(volume_format),
+                vessel_points_mm=data.vessel_points_mm(),
+                renderer=data.renderer(volume_format),
             )
         except Exception as exc:  # shown in the page, never a dead worker thread
             log.exception("registration failed")

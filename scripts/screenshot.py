@@ -50,6 +50,7 @@ def main() -> int:
                 executable_path=args.chromium, args=["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader"]
             )
             page = browser.new_page(viewport={"width": args.width, "height": args.height})
+            page.set_default_timeout(180_000)  # software WebGL on a busy machine is slow
             page.goto(url_of(server))
             page.get_by_role("button", name="Register").wait_for(timeout=30_000)
             page.get_by_role("button", name="T4", exact=True).click()
