@@ -21,20 +21,21 @@ X-ray images (CONVENTIONS §3, §5)
     vector is the offset of each frame from the (initial) angle (angle_n = angle + inc[n]).
 
     Intensities become attenuation line integrals (larger = more attenuation). With
-    ``m = RescaleSlope * stored + RescaleIntercept`` (slope 1, intercept 0 when absent) and
-    ``m_max`` the largest representable ``m`` (from BitsStored):
+    ``m = RescaleSlope * stored + RescaleIntercept`` (slope 1, intercept 0 when absent),
+    ``m_max`` the largest representable ``m`` (from BitsStored), and ``a = m`` for sign -1
+    (higher values = less X-ray intensity) or ``a = m_max - m`` for sign +1 (lower values =
+    less intensity), so that ``a`` grows with attenuation:
 
-    * LOG, sign -1: ``attenuation = (m - LOG_ZERO_VALUE) / LOG_UNITS_PER_ATTENUATION``
-    * LOG, sign +1: ``attenuation = (m_max - m) / LOG_UNITS_PER_ATTENUATION``
-    * LIN, sign +1: intensity ``I = m``; LIN, sign -1: ``I = m_max - m``;
-      ``attenuation = ln(I_ref / max(I, 1))`` with ``I_ref`` the largest ``I`` in the field.
+    * LOG: ``attenuation = (a - LOG_ZERO_VALUE) / LOG_UNITS_PER_ATTENUATION``
+    * LIN: intensity ``I = m_max - a``; ``attenuation = ln(I_ref / max(I, 1))`` with ``I_ref``
+      the largest ``I`` in the field.
 
     (DISP, or a missing relationship, is read as LOG with a warning.) The project writes
-    LOG, sign -1, 16-bit unsigned pixels
-    ``LOG_ZERO_VALUE + round(LOG_UNITS_PER_ATTENUATION * attenuation)`` clipped to 0..65534
-    (attenuation -1 .. 64.5: the quantum noise of air, slightly below zero, survives), and
-    65535 outside the collimated field (no X-ray intensity behind the collimator), so its
-    files read back within 0.5 / LOG_UNITS_PER_ATTENUATION.
+    LOG, sign +1 (vessels and bone dark, as viewers show XA), 16-bit unsigned pixels
+    ``65535 - LOG_ZERO_VALUE - round(LOG_UNITS_PER_ATTENUATION * attenuation)`` clipped to
+    1..65535 (attenuation -1 .. 64.5: the quantum noise of air, slightly below zero,
+    survives), and 0 outside the collimated field (no X-ray intensity behind the collimator),
+    so its files read back within 0.5 / LOG_UNITS_PER_ATTENUATION.
     For other software's LOG images the scale of the logarithm is not stored in DICOM; the
     result is then attenuation in units of 1/1000 of a stored step, which the similarity
     measure (gradient difference fits an intensity scale) does not mind.
@@ -99,10 +100,12 @@ if TYPE_CHECKING:
 
 #: Stored LOG pixel steps per unit of attenuation line integral (see the module docstring).
 LOG_UNITS_PER_ATTENUATION = 1000.0
-#: The stored LOG value (sign -1) of zero attenuation: room for noise below zero.
+#: The LOG value (counted upward with attenuation) of zero attenuation: room for noise below zero.
 LOG_ZERO_VALUE = 1000
-#: The stored value written outside the collimated field (LOG, sign -1: no intensity).
-NO_SIGNAL_VALUE = 65535
+#: The sign the project writes (+1: lower pixel values are less X-ray intensity).
+WRITTEN_SIGN = 1
+#: The stored value written outside the collimated field (sign +1: no X-ray intensity).
+NO_SIGNAL_VALUE = 0
 
 #: Slice positions may deviate this much (mm) from an even, untilted stack (scanners round
 #: ImagePositionPatient, often to 0.01 mm) ...
@@ -816,10 +819,11 @@ def _intensity_to_attenuation(
     intercept = _float(path, ds, "RescaleIntercept", frame, default=0.0)
     m = stored.astype(np.float64) * slope + intercept
     m_max = _max_stored(ds) * slope + intercept
+    upward = m if sign == -1 else m_max - m  # grows with attenuation
     if relationship == "LOG":
-        att = (m - LOG_ZERO_VALUE if sign == -1 else m_max - m) / LOG_UNITS_PER_ATTENUATION
+        att = (upward - LOG_ZERO_VALUE) / LOG_UNITS_PER_ATTENUATION
     else:
-        intensity = m if sign == 1 else m_max - m
+        intensity = m_max - upward
         inside = intensity[field] if field.any() else intensity
         ref = float(np.max(inside)) if inside.size else 1.0
         att = np.log(max(ref, 1.0) / np.maximum(intensity, 1.0))
@@ -1313,8 +1317,8 @@ def write_npz(volume: Volume, path: str | os.PathLike[str]) -> Path:
 
 
 def _encode_attenuation(image: NDArray[Any], mask: NDArray[np.bool_]) -> NDArray[np.uint16]:
-    scaled = np.rint(np.asarray(image, dtype=np.float64) * LOG_UNITS_PER_ATTENUATION) + LOG_ZERO_VALUE
-    stored = np.where(mask, np.clip(scaled, 0, NO_SIGNAL_VALUE - 1), NO_SIGNAL_VALUE)
+    upward = np.rint(np.asarray(image, dtype=np.float64) * LOG_UNITS_PER_ATTENUATION) + LOG_ZERO_VALUE
+    stored = np.where(mask, np.clip(65535 - upward, NO_SIGNAL_VALUE + 1, 65535), NO_SIGNAL_VALUE)
     return stored.astype(np.uint16)
 
 
@@ -1367,8 +1371,8 @@ def write_xray(
     ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
     ds.InstanceNumber = 1
     ds.ImageComments = (
-        f"roadmap3d {kind}: attenuation line integral = (stored value - {LOG_ZERO_VALUE}) / "
-        f"{LOG_UNITS_PER_ATTENUATION:g} (LOG, sign -1); {NO_SIGNAL_VALUE} outside the field"
+        f"roadmap3d {kind}: attenuation line integral = (65535 - {LOG_ZERO_VALUE} - stored value) / "
+        f"{LOG_UNITS_PER_ATTENUATION:g} (LOG, sign +1); {NO_SIGNAL_VALUE} outside the field"
     )
     ds.AcquisitionDateTime = datetime.now(UTC).strftime("%Y%m%d%H%M%S")
     ds.KVP = "80"
@@ -1401,7 +1405,7 @@ def write_xray(
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
     ds.PixelRepresentation = 0
     ds.PixelIntensityRelationship = "LOG"
-    ds.PixelIntensityRelationshipSign = -1
+    ds.PixelIntensityRelationshipSign = WRITTEN_SIGN
     ds.LossyImageCompression = "00"
     # The shutter must contain the whole field: DICOM stores integers, the field center may
     # sit between pixels, so the circle is padded by one pixel (the pixel values give the edge).
@@ -1410,7 +1414,11 @@ def write_xray(
     ds.ShutterShape = "CIRCULAR"
     ds.CenterOfCircularShutter = [int(round(center_row)), int(round(center_col))]
     ds.RadiusOfCircularShutter = int(math.ceil(radius_px + 1.0))
-    ds.PixelData = np.stack([_encode_attenuation(img.image, img.mask) for img in frames]).tobytes()
+    stored = np.stack([_encode_attenuation(img.image, img.mask) for img in frames])
+    low, high = np.percentile(stored[0][first.mask], [0.5, 99.5])
+    ds.WindowCenter = _ds_number(round((low + high) / 2.0))
+    ds.WindowWidth = _ds_number(max(1.0, round(1.1 * (high - low))))
+    ds.PixelData = stored.tobytes()
     path = Path(path)
     with _atomic_path(path) as tmp:
         _save(ds, tmp)

@@ -357,8 +357,8 @@ def test_xa_geometry_from_the_positioner_tags(tmp_path: Path) -> None:
 
 def test_xa_log_and_lin_intensities(tmp_path: Path) -> None:
     attenuation = np.linspace(0.0, 3.0, 30 * 30).reshape(30, 30)
-    # LOG, sign +1 (lower values = less intensity): stored = max - 1000 * attenuation.
-    stored = np.rint(4095 - 1000 * attenuation)
+    # LOG, sign +1 (lower values = less intensity): stored = max - 1000 - 1000 * attenuation.
+    stored = np.rint(4095 - 1000 - 1000 * attenuation)
     img = dicom.read_xray(xa_file(tmp_path / "log.dcm", stored, relationship="LOG", sign=1))
     np.testing.assert_allclose(img.image, attenuation, atol=0.5e-3 + 1e-6)
     # LOG, sign -1: stored = 1000 + 1000 * attenuation.
@@ -482,7 +482,7 @@ def test_field_of_view_rotation_is_undone(tmp_path: Path) -> None:
     ds.save_as(path)
     with pytest.warns(UserWarning, match="FieldOfViewRotation"):
         img = dicom.read_xray(path)
-    expected = (4095 - np.rot90(stored[:, ::-1], k=1).astype(np.float64)) / dicom.LOG_UNITS_PER_ATTENUATION
+    expected = (4095 - 1000 - np.rot90(stored[:, ::-1], k=1).astype(np.float64)) / dicom.LOG_UNITS_PER_ATTENUATION
     np.testing.assert_allclose(img.image, expected, atol=1e-6)
 
 
@@ -501,7 +501,7 @@ def test_xa_writer_round_trip(tmp_path: Path, pixels: int) -> None:
     original = _xray(geometry, kind="exposure")
     path = dicom.write_xray(original, tmp_path / "xa.dcm")
     ds = pydicom.dcmread(path)
-    assert ds.PixelIntensityRelationship == "LOG" and int(ds.PixelIntensityRelationshipSign) == -1
+    assert ds.PixelIntensityRelationship == "LOG" and int(ds.PixelIntensityRelationshipSign) == 1
     assert ds.SOPClassUID == XRayAngiographicImageStorage
     back = dicom.read_xray(path)
     # DS strings hold 16 characters: lengths come back to ~1e-14 relative.
