@@ -154,9 +154,10 @@ def run_register(
     if result.residual is not None:
         r = result.residual
         verdict = "success" if r.success else "FAILURE"
+        mtre = "" if r.mtre_mm is None else f", mTRE {r.mtre_mm:.2f} mm"
         _say(
             f"residual vs truth: {r.inplane_mm:.2f} mm in-plane, {r.translation_mm:.2f} mm total, "
-            f"{r.rotation_deg:.2f} deg -> {verdict}"
+            f"{r.rotation_deg:.2f} deg{mtre} -> {verdict}"
         )
     if out is not None:
         document = result.to_dict()
