@@ -21,6 +21,7 @@ Pieces, each usable alone:
   :func:`machine_based_geometry`: the 20-degree grid (``assets/calibration_table.json``) and its
   bilinear interpolation.
 - :func:`machine_based_error_mm`: the error measure of ``roadmap3d validate calibration``.
+- :func:`calibration_shot`: one calibration view (image, truth, detected spheres) for display.
 
 Conventions (frames, angles, units) are those of ``shared/CONVENTIONS.md``.
 """
@@ -619,6 +620,43 @@ def calibrate_true_view(true_geometry: CArm, *, phantom: Dodecahedron | None = N
     result = calibrate_view(image, cal_nominal, phantom=phantom, mask=cal_nominal.field_mask())
     geometry = with_deviation(true_geometry.nominal(), result.deviation)
     return replace(result, geometry=geometry)
+
+
+@dataclass(frozen=True)
+class CalibrationShot:
+    """One calibration view for display: the image, the truth and what calibration found."""
+
+    image: NDArray[np.float32]
+    mask: NDArray[np.bool_]
+    nominal: CArm
+    true: CArm
+    calibration: ViewCalibration
+
+    @property
+    def error_mm(self) -> float:
+        """:func:`machine_based_error_mm` of the calibrated geometry against the truth."""
+        return machine_based_error_mm(self.true, self.calibration.geometry)
+
+
+def calibration_shot(
+    primary_deg: float,
+    secondary_deg: float = 0.0,
+    *,
+    bending: BendingModel | None = None,
+    phantom: Dodecahedron | None = None,
+    seed: int = 0,
+) -> CalibrationShot:
+    """Image the dodecahedron at nominal angles with the true (bent) geometry and calibrate
+    that view (for the app's calibration view and for figures): the detected spheres are
+    ``shot.calibration.detected``, the vertices used ``shot.calibration.vertex_index``."""
+    bending = bending or default_bending()
+    phantom = phantom or Dodecahedron()
+    nominal = calibration_geometry(primary_deg, secondary_deg)
+    true = bending.true_geometry(nominal)
+    image = simulate_calibration_image(true, phantom=phantom, seed=seed)
+    mask = nominal.field_mask()
+    result = calibrate_view(image, nominal, phantom=phantom, mask=mask)
+    return CalibrationShot(np.where(mask, image, 0.0).astype(np.float32), mask, nominal, true, result)
 
 
 # --------------------------------------------------------------------------------------

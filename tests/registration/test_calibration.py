@@ -19,6 +19,7 @@ from registration.calibration import (
     calibrate_true_view,
     calibrate_view,
     calibration_geometry,
+    calibration_shot,
     calibration_study,
     default_bending,
     detect_spheres,
@@ -222,3 +223,11 @@ def test_cli_json(capsys):
     assert run_calibration_study(CalibrationStudy(json=True, seed=0, samples=5)) == 0
     out = json.loads(capsys.readouterr().out)
     assert len(out["errors_mm"]) == 5 and out["max_mm"] >= out["median_mm"] > 0
+
+
+def test_calibration_shot_for_display():
+    shot = calibration_shot(30.0, 10.0, seed=4)
+    assert shot.image.shape == (shot.nominal.rows, shot.nominal.cols)
+    assert not shot.image[~shot.mask].any()  # collimated
+    assert len(shot.calibration.detected) >= shot.calibration.spheres_used >= 10
+    assert shot.error_mm < 0.05
