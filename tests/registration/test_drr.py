@@ -166,12 +166,24 @@ def test_fast_matches_reference(smooth_volume, name, with_motion):
     ref = render_reference(smooth_volume, geometry, motion, step_mm=0.25 * 2.5)
     scale = float(ref.max())
     assert scale > 0.5
-    # Both integrate the trilinear interpolant of the same voxels; they differ by quadrature
-    # (one sample per slice against 0.25-voxel steps) and at the ends of each ray, where
-    # Joseph's method drops the partial slice (< 1 voxel of the boundary value): 1% of the
-    # image maximum bounds both on this smooth volume.
-    assert np.abs(fast - ref).max() < 0.01 * scale
-    assert np.abs(fast - ref).mean() < 0.002 * scale
+    # Both integrate the trilinear interpolant of the same voxels; they differ by quadrature:
+    # the trapezoid rule over the slices of the dominant axis (the interpolant is not linear
+    # between slices along an oblique ray) against the midpoint rule at 0.25 voxel. Measured
+    # <= 0.3% (max) and <= 0.1% (mean) of the image maximum on this smooth volume.
+    assert np.abs(fast - ref).max() < 0.005 * scale
+    assert np.abs(fast - ref).mean() < 0.0015 * scale
+
+
+def test_drr_continuous_in_pose(smooth_volume):
+    """No jumps when a slice enters or leaves a ray (rays leave this volume through cut faces)."""
+    geometry = VIEWS["oblique"]
+    renderer = DRRRenderer(smooth_volume, levels=1)
+    # translations along x move the cut faces x = const across the rays' entry points
+    steps = [renderer.render(geometry, rigid(translation_mm=(0.05 * k, 0.0, 0.0))) for k in range(40)]
+    change = np.abs(np.diff(np.stack(steps), axis=0)).max()
+    # 0.05 mm moves a pixel's integral by <= 0.2% of the maximum here; dropping or adding a
+    # whole slice of tissue when an entry point crosses a slice would jump by ~3%
+    assert change < 0.005 * float(steps[0].max())
 
 
 def test_trilinear_marcher_matches_reference(smooth_volume):
