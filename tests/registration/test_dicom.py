@@ -101,10 +101,11 @@ def xa_file(
     shutter: tuple[int, int, int] | None = None,
     increments: tuple[list[float], list[float]] | None = None,
     modality: str = "XA",
+    sop_class: str = XRayAngiographicImageStorage,
 ) -> Path:
     stored = np.asarray(stored)
     ds = Dataset()
-    ds.SOPClassUID = XRayAngiographicImageStorage
+    ds.SOPClassUID = sop_class
     ds.SOPInstanceUID = generate_uid()
     ds.StudyInstanceUID = "1.2.3"
     ds.SeriesInstanceUID = "1.2.3.9"
@@ -138,7 +139,7 @@ def xa_file(
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, bits_stored, bits_stored - 1
     ds.PixelRepresentation = 0
     ds.PixelData = stored.astype(np.uint16).tobytes()
-    return _save(ds, path, XRayAngiographicImageStorage)
+    return _save(ds, path, sop_class)
 
 
 def ramp(shape: tuple[int, ...], seed: int = 0) -> np.ndarray:
@@ -353,6 +354,19 @@ def test_xa_geometry_from_the_positioner_tags(tmp_path: Path) -> None:
     assert g.isocenter_mm == (1.0, 2.0, 3.0)
     # CONVENTIONS §3: LAO 90 puts the detector at the patient's left (+x).
     np.testing.assert_allclose(g.direction, [1.0, 0.0, 0.0], atol=1e-12)
+
+
+def test_rf_image_and_a_folder_of_projections(tmp_path: Path) -> None:
+    from pydicom.uid import XRayRadiofluoroscopicImageStorage
+
+    folder = tmp_path / "rf"
+    folder.mkdir()
+    path = xa_file(folder / "rf.dcm", ramp((8, 8)), modality="RF", sop_class=XRayRadiofluoroscopicImageStorage)
+    with pytest.warns(UserWarning, match="whole image"):
+        img = dicom.read_xray(path)
+    assert img.kind == "dicom" and img.meta["format"] == "RF" and img.meta["acquisition"] == "fluoro"
+    with pytest.raises(DicomError, match="RF projection image"):
+        dicom.read_volume(folder)
 
 
 def test_xa_log_and_lin_intensities(tmp_path: Path) -> None:
