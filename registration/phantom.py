@@ -350,12 +350,12 @@ def _line_integrals_kernel(
     return out
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True)  # serial: cheap per point, and quicker to compile
 def _value_at_kernel(pts, nq, qcen, qmat, npl, planes, value, background, bsph):  # pragma: no cover
     """``value`` of the newest primitive holding each point, else ``background``."""
     n = pts.shape[0]
     out = np.empty(n)
-    for i in nb.prange(n):
+    for i in range(n):
         x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
         res = background
         for p in range(bsph.shape[0] - 1, -1, -1):
