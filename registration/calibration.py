@@ -12,7 +12,7 @@ Pieces, each usable alone:
 - :class:`BendingModel`: the simulated mechanics (seeded, smooth in the angles) giving the
   true geometry of a nominal view.
 - :class:`SpherePhantom`: analytic spheres with exact line integrals (chord lengths); the
-  dodecahedron (:func:`dodecahedron_phantom`) is one, the FDK tests use others.
+  dodecahedron (:meth:`Dodecahedron.spheres`) is one, the FDK tests use others.
 - :func:`simulate_sphere_image`, :func:`detect_spheres`, :func:`match_spheres`,
   :func:`calibrate_view`: image, detection (OpenCV connected components, weighted centroids),
   Hungarian matching to the nominally projected vertices, Levenberg-Marquardt estimation of
