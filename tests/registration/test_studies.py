@@ -163,7 +163,8 @@ def test_dask_local_cluster(tmp_path: Path):
     distributed = pytest.importorskip("distributed")
     tasks = _tiny_tasks()[:1]
     with (
-        distributed.LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None) as cluster,
+        # a thread worker in this process: the test checks the scheduling path, not process start-up
+        distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
         distributed.Client(cluster) as client,
     ):
         records, _ = run_study(tasks, tmp_path, scheduler=client, progress=False)
@@ -218,6 +219,13 @@ def test_cli_quick_json(tmp_path: Path, monkeypatch, capsys):
     tiny = replace(TINY_PHANTOM, facial_image_formats_cm=(), image_formats_cm=(27.0,), quick=True)
     monkeypatch.setattr(PhantomConfig, "quick_config", classmethod(lambda cls, seed=0: replace(tiny, seed=seed)))
     monkeypatch.setattr(studies, "phantom_tasks", lambda config, options=None: phantom_tasks(config, TINY_OPTIONS))
+    # the registration itself is already finished (resume): the CLI only summarises and reports
+    (task,) = phantom_tasks(replace(tiny, seed=5))
+    done = {"case_id": task.case_id, "success": True, "inplane_residual_mm": 0.2, "outofplane_residual_mm": 0.5}
+    done |= {"translation_residual_mm": 0.54, "rotation_residual_deg": 0.3, "success_total": True, "seconds": 1.0}
+    done |= {"drr_count": 100, "image_kind": "fluoro", "volume_format_cm": 27.0, "image_format_cm": 27.0}
+    done |= {"offset": "T1", "variant": "standard", "clinically_relevant": True, "volume_label": "test"}
+    ResultsLog(tmp_path / "results.jsonl").append(done)
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["validate", "phantom", "--out", str(tmp_path), "--quick", "--json", "--jobs", "1", "--seed", "5"])
     assert exit_info.value.code == 0
