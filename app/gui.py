@@ -309,14 +309,23 @@ class RoadmapApp:
                 self._sync_depth -= 1
 
     # ----- the user's data ----------------------------------------------------------------
-    def _on_upload(self, event: Any) -> None:
+    def _on_upload(self, _event: Any) -> None:
+        uploaded = self.upload.value
+        self.load_upload(uploaded.name, uploaded.content)
+
+    def load_upload(self, name: str, content: bytes) -> bool:
+        """Read an uploaded zip and show it; a refusal becomes a message in the page."""
         from app.upload import read_upload
 
-        uploaded = self.upload.value
-        self.message(f"Reading {uploaded.name} ({len(uploaded.content) / 1e6:.1f} MB)…")
-        data = read_upload(uploaded.name, uploaded.content, max_bytes=self.max_upload_bytes, config=self.session.config)
+        self.message(f"Reading {name} ({len(content) / 1e6:.1f} MB)…")
+        try:
+            data = read_upload(name, content, max_bytes=self.max_upload_bytes, config=self.session.config)
+        except ValueError as exc:  # UploadError, DicomError: say why, keep what is shown
+            self.message(f"Upload refused: {exc}", error=True)
+            return False
         self._use_data(data)
-        self.message(f"Loaded {uploaded.name}: {data.label}. Press **Register**.")
+        self.message(f"Loaded {name}: {data.label}. Press **Register**.")
+        return True
 
     def _use_data(self, data: Any) -> None:
         self.session.use_data(data)

@@ -125,6 +125,7 @@ def run_app(
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, terminate)
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # even if started with SIGINT ignored
     app: RoadmapApp | None = None
     try:
         app = build_app(server, config, data=data, max_upload_mb=max_upload_mb, announce=True)

@@ -1,0 +1,94 @@
+"""The user's own data: `roadmap3d app --volume --image` and the browser upload of a zip."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.data import FileData
+from app.gui import RoadmapApp
+from app.upload import read_upload
+from registration.dicom import UploadError, write_npz, write_xray
+from registration.geometry import TABLE_I, offsets_to_matrix
+
+from .conftest import TEST_CONFIG, wait_until
+
+
+@pytest.fixture(scope="module")
+def exported(app: RoadmapApp, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The phantom's volume (.npz) and a T4-moved fluoro image (XA), as a user would bring them."""
+    folder = tmp_path_factory.mktemp("user-data")
+    phantom = app._phantom_data  # noqa: SLF001
+    write_npz(phantom.volume(27.0), folder / "volume.npz")
+    from app.data import simulate_xray
+
+    geometry = app.session.settings.geometry(TEST_CONFIG.pixels)
+    xray = simulate_xray(phantom.phantom(True), geometry, motion=offsets_to_matrix(TABLE_I["T4"], geometry))
+    write_xray(xray, folder / "image.dcm")
+    return folder
+
+
+def zipped(folder: Path, names: list[str]) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name in names:
+            zf.write(folder / name, arcname=f"case/{name}")
+    return buf.getvalue()
+
+
+def test_upload_registers_the_users_data(fresh: RoadmapApp, exported: Path) -> None:
+    app = fresh
+    data = read_upload("case.zip", zipped(exported, ["volume.npz", "image.dcm"]), max_bytes=10**9, config=TEST_CONFIG)
+    assert isinstance(data, FileData) and data.fixed_xray is not None
+    try:
+        app._use_data(data)  # noqa: SLF001 - what the upload callback does after reading
+        assert all(c.disabled for c in app.carm_controls)  # the file sets the C-arm
+        assert wait_until(lambda: app._shown_version == app.session.version, 20)  # noqa: SLF001
+        assert "no ground truth" in app.readout.content
+        app.register_button.value = True
+        assert app.session.wait(120)
+        result = app.session.run.result
+        assert result is not None and result.residual is None
+        # The image shows the phantom moved by T4: the estimate must have found it.
+        geometry = app.session.geometry()
+        truth = offsets_to_matrix(TABLE_I["T4"], geometry)
+        err = app.session.estimate @ np.linalg.inv(truth)
+        shift = err[:3, 3]
+        inplane = np.linalg.norm(shift - (shift @ geometry.direction) * geometry.direction)
+        assert inplane < 1.0
+    finally:
+        app.phantom_button.value = True  # back to the phantom for the other tests
+        assert app.session.data is app._phantom_data  # noqa: SLF001
+        assert not any(c.disabled for c in app.carm_controls)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "expected"),
+    [
+        ("notes.txt", b"hello", "expected a .zip"),
+        ("case.zip", b"not a zip at all", "not a readable zip"),
+        ("case.zip", b"", "not a readable zip"),
+    ],
+)
+def test_bad_uploads_are_refused_with_a_message(name: str, content: bytes, expected: str) -> None:
+    with pytest.raises(UploadError, match=expected):
+        read_upload(name, content, max_bytes=10**6, config=TEST_CONFIG)
+
+
+def test_upload_without_an_image_or_too_big(exported: Path) -> None:
+    with pytest.raises(UploadError, match="no an XA/RF image|found no an XA/RF image|XA/RF"):
+        read_upload("v.zip", zipped(exported, ["volume.npz"]), max_bytes=10**9, config=TEST_CONFIG)
+    with pytest.raises(UploadError, match="limit"):
+        read_upload("v.zip", zipped(exported, ["volume.npz", "image.dcm"]), max_bytes=1000, config=TEST_CONFIG)
+
+
+def test_bad_upload_through_the_gui_shows_a_message(fresh: RoadmapApp) -> None:
+    app = fresh
+    before = app.session.data
+    assert not app.load_upload("evil.zip", b"PK\x03\x04 broken")  # what the upload button calls
+    assert "⚠" in app.status.content
+    assert app.session.data is before
