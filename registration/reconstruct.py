@@ -310,11 +310,12 @@ def filter_projections(
 ) -> NDArray[np.float32]:
     """Weighted, ramp-filtered projections ready for back-projection (FDK steps 1-2).
 
-    Each view is multiplied by the cosine weight D / sqrt(D^2 + x^2 + y^2) (D: source to
-    detector, x, y: detector mm from the principal point) and the Parker weight of its angle,
-    extended beyond the field (taper), ramp-filtered along rows with the Hann window, and
-    scaled by dbeta R^2 / tau (tau the pixel spacing at the iso-center, R the source-iso
-    distance) so that :func:`backproject` with weight 1/w^2 gives attenuation in 1/mm.
+    Each view is extended beyond its collimated field when ``masks`` are given (water-cylinder
+    extrapolation, :func:`_extend_truncated`), multiplied by the cosine weight
+    D / sqrt(D^2 + x^2 + y^2) (D: source to detector, x, y: detector mm from the principal
+    point) and the Parker weight of its angle, ramp-filtered along rows with the Hann window
+    (:func:`ramp_kernel_spectrum`), and scaled by dbeta R^2 / tau (tau the pixel spacing at
+    the iso-center, R the source-iso distance) so that :func:`backproject` with weight 1/w^2 gives attenuation in 1/mm.
     The run must be a propeller rotation (secondary 0): the Parker weights assume rotation
     about the world z axis, increasing with ``primary_deg``.
     """
