@@ -185,4 +185,3 @@ def test_vessel_surfaces_follow_the_phantom_arteries(exported: Path) -> None:
     # a true vessel surface lies within 6 mm of a centerline. Facial bone and sinus walls are
     # gone; a small partial-volume bone speck may remain (seen: the dens tip, ~2 % of vertices).
     assert np.mean(distance < 6.0) > 0.95, np.percentile(distance, [50, 99, 100])
-
