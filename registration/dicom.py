@@ -1079,10 +1079,18 @@ def _save(ds: Dataset, path: Path) -> None:
     ds.save_as(path, enforce_file_format=True)
 
 
-def _umask() -> int:
-    mask = os.umask(0o022)
+def _read_umask() -> int:
+    mask = os.umask(0o022)  # the only portable way to read it: set and restore
     os.umask(mask)
     return mask
+
+
+#: Read once at import (os.umask is process-wide; reading it later could race other threads).
+_UMASK = _read_umask()
+
+
+def _umask() -> int:
+    return _UMASK
 
 
 @contextmanager
