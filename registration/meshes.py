@@ -78,18 +78,22 @@ def surface_meshes(
     vessel_hu: float = VESSEL_HU,
     bone_hu: float = BONE_HU,
     step: int = 1,
+    bone_step: int | None = None,
 ) -> dict[str, trimesh.Trimesh]:
     """The ``"vessels"`` and ``"bone"`` surfaces of ``volume`` (absent keys: nothing found).
 
     Vessels are the iso-surface at ``vessel_hu`` of the voxels that lie more than
     BONE_MARGIN_VOXELS from bone, in components of at least MIN_VESSEL_VOXELS surrounded by
     tissue rather than air (MAX_SHELL_AIR_FRACTION); bone is the iso-surface at ``bone_hu``.
-    ``step`` > 1 trades detail for speed.
+    ``step`` > 1 trades detail for speed; ``bone_step`` (default ``step``) sets it for the
+    bone alone, whose surface is by far the larger.
     """
     if not vessel_hu < bone_hu:
         raise ValueError(f"vessel_hu ({vessel_hu}) must be below bone_hu ({bone_hu})")
-    if int(step) != step or step < 1:
-        raise ValueError(f"step must be a positive integer, got {step}")
+    bone_step = step if bone_step is None else bone_step
+    for name, value in (("step", step), ("bone_step", bone_step)):
+        if int(value) != value or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value}")
     hu = volume.data
     floor = np.float32(min(float(hu.min()), -1000.0))
     bone = hu >= bone_hu
@@ -102,9 +106,10 @@ def surface_meshes(
     padded_to_world = volume.index_to_world.copy()
     padded_to_world[:3, 3] -= volume.index_to_world[:3, :3].sum(axis=1)
     out: dict[str, trimesh.Trimesh] = {}
-    for name, field, level in (("vessels", vessel_field, vessel_hu), ("bone", hu, bone_hu)):
+    parts = (("vessels", vessel_field, vessel_hu, step), ("bone", hu, bone_hu, bone_step))
+    for name, field, level, part_step in parts:
         padded = np.pad(field.astype(np.float32), 1, mode="constant", constant_values=floor)
-        mesh = _surface(padded, level, padded_to_world, int(step))
+        mesh = _surface(padded, level, padded_to_world, int(part_step))
         if mesh is not None and len(mesh.faces):
             mesh.visual.face_colors = np.tile(COLORS[name], (len(mesh.faces), 1))
             mesh.metadata["name"] = name

@@ -739,3 +739,6 @@ def test_surface_meshes_of_a_ball_and_a_shell(tmp_path: Path) -> None:
         assert len(loaded.faces) == sum(len(m.faces) for m in meshes.values())
     with pytest.raises(ValueError, match="mesh format"):
         write_meshes(meshes, tmp_path / "m.obj")
+    coarse = surface_meshes(vol, bone_step=2)
+    assert len(coarse["vessels"].faces) == len(ball.faces)
+    assert len(coarse["bone"].faces) < len(meshes["bone"].faces) / 2
