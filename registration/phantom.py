@@ -13,6 +13,17 @@ and the line integral of ``mu`` along a segment is the sum over the visible piec
 primitive's chord (painter's algorithm along the ray, newest first) times its attenuation
 ``mu = 0.0206 (1 + HU / 1000)`` per mm (:func:`registration.volume.hu_to_mu_per_mm`, air 0).
 No sampling, no grid: the phantom is resolution independent.
+
+Anatomy (world mm; +x left, +y posterior, +z superior): scalp over a skull of outer table,
+diploe and inner table whose floor is a bowl (anterior fossa ~ z -5, posterior fossa ~ z -45);
+brain with ventricles; sphenoid body with sinus, sella turcica, dorsum, clinoids and greater
+wings; clivus; petrous bones with inner ear and internal auditory canal; mastoids with air
+cells; ear canals; frontal sinuses; the facial skeleton (orbits with fat and globes, zygoma
+and arches, maxillary sinuses, ethmoid cells, nasal cavity, septum, turbinates, nasal bones,
+hard palate, maxillary and mandibular arches, 28 teeth with enamel crowns); cervical spine,
+spinal cord, airway and hyoid; and the arteries (internal carotids, vertebrals, basilar,
+circle of Willis, ACA/MCA/PCA with branches) with a ~7 mm aneurysm at the left MCA
+bifurcation. The circle of Willis lies around the origin (the ICA termini at x = +-14 mm).
 """
 
 from __future__ import annotations
@@ -26,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from registration.cache import cached_arrays
-from registration.geometry import check_rigid, invert_rigid
+from registration.geometry import check_rigid, invert_rigid, rotation_x, rotation_y, rotation_z
 from registration.volume import Volume, format_grid
 
 #: Linear attenuation of water (1/mm) at the effective energy, as in ``hu_to_mu_per_mm``.
@@ -38,8 +49,9 @@ MAX_PLANES = 12
 #: Bump when the anatomy changes (it is part of every cache key).
 PHANTOM_MODEL_VERSION = 2
 
-#: Length of the straight, mitred pieces that make up an artery (mm); the bends between
-#: pieces stay small (a few degrees), so the tubes look smooth at any image resolution.
+#: Length of the straight pieces that make up an artery (mm). Neighbouring pieces meet on
+#: their bisecting plane (a mitre joint), which joins tubes of one radius without gap or
+#: overlap; the arteries bend by at most ~45 degrees per joint.
 VESSEL_STEP_MM = 4.0
 
 #: Label every output of :func:`registration_volume` carries.
@@ -56,7 +68,6 @@ HU_CORTICAL = 1700.0  # inner and outer tables
 HU_DIPLOE = 600.0
 HU_PETROUS = 2000.0
 HU_FACIAL_BONE = 1100.0
-HU_CANCELLOUS = 500.0
 HU_ENAMEL = 2800.0
 HU_BLOOD = 40.0
 HU_CONTRAST = 540.0  # iodine-filled lumen (~ +500 HU over blood)
@@ -844,8 +855,7 @@ def _rot_to(axis: ArrayLike) -> Float:
 
 
 def _euler(rx: float = 0.0, ry: float = 0.0, rz: float = 0.0) -> Float:
-    from registration.geometry import rotation_x, rotation_y, rotation_z
-
+    """Rz @ Ry @ Rx (degrees)."""
     return rotation_z(rz) @ rotation_y(ry) @ rotation_x(rx)
 
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from registration.geometry import CArm, offsets_to_matrix
+from registration.geometry import CArm, offsets_to_matrix, rotation_x, rotation_z
 from registration.phantom import (
     HU_AIR,
     MU_WATER_PER_MM,
@@ -132,25 +132,29 @@ def test_voxelize_a_ball_gives_its_hu_and_volume() -> None:
     assert volume == pytest.approx(4.0 / 3.0 * math.pi * 10.0**3, rel=0.005)
 
 
-def test_voxelize_is_the_exact_average_of_its_lines(head: HeadPhantom) -> None:
+@pytest.mark.parametrize("oblique", [False, True])
+def test_voxelize_is_the_exact_average_of_its_lines(head: HeadPhantom, oblique: bool) -> None:
     n, spacing, ss = 24, 8.0, 2
-    aff = np.diag([spacing, spacing, spacing, 1.0])
-    aff[:3, 3] = -(n - 1) / 2.0 * spacing
+    rot = rotation_z(25.0) @ rotation_x(-15.0) if oblique else np.eye(3)
+    aff = np.eye(4)
+    aff[:3, :3] = rot * spacing
+    aff[:3, 3] = -aff[:3, :3] @ np.full(3, (n - 1) / 2.0)
     vox = head.voxelize((n, n, n), aff, supersample=ss)
     assert vox.min() >= HU_AIR - 1e-3  # painting never goes below air
     # A voxel is the mean over ss x ss lines (across j, k) of the HU averaged exactly along i;
     # mu is linear in HU above air, so each line's average follows from a line integral.
     rng = np.random.default_rng(0)
-    idx = rng.integers(0, n, (300, 3))  # (i, j, k)
+    idx = rng.integers(0, n, (300, 3)).astype(np.float64)  # (i, j, k)
     offsets = (np.arange(ss) + 0.5) / ss - 0.5
     expected = np.zeros(len(idx))
     for dj in offsets:
         for dk in offsets:
-            lo = (idx + [-0.5, dj, dk]) * spacing + aff[:3, 3]
-            hi = lo + [spacing, 0.0, 0.0]
+            lo = (idx + [-0.5, dj, dk]) @ aff[:3, :3].T + aff[:3, 3]
+            hi = lo + aff[:3, 0]
             mu_mean = head.line_integrals(lo, hi) / spacing
             expected += (mu_mean / MU_WATER_PER_MM - 1.0) * 1000.0 / ss**2
-    got = vox[idx[:, 2], idx[:, 1], idx[:, 0]]
+    ii = idx.astype(int)
+    got = vox[ii[:, 2], ii[:, 1], ii[:, 0]]
     # float32 output and float64 sums of up to a few thousand HU: < 0.01 HU apart
     np.testing.assert_allclose(got, expected, atol=0.01)
     assert np.ptp(got) > 1000  # the sample holds bone and air, not only one tissue
