@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from registration.geometry import CArm, check_rigid
-from registration.phantom import MU_WATER_PER_MM, TAGS, HeadPhantom, _Builder
+from registration.phantom import MU_WATER_PER_MM, HeadPhantom, _Builder
 
 #: Photons per pixel reaching the detector behind the head (the automatic exposure control's
 #: target, measured over the central part of the field) for a fluoroscopy frame.
@@ -156,18 +156,15 @@ def device_phantom(phantom: HeadPhantom) -> HeadPhantom:
     # guide catheter: from the neck to the petrous segment (where the ICA enters the skull)
     stop = int(np.argmax(ica[:, 2] > -60.0))
     cath = ica[: max(stop, 2)]
-    b.tube(cath, CATHETER_OUTER_RADIUS_MM, _hu_for_mu(CATHETER_MU_PER_MM), "catheter", "soft")
-    b.tube(cath, CATHETER_INNER_RADIUS_MM, -1000.0, "catheter", "air")
+    b.tube(cath, CATHETER_OUTER_RADIUS_MM, _hu_for_mu(CATHETER_MU_PER_MM), "catheter", "device")
+    b.tube(cath, CATHETER_INNER_RADIUS_MM, -1000.0, "catheter", "air")  # the lumen
     # guidewire: through the catheter, the siphon and M1, ending short of the aneurysm
     wire = np.vstack([ica, m1[1:-1]])
     seg = np.linalg.norm(np.diff(wire, axis=0), axis=1)
     from_end = np.concatenate([np.cumsum(seg[::-1])[::-1], [0.0]])
     tip = int(np.argmax(from_end <= GUIDEWIRE_TIP_MM))
-    b.tube(wire[: tip + 1], GUIDEWIRE_RADIUS_MM, _hu_for_mu(GUIDEWIRE_MU_PER_MM), "wire", "soft")
-    b.tube(wire[tip:], GUIDEWIRE_RADIUS_MM, _hu_for_mu(GUIDEWIRE_TIP_MU_PER_MM), "wire_tip", "soft")
-    for p in b.prims:
-        p.tag = "device"
-    assert TAGS["device"] >= 0
+    b.tube(wire[: tip + 1], GUIDEWIRE_RADIUS_MM, _hu_for_mu(GUIDEWIRE_MU_PER_MM), "wire", "device")
+    b.tube(wire[tip:], GUIDEWIRE_RADIUS_MM, _hu_for_mu(GUIDEWIRE_TIP_MU_PER_MM), "wire_tip", "device")
     return b.build(seed=phantom.seed, contrast=False, facial=False, params={"device": "catheter+guidewire"})
 
 
