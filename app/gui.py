@@ -88,6 +88,7 @@ class RoadmapApp:
         self._tiles: dict[str, np.ndarray] = {}
         self._preview_version = -1
         self.frames_shown = 0
+        self._plotted = False
         self.live_updates: list[float] = []
 
         self.scene = Scene(server)
@@ -112,9 +113,9 @@ class RoadmapApp:
                 series=(
                     {"label": "iteration"},
                     {"label": "similarity", "stroke": "#4dabf7", "width": 2, "scale": "sim"},
-                    {"label": "temperature", "stroke": "#ffa94d", "width": 1.5, "scale": "temp"},
+                    {"label": "log10 temperature", "stroke": "#ffa94d", "width": 1.5, "scale": "temp"},
                 ),
-                scales={"x": {"time": False}, "sim": {"auto": True}, "temp": {"auto": True, "distr": 3}},
+                scales={"x": {"time": False}, "sim": {"auto": True}, "temp": {"auto": True}},
                 axes=(
                     {"stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
                     {"scale": "sim", "stroke": "#4dabf7", "grid": {"stroke": "#2c2e33"}},
@@ -124,7 +125,7 @@ class RoadmapApp:
                 height=190,
             )
         self.view_panel.dock_left()
-        self.view_panel.set_width(560)
+        self.view_panel.set_width(600)
 
         # Right: the controls.
         gui.add_markdown("**3D roadmap** · automatic patient-motion correction")
@@ -521,12 +522,16 @@ class RoadmapApp:
             self.readout.content = readout
             self.badge.content = badge
             self.details.content = details
-            if it:
+            if it or self._plotted:
                 n = min(len(it), len(sim), len(temp))
                 sim_arr = np.asarray(sim[:n], np.float64)
                 sim_arr[~np.isfinite(sim_arr)] = np.nan
-                temp_arr = np.maximum(np.asarray(temp[:n], np.float64), 1e-9)
-                self.plot.data = (np.asarray(it[:n], np.float64), sim_arr, temp_arr)
+                log_temp = np.log10(np.maximum(np.asarray(temp[:n], np.float64), 1e-12))
+                if n == 0:  # a new patient position: clear the last run's curves
+                    self.plot.data = (np.zeros(1), np.full(1, np.nan), np.full(1, np.nan))
+                else:
+                    self.plot.data = (np.asarray(it[:n], np.float64), sim_arr, log_temp)
+                self._plotted = n > 0
         self.frames_shown += 1
 
     def _texts(self, motion: np.ndarray, truth: np.ndarray | None) -> tuple[str, str, str]:

@@ -31,7 +31,7 @@ def make_server(host: str = "127.0.0.1", port: int = 8080, *, allow_share: bool 
         refuse_share_requests(server)
     server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=allow_share, brand_color=BRAND_RGB)
     # Oblique from the patient's left, above the table: head, beam and detector in view.
-    server.initial_camera.position = (0.62, -0.42, 0.48)
+    server.initial_camera.position = (0.56, -0.38, 0.44)
     server.initial_camera.look_at = (0.0, -0.02, 0.0)
     server.initial_camera.up = (0.0, -1.0, 0.0)
     return server
