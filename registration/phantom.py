@@ -47,7 +47,7 @@ MAX_QUADRICS = 6
 MAX_PLANES = 12
 
 #: Bump when the anatomy changes (it is part of every cache key).
-PHANTOM_MODEL_VERSION = 2
+PHANTOM_MODEL_VERSION = 3
 
 #: Length of the straight pieces that make up an artery (mm). Neighbouring pieces meet on
 #: their bisecting plane (a mitre joint), which joins tubes of one radius without gap or
@@ -1151,7 +1151,7 @@ def _build_phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
             "bone",
         )
     b.paint(E(P([0.0, 85.0, -20.0]), S([10.0, 5.0, 7.0])), 1500.0, "skull", "bone")  # occipital protuberance
-    fm = C(P([0.0, 46.0, -55.0]), P([0.0, 46.0, -20.0]), S([15.0, 18.0]))
+    fm = C(P([0.0, 46.0, -55.0]), P([0.0, 46.0, -38.0]), S([15.0, 18.0]))
     b.paint(fm, HU_BRAIN, "clivus", "brain")  # foramen magnum: medulla through the floor plate
     for side in (-1.0, 1.0):
         g = f"petrous_{'l' if side > 0 else 'r'}"
