@@ -49,6 +49,9 @@ REFERENCE_STEP_VOXELS = 0.5
 #: is shared and the mask or the clipped volume makes some rows cheaper than others).
 _ROW_CHUNK = 4
 
+#: Below this many samples (pixels x largest volume dimension) the serial kernel is used.
+_SERIAL_SAMPLES = 100_000
+
 #: Zero voxels padded on every side of the volume copies the kernels read (see _render_joseph).
 _PAD = 2
 
@@ -171,8 +174,7 @@ def _bilinear(arr: np.ndarray, base_m: np.uint64, pf: np.float32, qf: np.float32
     return a0 + fq * (a1 - a0)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
-def _render_joseph(
+def _joseph(
     mu: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD) volume
     mu_t: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, ni + 2 PAD, nj + 2 PAD) volume
     shape_ijk: np.ndarray,  # int64 (ni, nj, nk), unpadded
@@ -301,6 +303,10 @@ def _render_joseph(
                 total = acc - np.float32(0.5) * (v_first + v_last)
                 total += np.float32(0.5) * (f0 * (v_e0 + v_first) + f1 * (v_e1 + v_last))
             out[r, c] = total * np.float32(step_mm)
+
+
+_render_joseph = numba.njit(parallel=True, fastmath=True, cache=True)(_joseph)
+_render_joseph_serial = numba.njit(parallel=False, fastmath=True, cache=True)(_joseph)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -491,7 +497,10 @@ class DRRRenderer:
         numba.set_parallel_chunksize(_ROW_CHUNK)
         try:
             if self.step_voxels == 1.0:
-                _render_joseph(
+                # small jobs run serially: a parallel launch costs more than it saves
+                serial = geometry.rows * geometry.cols * int(lev.shape_ijk.max()) < _SERIAL_SAMPLES
+                kernel = _render_joseph_serial if serial else _render_joseph
+                kernel(
                     lev.mu, lev.mu_t, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
                     mask_u8, use_mask, out,
                 )  # fmt: skip

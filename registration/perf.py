@@ -2,8 +2,13 @@
 
 The benchmark volume is a synthetic head-like volume in HU (an ellipsoidal skull shell around
 soft tissue with a few dense and air-filled blobs, in air) on the 3DRA grid of the 27 cm volume
-format, so that timings do not depend on the phantom module. Images use the 27 cm image
-format at an oblique view (LAO 30, CRAN 15), the less cache-friendly case.
+format, so that timings do not depend on the phantom module; like a real head in that format it
+overfills the cube in two directions. Images use the 27 cm image format with its circular
+field mask, at an oblique view (LAO 30, CRAN 15).
+
+Times are wall-clock medians in milliseconds (``time.perf_counter``) on however many threads
+numba uses; ``cpu_ms_median`` adds the process CPU time per call, which shows how much of a
+slow wall time is the machine being shared.
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -66,16 +72,23 @@ def bench_geometry(pixels: int) -> CArm:
     )
 
 
-def median_ms(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> float:
-    """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup``."""
+def _timings(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> tuple[float, float]:
+    """Median wall and median process-CPU milliseconds of ``fn()`` over ``repeats`` calls."""
     for _ in range(warmup):
         fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(max(1, repeats)):
+        c0 = time.process_time()
         t0 = time.perf_counter()
         fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times) * 1e3)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall) * 1e3), float(np.median(cpu) * 1e3)
+
+
+def median_ms(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup``."""
+    return _timings(fn, repeats, warmup=warmup)[0]
 
 
 def _bench_one(image_px: int, volume_px: int, repeats: int, reference_repeats: int, masked: bool) -> dict:
@@ -84,7 +97,7 @@ def _bench_one(image_px: int, volume_px: int, repeats: int, reference_repeats: i
     renderer = DRRRenderer(volume, levels=1)
     mask = geometry.field_mask() if masked else None
     out = np.empty((geometry.rows, geometry.cols), dtype=np.float32)
-    fast_ms = median_ms(lambda: renderer.render(geometry, mask=mask, out=out), repeats, warmup=3)
+    fast_ms, fast_cpu_ms = _timings(lambda: renderer.render(geometry, mask=mask, out=out), repeats, warmup=3)
     images: list[np.ndarray] = []
     ref_ms = median_ms(lambda: images.append(render_reference(volume, geometry)), reference_repeats, warmup=0)
     fast = renderer.render(geometry)
@@ -94,6 +107,8 @@ def _bench_one(image_px: int, volume_px: int, repeats: int, reference_repeats: i
         "image_px": int(image_px),
         "volume_px": int(volume_px),
         "ms_median": round(fast_ms, 4),
+        "cpu_ms_median": round(fast_cpu_ms, 4),
+        "threads": numba.get_num_threads(),
         "reference_ms_median": round(ref_ms, 2),
         "speedup": round(ref_ms / fast_ms, 1),
         "max_rel_error": round(float(np.abs(fast - ref).max()) / scale, 5),
@@ -111,6 +126,7 @@ def bench_drr(
 
     Each record: ``image_px`` and ``volume_px`` (edge lengths), ``ms_median`` (fast renderer,
     ``repeats`` calls into a reused buffer, with the circular field mask when ``masked``),
+    ``cpu_ms_median`` (its process CPU time per call), ``threads`` (numba threads),
     ``reference_ms_median`` (:func:`registration.drr.render_reference` at its default step of
     half a voxel, ``reference_repeats`` calls, whole image), ``speedup`` and ``max_rel_error``
     (max |fast - reference| over the reference's maximum, whole image).

@@ -186,6 +186,20 @@ def test_drr_continuous_in_pose(smooth_volume):
     assert change < 0.005 * float(steps[0].max())
 
 
+def test_parallel_and_serial_kernels_agree(smooth_volume, monkeypatch):
+    from registration import drr
+
+    geometry = VIEWS["shifted-tilted"].resized(64, 64)
+    motion = offsets_to_matrix((2.0, 1.0, -1.0, 3.0, -2.0, 1.0), geometry)
+    mask = geometry.field_mask()
+    renderer = DRRRenderer(smooth_volume, levels=1)
+    monkeypatch.setattr(drr, "_SERIAL_SAMPLES", 0)  # always parallel
+    parallel = renderer.render(geometry, motion, mask=mask).copy()
+    monkeypatch.setattr(drr, "_SERIAL_SAMPLES", 10**12)  # always serial
+    serial = renderer.render(geometry, motion, mask=mask)
+    assert np.array_equal(parallel, serial)
+
+
 def test_trilinear_marcher_matches_reference(smooth_volume):
     geometry = VIEWS["shifted-tilted"]
     motion = offsets_to_matrix((1.0, 2.0, -3.0, 2.0, 3.0, -4.0), geometry)
