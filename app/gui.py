@@ -276,6 +276,14 @@ class RoadmapApp:
         )
         # The patient stays put in the room: its offsets in the new view frame change.
         self._sync_controls()
+        st = self.session.settings
+        if st.image_format_cm < 22 or st.volume_format_cm < st.image_format_cm:
+            self.message(
+                "Outside the paper's clinically relevant subset (image format 15/19 cm, or a volume "
+                "smaller than the image): the product keeps the machine-based registration here."
+            )
+        elif self.status.content.startswith("Outside"):
+            self.message("Ready.")
 
     def _force_refresh(self) -> None:
         self._shown_version = -1

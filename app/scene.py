@@ -50,10 +50,10 @@ class Scene:
         self.scene.set_up_direction("-y")
         self.scene.add_grid(
             "/floor",
-            width=3.0,
-            height=3.0,
+            width=4.0,
+            height=4.0,
             plane="xz",
-            position=(0.0, 0.45, 0.0),
+            position=(0.0, 1.0, 0.0),  # the floor, below the X-ray tube
             cell_color=(60, 64, 72),
             section_color=(80, 86, 96),
         )
@@ -140,6 +140,7 @@ class Scene:
             "/carm/detector",
             dimensions=(2 * half_w * M_PER_MM + 0.06, 2 * half_h * M_PER_MM + 0.06, 0.05),
             color=(70, 74, 82),
+            opacity=0.45,  # the image on the detector shows through its housing
             wxyz=wxyz,
             position=center + d * 0.026,
         )
