@@ -235,18 +235,16 @@ def simulate_xray(
     field_mask = geometry.field_mask()
     rr, cc = np.nonzero(field_mask)
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    # mean transmission over the sub-pixel rays (the detector integrates intensity)
-    transmission = np.zeros(len(rr))
+    # mean transmission over the sub-pixel rays (the detector integrates intensity), all
+    # sub-pixel rays traced in one call
+    dr, dc = np.meshgrid(offsets, offsets, indexing="ij")
+    targets = geometry.pixel_to_world(cc[None, :] + dc.reshape(-1, 1), rr[None, :] + dr.reshape(-1, 1))
+    targets = targets.reshape(-1, 3)
     source = geometry.source_mm
-    devices = device_phantom(phantom) if catheter else None
-    for dr in offsets:
-        for dc in offsets:
-            targets = geometry.pixel_to_world(cc + dc, rr + dr)
-            integral = phantom.line_integrals(source, targets, motion)
-            if devices is not None:
-                integral += devices.line_integrals(source, targets, motion)
-            transmission += np.exp(-integral)
-    transmission /= supersample * supersample
+    integral = phantom.line_integrals(source, targets, motion)
+    if catheter:
+        integral += device_phantom(phantom).line_integrals(source, targets, motion)
+    transmission = np.exp(-integral).reshape(supersample * supersample, len(rr)).mean(axis=0)
 
     # automatic exposure control: I0 such that the central field receives `photons`
     frame = np.zeros((rows, cols))
