@@ -256,3 +256,13 @@ def test_registration_volume_is_labelled_stand_in(head: HeadPhantom) -> None:
     other = registration_volume(head, 27.0, voxels=32, seed=1, cache=False)
     noise = float(np.std(other.data - vol.data)) / math.sqrt(2.0)
     assert 15.0 < noise < 25.0  # STAND_IN_NOISE_HU = 20 HU
+
+
+def test_registration_volume_cache_round_trip(head: HeadPhantom, tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("ROADMAP3D_CACHE", str(tmp_path))
+    first = registration_volume(head, 27.0, voxels=16)
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    again = registration_volume(head, 27.0, voxels=16)  # from the cache
+    np.testing.assert_array_equal(first.data, again.data)
+    registration_volume(head, 27.0, voxels=16, seed=1)  # another key, another entry
+    assert len(list(tmp_path.glob("*.npz"))) == 2
