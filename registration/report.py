@@ -10,7 +10,6 @@ clinical study. ``report.md`` and ``report.html`` set our numbers beside the pap
 from __future__ import annotations
 
 import html
-import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -236,13 +235,14 @@ def _failures_by_offset(records: Sequence[dict]) -> dict:
     """Success rate by in-plane offset length and by offset rotation (where do we miss?)."""
     out = {}
     for key, edges in (
-        ("offset_inplane_mm", (0, 5, 10, 15, 20, 25.01)),
-        ("offset_rotation_deg", (0, 2.5, 5, 7.5, 10.01)),
+        ("offset_inplane_mm", (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)),
+        ("offset_rotation_deg", (0.0, 2.5, 5.0, 7.5, 10.0)),
     ):
         rows = {}
-        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-            sel = [r for r in records if lo <= r[key] < hi]
-            rows[f"{lo:g}-{math.floor(hi):g}"] = {"runs": len(sel), "success_rate": rate(sel)}
+        for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+            last = i == len(edges) - 2
+            sel = [r for r in records if lo <= r[key] and (r[key] < hi or last)]
+            rows[f"{lo:g}-{hi:g}"] = {"runs": len(sel), "success_rate": rate(sel)}
         out[key] = rows
     return out
 
@@ -287,6 +287,9 @@ def heatmap(records: Sequence[dict], kind: str, path: Path, *, title_extra: str 
                 r = cell.get((variant, vol, off, img))
                 color = grey if r is None else (green if r["success"] else red)
                 ax.add_patch(Rectangle((xi, y), 1, 1, facecolor=color, edgecolor="white", lw=0.8))
+                if r is None:
+                    ax.text(xi + 0.5, y + 0.5, "not run", ha="center", va="center", fontsize=6, color="#777777")
+                    continue
                 if r is not None:
                     txt = f"{r['inplane_residual_mm']:.2f}"
                     if not r["success"] and r["inplane_residual_mm"] < 1.0:
@@ -313,8 +316,8 @@ def heatmap(records: Sequence[dict], kind: str, path: Path, *, title_extra: str 
     ax.set_ylabel("volume format (cm), offset")
     ax.set_title(
         f"Table II ({kind}): in-plane residual at the iso-center (mm)\n"
-        "green < 1 mm and < 3°, red fails; hatched blue: not clinically relevant; 22F: facial 22 cm volume"
-        + title_extra,
+        "green: < 1 mm and < 3° (red: fails; rotation shown when it alone fails)\n"
+        "hatched blue: not clinically relevant; 22F: 22 cm volume with the face" + title_extra,
         fontsize=8,
     )
     fig.tight_layout()
@@ -349,13 +352,22 @@ def _bars(ax, values: Sequence[float], edges: Sequence[float], title: str, unit:
     for xi, c in zip(x, counts, strict=True):
         if c:
             ax.text(xi, c, str(c), ha="center", va="bottom", fontsize=6.5)
+    _headroom(ax, max(counts))
+
+
+def _headroom(ax, top: int) -> None:  # noqa: ANN001
+    from matplotlib.ticker import MaxNLocator
+
+    ax.set_ylim(0, max(1.0, top * 1.15 + 0.3))
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
 
 
 def phantom_histograms(records: Sequence[dict], path: Path) -> Path:
     """Fig. 6: in-plane residual, (a) all exposure, (b) all fluoro, (c, d) clinically relevant."""
     plt = _plt()
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7))
     grid = [r for r in records if r.get("variant", "standard") == "standard"]
+    kinds = [k for k in ("exposure", "fluoro") if any(r["image_kind"] == k for r in grid)] or ["exposure"]
+    fig, axes = plt.subplots(2, len(kinds), figsize=(5.2 * len(kinds), 7), squeeze=False)
     panels = [
         ("(a) all, exposure", [r for r in grid if r["image_kind"] == "exposure"]),
         ("(b) all, fluoro", [r for r in grid if r["image_kind"] == "fluoro"]),
@@ -368,6 +380,7 @@ def phantom_histograms(records: Sequence[dict], path: Path) -> Path:
             [r for r in grid if r["image_kind"] == "fluoro" and r["clinically_relevant"]],
         ),
     ]
+    panels = [p for p in panels if any(k in p[0] for k in kinds)]
     for ax, (title, rs) in zip(axes.ravel(), panels, strict=True):
         if not rs:
             ax.text(0.5, 0.5, "not in this run", ha="center", va="center", transform=ax.transAxes)
@@ -375,7 +388,7 @@ def phantom_histograms(records: Sequence[dict], path: Path) -> Path:
             ax.set_axis_off()
             continue
         _bars(ax, [r["inplane_residual_mm"] for r in rs], TRANSLATION_BINS_MM, title, "in-plane residual (mm)")
-    fig.suptitle("Fig. 6: translational residual after registration (phantom); red: 'More' (>= 1 mm)", fontsize=10)
+    fig.suptitle("Fig. 6: in-plane translational residual (phantom); red: 'More' (>= 1 mm)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -402,6 +415,7 @@ def clinical_histograms(records: Sequence[dict], path: Path) -> Path:
         for xi, (a, b) in enumerate(zip(with_c, without, strict=True)):
             if a + b:
                 ax.text(xi, a + b, str(a + b), ha="center", va="bottom", fontsize=6.5)
+        _headroom(ax, max(a + b for a, b in zip(with_c, without, strict=True)))
         ax.legend(fontsize=7)
         ax.set_title(f"{unit.split(' (')[0]} (n = {len(records)}); right of the dashed line: fails", fontsize=9)
     fig.suptitle("Fig. 7: residual error, rotational-run ('clinical') study", fontsize=10)

@@ -447,7 +447,7 @@ def patient_data(
     volume = Volume(
         arrays["volume"],
         arrays["index_to_world"],
-        label=RECONSTRUCTION_LABEL.format(n=projections) + f" (patient seed {phantom_seed})",
+        label=RECONSTRUCTION_LABEL.format(n=projections) + ", the patient's own run",
         meta=params,
     )
     return PatientData(
