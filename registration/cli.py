@@ -182,6 +182,7 @@ def phantom(
     seed: int = 0,
     voxels: int = 256,
     pixels: int = 512,
+    volume_source: Literal["fdk", "resampled"] = "fdk",
 ) -> int:
     """Export the built-in phantom: a DICOM 3DRA series, XA images with known motion, truth JSON.
 
@@ -196,6 +197,7 @@ def phantom(
         seed: Phantom variant and noise seed.
         voxels: 3DRA grid size along each axis.
         pixels: X-ray image size (square).
+        volume_source: 3DRA series: FDK of a simulated rotational run (minutes once, then cached) or resampled phantom.
     """
     from registration.cli_io import run_phantom_export
 
@@ -210,6 +212,7 @@ def phantom(
         seed=seed,
         voxels=voxels,
         pixels=pixels,
+        volume_source=volume_source,
     )
 
 

@@ -11,21 +11,37 @@ from __future__ import annotations
 import json
 import math
 import sys
+import threading
 import time
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
 from registration import dicom
 from registration.geometry import OFFSET_NAMES, TABLE_I, CArm, check_rigid, matrix_to_offsets, offsets_to_matrix
 
+if TYPE_CHECKING:
+    from registration.phantom import HeadPhantom
+    from registration.volume import Volume
+
 #: Files written by ``roadmap3d phantom`` inside its output folder.
 PHANTOM_VOLUME_DIR = "volume"
 PHANTOM_FLUORO = "xa_fluoro.dcm"
 PHANTOM_EXPOSURE = "xa_exposure.dcm"
 PHANTOM_TRUTH = "truth.json"
+#: What ``roadmap3d phantom`` writes as the 3DRA series: the FDK reconstruction of a simulated
+#: rotational run (:func:`registration.reconstruct.reconstruct_3dra`), or the phantom resampled to
+#: the 3DRA grid (:func:`registration.phantom.registration_volume`, a fast stand-in).
+VOLUME_SOURCES = ("fdk", "resampled")
+#: Long work (building the FDK 3DRA the first time) is announced on stderr once it has taken
+#: this long (seconds); a cached volume loads well within it ...
+PROGRESS_AFTER_S = 3.0
+#: ... and its elapsed time is repeated this often (seconds).
+PROGRESS_EVERY_S = 30.0
 
 
 def _say(text: str = "", *, stream: TextIO | None = None) -> None:
@@ -35,6 +51,35 @@ def _say(text: str = "", *, stream: TextIO | None = None) -> None:
 def _show_warnings(caught: list[warnings.WarningMessage]) -> None:
     for message in dict.fromkeys(str(w.message) for w in caught):
         _say(f"warning: {message}", stream=sys.stderr)
+
+
+@contextmanager
+def _progress(message: str, *, after_s: float | None = None, every_s: float | None = None) -> Iterator[None]:
+    """Say ``message`` on stderr if the block runs longer than ``after_s``, then the elapsed time
+    every ``every_s`` and the total at the end (defaults: ``PROGRESS_AFTER_S``, ``PROGRESS_EVERY_S``)."""
+    after = PROGRESS_AFTER_S if after_s is None else after_s
+    every = PROGRESS_EVERY_S if every_s is None else every_s
+    start = time.perf_counter()
+    done = threading.Event()
+    said = threading.Event()
+
+    def watch() -> None:
+        if done.wait(after):
+            return
+        _say(f"{message} ...", stream=sys.stderr)
+        said.set()
+        while not done.wait(every):
+            _say(f"  ... {time.perf_counter() - start:.0f} s", stream=sys.stderr)
+
+    watcher = threading.Thread(target=watch, name="roadmap3d-progress", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        done.set()
+        watcher.join()
+    if said.is_set():
+        _say(f"  done in {time.perf_counter() - start:.0f} s", stream=sys.stderr)
 
 
 def parse_isocenter(text: str | None) -> tuple[float, float, float]:
@@ -218,6 +263,38 @@ def run_info(path: Path, *, as_json: bool = False) -> int:
 # --------------------------------------------------------------------------------------
 # phantom
 # --------------------------------------------------------------------------------------
+def _phantom_3dra(
+    phantom: HeadPhantom,
+    *,
+    source: str,
+    seed: int,
+    contrast: bool,
+    volume_format: float,
+    voxels: int,
+) -> tuple[Volume, str, dict[str, Any]]:
+    """The 3DRA to export, its SeriesDescription (<= 64 characters) and how it was made (for the truth)."""
+    if source == "resampled":
+        from registration.phantom import registration_volume
+
+        volume = registration_volume(phantom, volume_format, voxels=voxels, seed=seed)
+        return volume, "3DRA stand-in: phantom resampled to the 3DRA grid", {"volume_source": source}
+    from registration.reconstruct import reconstruct_3dra
+
+    message = (
+        f"3DRA: simulating the rotational run and reconstructing it (FDK, {voxels}^3 voxels, "
+        f"{volume_format:g} cm format); this takes minutes the first time and is cached afterwards"
+    )
+    with _progress(message):
+        # The same phantom (seed, contrast) as the XA images; the run's own noise seed and
+        # protocol are reconstruct_3dra's defaults, so the cache entry is shared with the
+        # validation and the app.
+        volume = reconstruct_3dra(seed, volume_format_cm=volume_format, contrast=contrast, voxels=voxels)
+    run = {k: volume.meta[k] for k in ("projections", "arc_deg", "pixels", "kind", "seed") if k in volume.meta}
+    label = f"3DRA: {volume.label}, head phantom seed {seed} {'with' if contrast else 'without'} contrast"
+    description = f"3DRA: FDK reconstruction, {run.get('projections', '?')} projections"
+    return volume.with_data(volume.data, label=label), description, {"volume_source": source, "rotational_run": run}
+
+
 def run_phantom_export(
     *,
     out: Path,
@@ -230,26 +307,37 @@ def run_phantom_export(
     seed: int = 0,
     voxels: int = 256,
     pixels: int = 512,
+    volume_source: str = "fdk",
 ) -> int:
-    """Export the phantom: DICOM 3DRA series, XA fluoro and exposure with known motion, truth JSON."""
+    """Export the phantom: DICOM 3DRA series, XA fluoro and exposure with known motion, truth JSON.
+
+    The 3DRA series is ``volume_source`` (one of ``VOLUME_SOURCES``). The XA images are the
+    analytic phantom moved by the known motion and projected with the nominal geometry that
+    their positioner tags state; the FDK volume is reconstructed in the same world frame (from
+    the calibrated geometry of its run), so the truth holds for either source.
+    """
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out}: exists and is not an empty folder; refusing to overwrite")
     if voxels < 8 or pixels < 16:
         raise ValueError(f"voxels must be >= 8 and pixels >= 16, got {voxels} and {pixels}")
+    if volume_source not in VOLUME_SOURCES:
+        raise ValueError(f"--volume-source must be one of {', '.join(VOLUME_SOURCES)}, got {volume_source!r}")
     offset_name, offsets = parse_offset(offset)
 
-    from registration.phantom import make_head_phantom, registration_volume
+    from registration.phantom import make_head_phantom
     from registration.xray import simulate_xray
 
     start = time.perf_counter()
     geometry = CArm.for_format(image_format, pixels=pixels, primary_deg=primary_deg, secondary_deg=secondary_deg)
     motion = offsets_to_matrix(offsets, geometry)
     phantom = make_head_phantom(seed=seed, contrast=contrast)
-    volume = registration_volume(phantom, volume_format, voxels=voxels, seed=seed)
+    volume, description, made = _phantom_3dra(
+        phantom, source=volume_source, seed=seed, contrast=contrast, volume_format=volume_format, voxels=voxels
+    )
     fluoro = simulate_xray(phantom, geometry, motion=motion, kind="fluoro", seed=seed)
     exposure = simulate_xray(phantom, geometry, motion=motion, kind="exposure", seed=seed + 1)
-    uid_seed = f"roadmap3d phantom {seed} {volume_format} {image_format} {voxels} {pixels} {contrast}"
+    uid_seed = f"roadmap3d phantom {seed} {volume_format} {image_format} {voxels} {pixels} {contrast} {volume_source}"
     study_uid = str(dicom.make_uid(uid_seed, "study"))
     vessels = phantom.vessel_centerline_mm()
     truth = {
@@ -260,6 +348,9 @@ def run_phantom_export(
         "image_format_cm": image_format,
         "phantom": {"seed": seed, "contrast": contrast},
         "volume_label": volume.label,
+        **made,
+        "images": "the analytic phantom moved by patient_motion, projected with the nominal geometry of the "
+        "XA positioner tags",
         "files": {
             "volume": PHANTOM_VOLUME_DIR,
             "fluoro": PHANTOM_FLUORO,
@@ -269,7 +360,9 @@ def run_phantom_export(
         "conventions": "shared/CONVENTIONS.md §4: anatomy the volume shows at X is at M @ X in the images",
     }
     with dicom.atomic_folder(out) as tmp:
-        dicom.write_series(volume, tmp / PHANTOM_VOLUME_DIR, study_uid=study_uid, uid_seed=uid_seed)
+        dicom.write_series(
+            volume, tmp / PHANTOM_VOLUME_DIR, description=description, study_uid=study_uid, uid_seed=uid_seed
+        )
         dicom.write_xray(fluoro, tmp / PHANTOM_FLUORO, study_uid=study_uid, uid_seed=uid_seed)
         dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed)
         dicom.write_text_atomic(tmp / PHANTOM_TRUTH, dicom.json_dumps(truth))
