@@ -42,6 +42,8 @@ class AppConfig:
     """X-ray image size (pixels per side); the registration's finest stage works at 256."""
     display_px: int = 384
     """Size of each 2-D tile in the panel."""
+    skull_detail: int = 64
+    """Marching-cubes cells across the skull (the browser draws it, in software on some machines)."""
     seed: int = 0
 
     @classmethod
@@ -141,7 +143,7 @@ class PhantomData:
     def mesh_steps(self) -> tuple[int, int]:
         """Marching-cubes steps (vessels, bone): the skull is kept to ~120k faces for the browser."""
         voxels = self.config.voxels
-        return max(1, round(voxels / 200)), max(1, math.ceil(voxels / 64))
+        return max(1, round(voxels / 200)), max(1, math.ceil(voxels / self.config.skull_detail))
 
     def mesh_spacing_mm(self, volume_format_cm: float) -> float:
         """Typical distance between neighbouring mesh vertices."""
@@ -200,7 +202,7 @@ class FileData:
     @property
     def mesh_steps(self) -> tuple[int, int]:
         voxels = max(self._volume.shape)
-        return max(1, round(voxels / 200)), max(1, math.ceil(voxels / 64))
+        return max(1, round(voxels / 200)), max(1, math.ceil(voxels / self.config.skull_detail))
 
     def meshes(self, _volume_format_cm: float | None = None) -> dict[str, trimesh.Trimesh]:
         with self._lock:

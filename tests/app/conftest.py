@@ -12,8 +12,9 @@ from app.data import AppConfig
 from app.gui import RoadmapApp
 from app.main import build_app, make_server
 
-#: Small grids so the suite stays fast; registration still has to reach < 1 mm in-plane.
-TEST_CONFIG = AppConfig(voxels=128, pixels=256, display_px=256)
+#: Small grids so the suite stays fast (registration still has to reach < 1 mm in-plane) and a
+#: coarse skull: the browser test draws it with software WebGL on the same 2 cores.
+TEST_CONFIG = AppConfig(voxels=128, pixels=256, display_px=256, skull_detail=32)
 
 READOUT = re.compile(r"Residual: (\d+\.\d\d) mm in-plane, (\d+\.\d\d) mm total, (\d+\.\d\d)° rotation")
 

@@ -68,16 +68,18 @@ def test_page_renders_and_t4_register_converges(fresh: RoadmapApp, browser) -> N
     try:
         page.goto(url)
         page.get_by_role("button", name="Register").wait_for(timeout=90_000)
+        # viser's "software WebGL" notice floats over the canvas: hide it so only the scene counts.
+        page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
         deadline = time.monotonic() + 90
         while not canvas_is_drawn(page) and time.monotonic() < deadline:
             time.sleep(1.0)
         assert canvas_is_drawn(page), "the 3D canvas stayed blank"
 
-        page.get_by_role("button", name="T4", exact=True).click()
+        page.get_by_role("button", name="T4", exact=True).click(force=True)  # skip waits for a still canvas
         page.get_by_text(re.compile(r"Residual: [3-9]\.\d\d mm in-plane")).wait_for(timeout=60_000)
 
         second.goto(url)  # a second tab joins the shared session...
-        page.get_by_role("button", name="Register").click()
+        page.get_by_role("button", name="Register").click(force=True)
         page.get_by_text("REGISTERING…", exact=True).wait_for(timeout=60_000)
         second.close()  # ...and is closed mid-run: nothing breaks
         page.get_by_text(re.compile(r"· done")).wait_for(timeout=240_000)
