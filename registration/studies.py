@@ -142,11 +142,11 @@ class ClinicalConfig:
 
     @classmethod
     def quick_config(cls, seed: int = 0) -> ClinicalConfig:
-        """A few minutes on 2 cores: 2 patients (22 cm with contrast, 27 cm without) x 5
+        """A few minutes on 2 cores: 2 patients (22 cm with contrast, 27 cm without) x 20
         registrations; 60-projection runs of 128 px, 128^3 reconstructions."""
         return cls(
             patients=((22.0, True), (27.0, False)),
-            registrations_per_patient=5,
+            registrations_per_patient=20,
             projections=60,
             run_pixels=128,
             volume_voxels=128,
