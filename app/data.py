@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from registration import meshes as surfaces
 from registration.cache import cached_arrays
 from registration.drr import DRRRenderer
 from registration.meshes import surface_meshes
@@ -120,11 +121,12 @@ class PhantomData:
         with self._lock:
             if volume_format_cm not in self._meshes:
                 volume = self.volume(volume_format_cm)
+                # Keyed by what defines the volume (its meta holds the phantom model version).
                 params = {
-                    "format_cm": volume_format_cm,
-                    "voxels": self.config.voxels,
-                    "seed": self.config.seed,
+                    "volume": volume.meta,
+                    "label": volume.label,
                     "steps": self.mesh_steps,
+                    "segmentation": (surfaces.VESSEL_HU, surfaces.BONE_HU, surfaces.BONE_MARGIN_VOXELS),
                 }
 
                 def build() -> dict[str, np.ndarray]:

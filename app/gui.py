@@ -534,7 +534,9 @@ class RoadmapApp:
                 n = min(len(it), len(sim), len(temp))
                 sim_arr = np.asarray(sim[:n], np.float64)
                 sim_arr[~np.isfinite(sim_arr)] = np.nan
-                log_temp = np.log10(np.maximum(np.asarray(temp[:n], np.float64), 1e-12))
+                temp_arr = np.asarray(temp[:n], np.float64)
+                log_temp = np.full(n, np.nan)  # the final polish has no temperature: a gap, not a cliff
+                log_temp[temp_arr > 0] = np.log10(temp_arr[temp_arr > 0])
                 if n == 0:  # a new patient position: clear the last run's curves
                     self.plot.data = (np.zeros(1), np.full(1, np.nan), np.full(1, np.nan))
                 else:

@@ -30,9 +30,9 @@ def make_server(host: str = "127.0.0.1", port: int = 8080, *, allow_share: bool 
     if not allow_share:
         refuse_share_requests(server)
     server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=allow_share, brand_color=BRAND_RGB)
-    # Oblique from the patient's left, above the table: head, beam and detector in view.
-    server.initial_camera.position = (0.56, -0.38, 0.44)
-    server.initial_camera.look_at = (0.0, -0.02, 0.0)
+    # Oblique from the patient's left, level with the head: the beam, and the image on the detector.
+    server.initial_camera.position = (0.66, 0.1, 0.52)
+    server.initial_camera.look_at = (0.0, -0.06, 0.0)
     server.initial_camera.up = (0.0, -1.0, 0.0)
     return server
 

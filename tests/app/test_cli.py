@@ -48,8 +48,10 @@ def wait_for_line(proc: subprocess.Popen[str], pattern: str, timeout: float) -> 
     raise AssertionError(f"no line matching {pattern!r}; output:\n{''.join(seen)}")
 
 
-def test_app_on_user_files_serves_and_stops_on_ctrl_c(exported: Path) -> None:  # noqa: F811
-    proc = start("app", "--port", "0", "--volume", str(exported / "volume.npz"), "--image", str(exported / "image.dcm"))
+@pytest.mark.parametrize("command", ["demo", "app-with-files"])
+def test_serves_and_stops_on_ctrl_c(command: str, exported: Path) -> None:  # noqa: F811
+    files = ["--volume", str(exported / "volume.npz"), "--image", str(exported / "image.dcm")]
+    proc = start("demo", "--port", "0") if command == "demo" else start("app", "--port", "0", *files)
     try:
         url = wait_for_line(proc, r"serving on (http://127\.0\.0\.1:\d+)", 60)[1]
         wait_for_line(proc, r"ready after", 120)
