@@ -31,8 +31,8 @@ def make_server(host: str = "127.0.0.1", port: int = 8080, *, allow_share: bool 
         refuse_share_requests(server)
     server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=allow_share, brand_color=BRAND_RGB)
     # Oblique from the patient's left, level with the head: the beam, and the image on the detector.
-    server.initial_camera.position = (0.66, 0.1, 0.52)
-    server.initial_camera.look_at = (0.0, -0.06, 0.0)
+    server.initial_camera.position = (0.86, 0.22, 0.68)
+    server.initial_camera.look_at = (0.0, 0.1, 0.0)
     server.initial_camera.up = (0.0, -1.0, 0.0)
     return server
 
@@ -84,6 +84,8 @@ def build_app(
     note.remove()
     bar.remove()
     app = RoadmapApp(server, session, phantom=phantom, max_upload_mb=max_upload_mb)
+    # Later preparations (another volume format) report in the status line.
+    phantom.progress = lambda message, _fraction: app.message(f"{message}…")
     app.start()
     if data is None:
         app.message("Ready. Press **T4**, then **Register**.")

@@ -58,7 +58,7 @@ class Scene:
             section_color=(80, 86, 96),
         )
         self.scene.add_icosphere("/isocenter", radius=0.004, color=(255, 255, 255), position=(0.0, 0.0, 0.0))
-        self.scene.add_label("/isocenter/label", "iso-center", position=(0.0, -0.012, 0.0))
+        self.scene.add_label("/isocenter/label", "iso-center", position=(0.0, 0.0, -0.1), font_screen_scale=0.8)
         self.patient: list = []
         self.ghost: list = []
         self.frustum: viser.CameraFrustumHandle | None = None
