@@ -157,8 +157,12 @@ class RoadmapApp:
             self.random_button = gui.add_button("Random", hint="A random motion within 25 mm and 10°")
             self.reset_button = gui.add_button("Reset", hint="No patient motion; roadmap from the C-arm sensors")
         with tabs.add_tab("C-arm", viser.Icon.RADAR):
-            self.primary = gui.add_slider("Primary (LAO+/RAO−) °", -120.0, 120.0, 1.0, 0.0)
-            self.secondary = gui.add_slider("Secondary (CRAN+/CAUD−) °", -50.0, 50.0, 1.0, 0.0)
+            self.primary = gui.add_slider(
+                "LAO/RAO (°)", -120.0, 120.0, 1.0, 0.0, hint="Primary angle: LAO positive, RAO negative"
+            )
+            self.secondary = gui.add_slider(
+                "CRAN/CAUD (°)", -50.0, 50.0, 1.0, 0.0, hint="Secondary angle: CRAN positive, CAUD negative"
+            )
             self.sid = gui.add_slider("SID (mm)", 900.0, 1300.0, 10.0, 1200.0)
             self.image_format = gui.add_dropdown("Image format", FORMAT_OPTIONS, initial_value="27 cm")
             self.volume_format = gui.add_dropdown("Volume format", FORMAT_OPTIONS, initial_value="27 cm")
