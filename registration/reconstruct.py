@@ -505,6 +505,7 @@ def reconstruct_3dra(
     (minutes); later calls load the cached volume.
     """
     from registration.cache import cached_arrays
+    from registration.phantom import PHANTOM_MODEL_VERSION
 
     params = {
         "phantom_seed": int(phantom_seed),
@@ -517,6 +518,7 @@ def reconstruct_3dra(
         "kind": kind,
         "seed": int(seed),
         "bending_seed": default_bending().seed,
+        "phantom_model": PHANTOM_MODEL_VERSION,
     }
 
     def build() -> dict[str, np.ndarray]:
