@@ -75,7 +75,6 @@ def build_app(
     # Two cores: the renderer's pyramid and the surfaces + first image are prepared side by side.
     renderer = threading.Thread(target=source.renderer, args=(fmt,), name="prepare-renderer")
     renderer.start()
-    progress("Extracting or loading the skull and vessel surfaces", 0.4)
     source.meshes(fmt)
     progress("Forming the first X-ray image", 0.7)
     session.xray()
