@@ -420,7 +420,7 @@ class RoadmapApp:
             settings = s.settings
         now = time.monotonic()
         live = running and progress is not None and progress is not self._shown_progress
-        if version == self._shown_version and not (live and now - self._last_live >= 1.0 / LIVE_HZ):
+        if version == self._shown_version and not (live and now - self._last_live >= 0.8 / LIVE_HZ):  # timer jitter
             if not running and self._ui_running:
                 self._set_running_ui(False)
             self._maybe_autocorrect(now)
@@ -471,6 +471,7 @@ class RoadmapApp:
                 "fluoro": views.resize(views.to_gray(xray.image, xray.mask), size),
                 "mask": views.resize(mask_u8, size).astype(bool),
                 "mask_half": views.resize(mask_u8, size // 2).astype(bool),
+                "mask_third": views.resize(mask_u8, size // 3).astype(bool),
                 "gradient": views.resize(views.gradient_image(xray.image, xray.mask), size),
             }
             self._tiles_of = xray
@@ -497,18 +498,16 @@ class RoadmapApp:
         views.label(fluoro, "red: roadmap at the estimate", corner="bottom-left")
 
         # The DRR thumbnail: coarser while the optimizer runs (it competes for the same cores).
-        drr = s.data.renderer(volume_format).render(
-            geometry.resized(size // 2, size // 2), motion, level=2 if live else 1
-        )
-        drr_gray = views.resize(views.to_gray(drr, tiles["mask_half"]), size)
+        drr_px = size // 3 if live else size // 2
+        drr_mask = tiles["mask_third"] if live else tiles["mask_half"]
+        drr = s.data.renderer(volume_format).render(geometry.resized(drr_px, drr_px), motion, level=2 if live else 1)
+        drr_gray = views.resize(views.to_gray(drr, drr_mask), size)
         drr_gray[~tiles["mask"]] = 0
         drr_tile = views.label(views.gray_rgb(drr_gray), "DRR at the estimate")
         composite = views.side_by_side(fluoro, drr_tile)
         if self.show_gradients.value:
             g1 = views.label(views.gray_rgb(tiles["gradient"]), "gradient: image")
-            g2 = views.label(
-                views.gray_rgb(views.resize(views.gradient_image(drr, tiles["mask_half"]), size)), "gradient: DRR"
-            )
+            g2 = views.label(views.gray_rgb(views.resize(views.gradient_image(drr, drr_mask), size)), "gradient: DRR")
             composite = views.stacked(composite, views.side_by_side(g1, g2))
         carm_key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, round(geometry.field_diameter_mm, 3))
         detector_image = views.resize(fluoro, 256)
