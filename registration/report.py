@@ -278,7 +278,7 @@ def heatmap(records: Sequence[dict], kind: str, path: Path, *, title_extra: str 
         (r.get("variant", "standard"), r["volume_format_cm"], r["offset"], r["image_format_cm"]): r for r in rows_rec
     }
     n_rows = len(blocks) * len(offsets)
-    fig, ax = plt.subplots(figsize=(1.0 + 1.05 * len(images), 0.8 + 0.3 * n_rows))
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.0 + 1.05 * len(images)), 1.8 + 0.3 * n_rows))
     green, red, grey = "#5cb85c", "#d9534f", "#dddddd"
     for bi, (variant, vol) in enumerate(blocks):
         for oi, off in enumerate(offsets):
