@@ -51,7 +51,7 @@ def test_stop_cancels_quickly(fresh: RoadmapApp) -> None:
     app = fresh
     app.table_buttons["T2"].value = True
     app.register_button.value = True
-    time.sleep(1.0)
+    assert wait_until(lambda: app.session.run.progress is not None, 30)  # the optimizer is under way
     assert app.session.running
     start = time.monotonic()
     app.stop_button.value = True
