@@ -205,7 +205,9 @@ def clinical_summary(records: Sequence[dict], *, config: dict, wall_seconds: flo
             for k in (
                 "case_id",
                 "frame",
+                "primary_deg",
                 "offset_inplane_mm",
+                "offset_outofplane_mm",
                 "offset_rotation_deg",
                 "inplane_residual_mm",
                 "rotation_residual_deg",
@@ -236,6 +238,7 @@ def _failures_by_offset(records: Sequence[dict]) -> dict:
     out = {}
     for key, edges in (
         ("offset_inplane_mm", (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)),
+        ("offset_outofplane_mm", (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)),
         ("offset_rotation_deg", (0.0, 2.5, 5.0, 7.5, 10.0)),
     ):
         rows = {}
@@ -664,7 +667,11 @@ def clinical_report_md(records: Sequence[dict], summary: dict, images: dict[str,
         for k, v in summary["by_patient"].items()
     ]
     lines += _table(["patient", "format (cm)", "contrast", "runs", "translation", "rotation"], rows) + [""]
-    for key, name in (("offset_inplane_mm", "in-plane offset (mm)"), ("offset_rotation_deg", "rotation offset (deg)")):
+    for key, name in (
+        ("offset_inplane_mm", "in-plane offset (mm)"),
+        ("offset_outofplane_mm", "out-of-plane offset (mm; not optimised)"),
+        ("offset_rotation_deg", "rotation offset (deg)"),
+    ):
         rows = [[k, v["runs"], _pct(v["success_rate"])] for k, v in summary["failures_by_offset"][key].items()]
         lines += _table([name, "runs", "success (both)"], rows) + [""]
     fails = summary["failures"]
@@ -673,8 +680,9 @@ def clinical_report_md(records: Sequence[dict], summary: dict, images: dict[str,
         lines += _table(
             [
                 "case",
-                "frame",
+                "frame (primary deg)",
                 "offset in-plane (mm)",
+                "offset out-of-plane (mm)",
                 "offset rotation (deg)",
                 "residual in-plane (mm)",
                 "residual rotation (deg)",
@@ -682,8 +690,9 @@ def clinical_report_md(records: Sequence[dict], summary: dict, images: dict[str,
             [
                 [
                     f"`{f['case_id']}`",
-                    f["frame"],
+                    f"{f['frame']} ({f['primary_deg']:.0f})",
                     f"{f['offset_inplane_mm']:.1f}",
+                    f"{f['offset_outofplane_mm']:.1f}",
                     f"{f['offset_rotation_deg']:.1f}",
                     f"{f['inplane_residual_mm']:.2f}",
                     f"{f['rotation_residual_deg']:.2f}",

@@ -186,6 +186,7 @@ def test_clinical_summary_and_report(tmp_path: Path):
                 "volume_format_cm": 22.0,
                 "contrast": i % 2 == 0,
                 "frame": i,
+                "primary_deg": 0.0,
                 "inplane_residual_mm": inplane,
                 "outofplane_residual_mm": 3.0,
                 "translation_residual_mm": 3.2,
