@@ -66,6 +66,11 @@ class RegistrationOptions:
     polish_evaluations: int = 60
     polish_image_px: int = 128
     polish_volume_level: int = 1
+    #: Compare only pixels whose rays pass at least this far inside the volume's support
+    #: (its box and the reconstructable cylinder), judged at the current estimate at the
+    #: start of each level: the support's outline is an edge the X-ray image does not
+    #: have. One margin per level, then the polish's; None compares the whole field.
+    support_margin_mm: tuple[float, ...] | None = (15.0, 6.0, 4.0)
 
     def __post_init__(self) -> None:
         if not self.levels:
@@ -77,6 +82,11 @@ class RegistrationOptions:
                 raise ValueError(f"image_px must be >= 16, got {level.image_px}")
             if level.volume_level < 0:
                 raise ValueError(f"volume_level must be >= 0, got {level.volume_level}")
+        if self.support_margin_mm is not None:
+            if len(self.support_margin_mm) != len(self.levels) + 1:
+                raise ValueError("support_margin_mm needs one margin per level plus one for the polish")
+            if any(not math.isfinite(m) or m < 0 for m in self.support_margin_mm):
+                raise ValueError(f"support margins must be >= 0 mm, got {self.support_margin_mm}")
 
 
 @dataclass(frozen=True)
@@ -133,6 +143,49 @@ class RegistrationResult:
 
 class _Stop(Exception):
     pass
+
+
+def support_mask(volume: Volume, geometry: CArm, motion: ArrayLike, margin_mm: float) -> NDArray[np.bool_]:
+    """Pixels whose rays pass through the volume's support shrunk by ``margin_mm``.
+
+    The support is the volume's box intersected with the cylinder (axis along the volume's
+    k axis) inscribed in it: a cone-beam 3DRA reconstructs only that cylinder, and a CT box
+    contains it. Rays that graze the support's outline see its truncation edge, which the
+    X-ray image does not have; ``motion`` places the volume as in the DRR.
+    """
+    m = check_rigid(motion, name="motion")
+    rows, cols = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
+    targets = geometry.pixel_to_world(cols, rows).reshape(-1, 3)
+    to_index = volume.world_to_index @ np.linalg.inv(m)
+    src = to_index[:3, :3] @ geometry.source_mm + to_index[:3, 3]
+    dirs = targets @ to_index[:3, :3].T + to_index[:3, 3] - src
+    spacing = volume.spacing_mm
+    # Work in index units scaled to mm along each axis (the 3DRA grids are orthogonal).
+    src_mm, dirs_mm = src * spacing, dirs * spacing
+    n = np.array(volume.shape[::-1], dtype=np.float64)  # (ni, nj, nk)
+    lo, hi = np.full(3, margin_mm) - 0.5 * spacing, (n - 0.5) * spacing - margin_mm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - src_mm) / dirs_mm, (hi - src_mm) / dirs_mm
+    near = np.nanmax(np.where(np.isfinite(t1), np.minimum(t1, t2), -np.inf), axis=1)
+    far = np.nanmin(np.where(np.isfinite(t1), np.maximum(t1, t2), np.inf), axis=1)
+    # Rays parallel to a slab must start inside it.
+    parallel = dirs_mm == 0
+    outside = parallel & ((src_mm < lo) | (src_mm > hi))
+    far[np.any(outside, axis=1)] = -np.inf
+    # The inscribed cylinder about the k axis.
+    center = (n[:2] - 1) / 2.0 * spacing[:2]
+    radius = min(n[0] * spacing[0], n[1] * spacing[1]) / 2.0 - margin_mm
+    p, d = src_mm[:2] - center, dirs_mm[:, :2]
+    a = np.sum(d * d, axis=1)
+    b = 2.0 * d @ p
+    c = p @ p - radius * radius
+    disc = b * b - 4 * a * c
+    hit = (disc > 0) & (a > 0) & (radius > 0)
+    root = np.sqrt(np.where(hit, disc, 0.0))
+    safe_a = np.where(a > 0, a, 1.0)
+    near = np.where(hit, np.maximum(near, (-b - root) / (2 * safe_a)), near)
+    far = np.where(hit, np.minimum(far, (-b + root) / (2 * safe_a)), -np.inf)
+    return (far > near).reshape(geometry.rows, geometry.cols)
 
 
 def register(
@@ -218,13 +271,25 @@ def register(
             )
         )
 
-    def make_cost(image_px: int, volume_level: int) -> Callable[[Array], float]:
-        factor = max(1, round(geometry.cols / image_px))
+    def make_cost(image_px: int, volume_level: int, margin_mm: float | None) -> Callable[[Array], float]:
+        vl = min(volume_level, renderer.n_levels - 1)
+        # Pixels about as fine as ``image_px`` across the image, or as the volume level's
+        # voxels seen at the iso-center, whichever is finer: a volume much smaller than the
+        # image still gets enough pixels (the support mask keeps their number small).
+        factor_image = max(1, round(geometry.cols / image_px))
+        voxel_px = renderer.level_volume(vl).spacing_mm.max() * geometry.magnification / max(geometry.pixel_mm)
+        factor = min(factor_image, 2 ** max(0, math.floor(math.log2(max(voxel_px, 1.0)))))
+        while factor > 1 and (geometry.rows % factor or geometry.cols % factor):
+            factor -= 1
         level_image = xray.downsample(factor) if factor > 1 else xray
         level_geom = level_image.geometry
-        measure = GradientDifference(level_image.image, level_image.mask)
         mask = level_image.mask
-        vl = min(volume_level, renderer.n_levels - 1)
+        if margin_mm is not None:
+            inside = mask & support_mask(volume, level_geom, motion_of(x_best), margin_mm)
+            # Keep the whole field when the support would leave too little to compare.
+            if inside.sum() >= 0.25 * mask.sum():
+                mask = inside
+        measure = GradientDifference(level_image.image, mask)
 
         def cost(x: Array) -> float:
             nonlocal drr_count
@@ -235,7 +300,8 @@ def register(
         return cost
 
     for li, level in enumerate(options.levels):
-        cost = make_cost(level.image_px, level.volume_level)
+        margin = None if options.support_margin_mm is None else options.support_margin_mm[li]
+        cost = make_cost(level.image_px, level.volume_level, margin)
 
         def on_iter(state: AnnealState, li: int = li) -> bool:
             return report(li, state.temperature, state.x, state.fun, state.best_x, state.best_fun)
@@ -247,7 +313,8 @@ def register(
             break
 
     if options.polish and not stopped:
-        cost = make_cost(options.polish_image_px, options.polish_volume_level)
+        margin = None if options.support_margin_mm is None else options.support_margin_mm[-1]
+        cost = make_cost(options.polish_image_px, options.polish_volume_level, margin)
         f_start = cost(x_best)
         state = {"x": x_best.copy(), "f": f_start}
 

@@ -85,3 +85,26 @@ def test_bad_input(setup):
         register(volume, xray, initial_motion=np.diag([1.0, 2.0, 1.0, 1.0]))
     with pytest.raises(ValueError, match="finite"):
         register(volume, xray, truth=np.full((4, 4), np.nan))
+
+
+def test_support_mask_excludes_the_volume_outline():
+    from registration.register import support_mask
+
+    # A 100 mm cube (the reconstructable cylinder of radius 50 mm inside it) seen frontally:
+    # at the iso-center the magnification is SID/SOD = 1.48, so the cylinder's outline lies
+    # ~74 mm from the image center (the rays diverge, so a little more at the near side).
+    volume = Volume.from_grid(np.zeros((50, 50, 50), np.float32), 2.0)
+    geometry = CArm.for_format(48.0, pixels=96)  # 5 mm pixels
+    x_mm = (np.arange(96) - 47.5) * 5.0
+    mask = support_mask(volume, geometry, np.eye(4), 0.0)
+    row = mask[48]
+    inside = np.abs(x_mm) < 70.0  # clearly inside the outline
+    outside = np.abs(x_mm) > 90.0  # beyond even the near side's magnification (1200/760 * 50 = 79)
+    assert row[inside].all() and not row[outside].any()
+    shrunk = support_mask(volume, geometry, np.eye(4), 20.0)
+    assert shrunk.sum() < mask.sum()
+    assert not shrunk[48][np.abs(x_mm) > 65.0].any()  # (50 - 20) mm * at most 1.6 magnification
+    # A motion moves the support with the volume: 30 mm to the patient's left (+x = +u here).
+    moved = support_mask(volume, geometry, offsets_to_matrix([30, 0, 0, 0, 0, 0], geometry), 0.0)
+    assert moved[48][np.abs(x_mm - 30 * 1200 / 810) < 60.0].all()
+    assert not moved[48][x_mm < -60.0].any()
