@@ -580,6 +580,8 @@ class RoadmapApp:
             lines.append(f"Time {result.seconds:.2f} s · {result.drr_count} DRRs · {how}")
             if not running and self.status.content.startswith("Registering"):
                 self.status.content = "Ready."
+        elif run.abandoned:
+            lines.append("Stopped before the first iteration.")
         else:
             lines.append("Roadmap from the C-arm sensors (machine-based registration).")
         if error:

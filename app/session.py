@@ -13,7 +13,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -29,6 +29,8 @@ Array = np.ndarray
 #: Slider ranges of the six patient-motion offsets (mm, deg).
 TRANSLATION_RANGE_MM = 30.0
 ROTATION_RANGE_DEG = 15.0
+#: How long Stop waits for the optimizer to notice before the run is let go (the issue: 0.5 s).
+STOP_GRACE_S = 0.3
 #: The ``Random`` button's offsets: translation up to 25 mm, rotation up to 10 degrees.
 RANDOM_MAX_MM = 25.0
 RANDOM_MAX_DEG = 10.0
@@ -75,6 +77,10 @@ class RunState:
     started_s: float = 0.0
     stop_requested_s: float | None = None
     stop_latency_s: float | None = None
+    #: set by Stop; the optimizer's callback reads it (one event per run)
+    stop: threading.Event = field(default_factory=threading.Event)
+    #: Stop came before the optimizer's first iteration: the run was let go (its result is dropped)
+    abandoned: bool = False
 
 
 class Session:
@@ -93,7 +99,6 @@ class Session:
         self._xray_key: tuple | None = None
         self._xray: XRayImage | None = None
         self._xray_lock = threading.Lock()
-        self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._rng = np.random.default_rng(self.config.seed + 1)
 
@@ -244,7 +249,6 @@ class Session:
         with self.lock:
             if self.run.running:
                 return False
-            self._stop.clear()
             self.run = RunState(
                 running=True, iterations=[], similarity=[], temperature=[], started_s=time.perf_counter()
             )
@@ -278,7 +282,7 @@ class Session:
                 run.similarity.append(float(progress.best_similarity))
                 run.temperature.append(float(progress.temperature))
                 run.progress = progress
-            return self._stop.is_set()
+            return run.stop.is_set()
 
         try:
             xray = self.xray()
@@ -294,13 +298,17 @@ class Session:
                 renderer=data.renderer(volume_format),
             )
         except Exception as exc:  # shown in the page, never a dead worker thread
-            log.exception("registration failed")
             with self.lock:
+                if run.abandoned:
+                    return
+                log.exception("registration failed")
                 run.error = f"Registration failed: {exc}"
                 run.running = False
                 self._changed()
         else:
             with self.lock:
+                if run.abandoned:  # Stop already ended this run for the user
+                    return
                 run.result = result
                 if not math.isfinite(result.similarity):
                     run.error = "Registration found no usable overlap between the DRR and the image."
@@ -314,13 +322,29 @@ class Session:
             on_done()
 
     def stop_registration(self, *, wait: bool = False, timeout: float = 5.0) -> None:
+        """Stop the run: at the optimizer's next iteration, or at once if it has not reached one.
+
+        A run still preparing after STOP_GRACE_S (before its first iteration nothing can stop
+        it) is let go: it ends for the user now, keeps the pose shown, and its result is dropped.
+        """
         with self.lock:
-            if self.run.running and self.run.stop_requested_s is None:
-                self.run.stop_requested_s = time.perf_counter()
-        self._stop.set()
+            run = self.run
+            if run.running and run.stop_requested_s is None:
+                run.stop_requested_s = time.perf_counter()
+            run.stop.set()
         worker = self._worker
-        if wait and worker is not None and worker is not threading.current_thread():
-            worker.join(timeout)
+        if worker is None or worker is threading.current_thread():
+            return
+        worker.join(timeout if wait else STOP_GRACE_S)
+        if worker.is_alive():
+            with self.lock:
+                if run.running and self.run is run:
+                    run.abandoned = True
+                    run.running = False
+                    run.stop_latency_s = time.perf_counter() - (run.stop_requested_s or time.perf_counter())
+                    if run.progress is not None:
+                        self.estimate = np.asarray(run.progress.best_motion, dtype=np.float64)
+                    self._changed()
 
     def wait(self, timeout: float = 60.0) -> bool:
         """Wait for the running registration to end; True if it did."""

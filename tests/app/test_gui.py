@@ -118,3 +118,25 @@ def test_autocorrect_reregisters_when_the_patient_moves(fresh: RoadmapApp) -> No
     inplane, _, _ = parse_readout(app.readout.content)
     assert inplane < 1.0
     app.autocorrect.value = False
+
+
+def test_stop_before_the_first_iteration_lets_the_run_go(fresh: RoadmapApp, monkeypatch) -> None:
+    """Before the optimizer's first callback nothing can interrupt it: Stop still ends the run."""
+    import app.session as session_module
+
+    def slow_register(*args, **kwargs):
+        time.sleep(1.5)  # preparing, no callback yet
+        raise AssertionError("the result of an abandoned run must be dropped")
+
+    monkeypatch.setattr(session_module, "register", slow_register)
+    app = fresh
+    app.table_buttons["T1"].value = True
+    app.register_button.value = True
+    start = time.monotonic()
+    app.stop_button.value = True
+    assert time.monotonic() - start < 0.5
+    assert not app.session.running and app.session.run.abandoned
+    assert np.allclose(app.session.estimate, np.eye(4))  # the pose shown is kept
+    assert wait_until(lambda: not app.register_button.disabled, 3)
+    assert app.session.wait(5)  # the let-go worker ends on its own
+    assert app.session.run.error is None
