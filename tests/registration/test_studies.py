@@ -25,8 +25,10 @@ from registration.studies import (
 )
 
 #: Just enough search to register a 64-px image (the tests check plumbing, not accuracy).
+_TINY_SCHEDULE = Schedule(step=(3.0, 3.0, 1.5, 1.5, 1.5), stages=3, moves_per_stage=5, probes=4)
+#: Two levels like the default configuration (per-level options keep their default lengths).
 TINY_OPTIONS = RegistrationOptions(
-    levels=(Level(32, 1, Schedule(step=(3.0, 3.0, 1.5, 1.5, 1.5), stages=4, moves_per_stage=6, probes=4)),),
+    levels=(Level(32, 1, _TINY_SCHEDULE), Level(64, 0, _TINY_SCHEDULE)),
     polish_evaluations=15,
     polish_image_px=64,
     polish_volume_level=0,
