@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from functools import wraps
 from typing import Any
@@ -89,7 +90,7 @@ class RoadmapApp:
         self._preview_version = -1
         self.frames_shown = 0
         self._plotted = False
-        self.live_updates: list[float] = []
+        self.live_updates: deque[float] = deque(maxlen=10_000)  # times of live frames (tests, measurements)
 
         self.scene = Scene(server)
         self._build_panels()
