@@ -158,6 +158,7 @@ def phantom_summary(records: Sequence[dict], *, config: dict, wall_seconds: floa
         "config": config,
         "seed": config.get("seed"),
         "version": __version__,
+        "revision": source_revision(),
         "paper": {k: v for k, v in PAPER_PHANTOM.items() if k != "table3"},
         "targets": {k: TARGETS[k] for k in ("success_rate_clinically_relevant", "success_rate")},
     }
@@ -226,6 +227,7 @@ def clinical_summary(records: Sequence[dict], *, config: dict, wall_seconds: flo
             "config": config,
             "seed": config.get("seed"),
             "version": __version__,
+            "revision": source_revision(),
             "paper": PAPER_CLINICAL,
             "targets": {"translation_success_rate": TARGETS["clinical_success_rate"], "rotation_success_rate": 0.95},
         }
@@ -447,10 +449,30 @@ def _table(head: Sequence[str], rows: Sequence[Sequence[object]]) -> list[str]:
     return [_row(head), _row(["---"] * len(head)), *(_row(r) for r in rows)]
 
 
+def source_revision() -> str:
+    """``git describe --always --dirty`` of the source tree, or "" outside a checkout."""
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["git", "describe", "--always", "--dirty"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
 def _provenance(summary: dict) -> list[str]:
     cfg = summary["config"]
     return [
-        f"roadmap3d {summary['version']}, seed {summary['seed']}, "
+        f"roadmap3d {summary['version']}"
+        + (f" (source {summary['revision']})" if summary.get("revision") else "")
+        + f", seed {summary['seed']}, "
         f"{'quick' if cfg.get('quick') else 'full'} configuration; "
         f"{summary['runs']} registrations, wall time {summary['wall_seconds'] / 60:.1f} min for this invocation "
         f"(resumed runs count only what ran), median {summary['seconds_median'] or 0:.2f} s and "
