@@ -45,6 +45,9 @@ class AppConfig:
     """Size of each 2-D tile in the panel."""
     skull_detail: int = 64
     """Marching-cubes cells across the skull (the browser draws it, in software on some machines)."""
+    volume_source: str = "resampled"
+    """The phantom's 3DRA: "resampled" (the phantom on the 3DRA grid, seconds) or "fdk" (reconstructed
+    from a simulated rotational run, as a real 3DRA; minutes the first time per format, then cached)."""
     seed: int = 0
 
     @classmethod
@@ -52,11 +55,14 @@ class AppConfig:
         """Overrides from ROADMAP3D_APP_VOXELS / ROADMAP3D_APP_PIXELS (for tests and slow machines)."""
         voxels = int(os.environ.get("ROADMAP3D_APP_VOXELS", cls.voxels))
         pixels = int(os.environ.get("ROADMAP3D_APP_PIXELS", cls.pixels))
+        source = os.environ.get("ROADMAP3D_APP_VOLUME", cls.volume_source)
+        if source not in ("resampled", "fdk"):
+            raise ValueError(f"ROADMAP3D_APP_VOLUME must be 'resampled' or 'fdk', got {source!r}")
         if not 32 <= voxels <= 512 or not 64 <= pixels <= 2048:
             raise ValueError(
                 f"ROADMAP3D_APP_VOXELS must lie in 32..512 and _PIXELS in 64..2048, got {voxels}, {pixels}"
             )
-        return cls(voxels=voxels, pixels=pixels)
+        return cls(voxels=voxels, pixels=pixels, volume_source=source)
 
 
 def _mesh_arrays(meshes: dict[str, trimesh.Trimesh]) -> dict[str, np.ndarray]:
@@ -101,12 +107,25 @@ class PhantomData:
         with self._lock:
             if volume_format_cm not in self._volumes:
                 phantom = self.phantom(True)
-                self.progress(
-                    f"Loading or voxelizing the {volume_format_cm:g} cm volume ({self.config.voxels}³ voxels)", 0.2
-                )
-                self._volumes[volume_format_cm] = registration_volume(
-                    phantom, volume_format_cm, voxels=self.config.voxels, seed=self.config.seed
-                )
+                if self.config.volume_source == "fdk":
+                    from registration.reconstruct import reconstruct_3dra
+
+                    self.progress(
+                        f"Loading or reconstructing the {volume_format_cm:g} cm 3DRA (simulated rotational run + "
+                        "FDK; minutes the first time)",
+                        0.2,
+                    )
+                    self._volumes[volume_format_cm] = reconstruct_3dra(
+                        self.config.seed, volume_format_cm=volume_format_cm, voxels=self.config.voxels
+                    )
+                else:
+                    self.progress(
+                        f"Loading or voxelizing the {volume_format_cm:g} cm volume ({self.config.voxels}³ voxels)",
+                        0.2,
+                    )
+                    self._volumes[volume_format_cm] = registration_volume(
+                        phantom, volume_format_cm, voxels=self.config.voxels, seed=self.config.seed
+                    )
             return self._volumes[volume_format_cm]
 
     def renderer(self, volume_format_cm: float) -> DRRRenderer:
