@@ -326,9 +326,19 @@ def heatmap(records: Sequence[dict], kind: str, path: Path, *, title_extra: str 
         fontsize=8,
     )
     fig.tight_layout()
+    _stamp(fig, records)
     fig.savefig(path, dpi=130)
     plt.close(fig)
     return path
+
+
+def _stamp(fig, records: Sequence[dict]) -> None:  # noqa: ANN001
+    """Software version, revision and study seed in a corner of every figure."""
+    seeds = sorted({r.get("study_seed") for r in records if r.get("study_seed") is not None})
+    seed = ", ".join(str(s) for s in seeds) if seeds else "?"
+    rev = source_revision()
+    text = f"roadmap3d {__version__}" + (f" ({rev})" if rev else "") + f", seed {seed}"
+    fig.text(0.995, 0.003, text, ha="right", va="bottom", fontsize=6, color="#777777")
 
 
 def _relevant(vol: float, img: float) -> bool:
@@ -395,6 +405,7 @@ def phantom_histograms(records: Sequence[dict], path: Path) -> Path:
         _bars(ax, [r["inplane_residual_mm"] for r in rs], TRANSLATION_BINS_MM, title, "in-plane residual (mm)")
     fig.suptitle("Fig. 6: in-plane translational residual (phantom); red: 'More' (>= 1 mm)", fontsize=10)
     fig.tight_layout()
+    _stamp(fig, records)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -425,6 +436,7 @@ def clinical_histograms(records: Sequence[dict], path: Path) -> Path:
         ax.set_title(f"{unit.split(' (')[0]} (n = {len(records)}); right of the dashed line: fails", fontsize=9)
     fig.suptitle("Fig. 7: residual error, rotational-run ('clinical') study", fontsize=10)
     fig.tight_layout()
+    _stamp(fig, records)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

@@ -11,8 +11,11 @@ Execution: each registration is a :class:`StudyTask`; tasks run in joblib proces
 or on a Dask cluster (``scheduler="tcp://HOST:PORT"``). The parent process alone writes
 ``results.jsonl``: one JSON record per finished registration, appended, flushed and fsynced,
 keyed by ``case_id``; a rerun skips every id already there, so a killed run loses nothing that
-finished. The volumes (and rotational runs) are built once in the parent before fanning out;
-the on-disk cache (:mod:`registration.cache`) makes workers just load them.
+finished. The id names the case (study, formats, offset, image and volume resolution, seed), not
+the engine: after changing the engine, write to a new output folder. The volumes (and
+rotational runs) are built once in the parent before fanning out; the on-disk cache
+(:mod:`registration.cache`) makes workers just load them. Dask workers on other machines should
+share that cache (``ROADMAP3D_CACHE``) or they build what they need themselves.
 
 Summaries and reports (plots, ``report.md``, ``report.html``) are in :mod:`registration.report`.
 """
@@ -304,6 +307,7 @@ def offcenter_volume(
     """
     from registration.cache import cached_arrays
     from registration.phantom import (
+        PHANTOM_MODEL_VERSION,
         STAND_IN_LABEL,
         STAND_IN_NOISE_HU,
         STAND_IN_SMOOTH_VOXELS,
@@ -314,6 +318,7 @@ def offcenter_volume(
     center = np.asarray(center_mm, dtype=np.float64)
     phantom = make_head_phantom(seed=phantom_seed, contrast=contrast)
     params = {
+        "phantom_model": PHANTOM_MODEL_VERSION,
         "phantom_seed": int(phantom_seed),
         "volume_format_cm": float(volume_format_cm),
         "center_mm": [float(c) for c in center],
@@ -404,11 +409,12 @@ def patient_data(
     (:func:`registration.reconstruct.rotational_run`, :func:`~registration.reconstruct.reconstruct_run`).
     """
     from registration.cache import cached_arrays
-    from registration.phantom import make_head_phantom
+    from registration.phantom import PHANTOM_MODEL_VERSION, make_head_phantom
     from registration.reconstruct import RECONSTRUCTION_LABEL, reconstruct_run, rotational_run
     from registration.volume import Volume
 
     params = {
+        "phantom_model": PHANTOM_MODEL_VERSION,
         "phantom_seed": int(phantom_seed),
         "volume_format_cm": float(volume_format_cm),
         "contrast": bool(contrast),
