@@ -44,12 +44,19 @@ class Level:
     image_px: int
     volume_level: int
     schedule: Schedule
+    #: Independent annealing runs from the level's start; the best one continues.
+    restarts: int = 1
 
 
 def _default_levels() -> tuple[Level, ...]:
+    # Capture: two independent annealing runs on 64-px images from the quarter-resolution
+    # volume (cheap, and two runs escape the rotation-for-translation trades one run can
+    # fall into); refine: 128-px images, same volume level; the polish then uses the
+    # half-resolution volume. Chosen on T1-T4 at 22/27/48 cm, oblique views (12/12 vs 11/12
+    # for one capture run, at 5 % less CPU than refining on the half-resolution volume).
     return (
-        Level(64, 2, Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per_stage=14, cooling=0.75)),
-        Level(128, 1, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
+        Level(64, 2, Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per_stage=14, cooling=0.75), restarts=2),
+        Level(128, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
     )
 
 
@@ -82,6 +89,8 @@ class RegistrationOptions:
                 raise ValueError(f"image_px must be >= 16, got {level.image_px}")
             if level.volume_level < 0:
                 raise ValueError(f"volume_level must be >= 0, got {level.volume_level}")
+            if level.restarts < 1:
+                raise ValueError(f"restarts must be >= 1, got {level.restarts}")
         if self.support_margin_mm is not None:
             if len(self.support_margin_mm) != len(self.levels) + 1:
                 raise ValueError("support_margin_mm needs one margin per level plus one for the polish")
@@ -306,10 +315,17 @@ def register(
         def on_iter(state: AnnealState, li: int = li) -> bool:
             return report(li, state.temperature, state.x, state.fun, state.best_x, state.best_fun)
 
-        result = anneal(cost, x_best, bounds, rng=rng, schedule=level.schedule, callback=on_iter)
-        x_best, f_best = result.x, result.fun
-        if result.message == "stopped by the callback":
-            stopped = True
+        x_start, best = x_best, None
+        for _ in range(level.restarts):
+            result = anneal(cost, x_start, bounds, rng=rng, schedule=level.schedule, callback=on_iter)
+            if best is None or result.fun < best.fun:
+                best = result
+            if result.message == "stopped by the callback":
+                stopped = True
+                break
+        assert best is not None
+        x_best, f_best = best.x, best.fun
+        if stopped:
             break
 
     if options.polish and not stopped:

@@ -108,3 +108,15 @@ def test_support_mask_excludes_the_volume_outline():
     moved = support_mask(volume, geometry, offsets_to_matrix([30, 0, 0, 0, 0, 0], geometry), 0.0)
     assert moved[48][np.abs(x_mm - 30 * 1200 / 810) < 60.0].all()
     assert not moved[48][x_mm < -60.0].any()
+
+
+def test_bad_options():
+    from registration.anneal import Schedule
+    from registration.register import Level
+
+    with pytest.raises(ValueError, match="restarts"):
+        RegistrationOptions(levels=(Level(64, 2, Schedule(), restarts=0),))
+    with pytest.raises(ValueError, match="support_margin_mm"):
+        RegistrationOptions(support_margin_mm=(1.0,))
+    with pytest.raises(ValueError, match="image_px"):
+        RegistrationOptions(levels=(Level(8, 0, Schedule()),))
