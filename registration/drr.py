@@ -305,11 +305,11 @@ def _joseph(
             out[r, c] = total * np.float32(step_mm)
 
 
-_render_joseph = numba.njit(parallel=True, fastmath=True, cache=True)(_joseph)
-_render_joseph_serial = numba.njit(parallel=False, fastmath=True, cache=True)(_joseph)
+_render_joseph = numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)(_joseph)
+_render_joseph_serial = numba.njit(parallel=False, fastmath=True, cache=True, nogil=True)(_joseph)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def _render_trilinear(
     mu: np.ndarray,  # float32, flat, padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD)
     shape_ijk: np.ndarray,

@@ -85,7 +85,7 @@ def sobel_gradients(image: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.f
 # --------------------------------------------------------------------------------------
 # Gradient difference (Penney et al. 1998)
 # --------------------------------------------------------------------------------------
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, nogil=True)
 def _gd_value(xv, xh, dv, dh, av, ah, s, stride=1):  # pragma: no cover - compiled
     """sum_p A_v / (A_v + (xv - s dv)^2) + A_h / (A_h + (xh - s dh)^2), every ``stride``-th pixel."""
     total = 0.0
@@ -96,7 +96,7 @@ def _gd_value(xv, xh, dv, dh, av, ah, s, stride=1):  # pragma: no cover - compil
     return total
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, nogil=True)
 def _gd_derivatives(xv, xh, dv, dh, av, ah, s):  # pragma: no cover - compiled
     """GD(s) and its first and second derivatives in s (one pass)."""
     f = 0.0
@@ -119,7 +119,7 @@ def _gd_derivatives(xv, xh, dv, dh, av, ah, s):  # pragma: no cover - compiled
     return f, g, h
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, nogil=True)
 def _gd_prepared(drr, rows_idx, cols_idx, xv, xh, av, ah, grid, iters, tol, dv, dh):  # pragma: no cover
     """Sobel of ``drr`` at the listed pixels, then the maximum over the scale s of the GD sum.
 
