@@ -486,8 +486,8 @@ def _provenance(summary: dict) -> list[str]:
         + (f" (source {summary['revision']})" if summary.get("revision") else "")
         + f", seed {summary['seed']}, "
         f"{'quick' if cfg.get('quick') else 'full'} configuration; "
-        f"{summary['runs']} registrations, wall time {summary['wall_seconds'] / 60:.1f} min for this invocation "
-        f"(resumed runs count only what ran), median {summary['seconds_median'] or 0:.2f} s and "
+        f"{summary['runs']} registrations, wall time {summary['wall_seconds'] / 60:.1f} min (every invocation "
+        f"that ran registrations, volume builds included), median {summary['seconds_median'] or 0:.2f} s and "
         f"{summary['drr_count_median'] or 0:.0f} DRRs per registration.",
         "",
         f"Registration volume: {summary['volume_label']}.",

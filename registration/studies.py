@@ -689,7 +689,8 @@ def run_study(
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> tuple[list[dict], float]:
-    """Run the tasks not yet in ``out/results.jsonl``; return (all records of these tasks, wall s).
+    """Run the tasks not yet in ``out/results.jsonl``; return (all records of these tasks, wall
+    seconds of every invocation that ran some of them).
 
     ``scheduler``: a Dask address (``tcp://HOST:PORT``) or a ``distributed.Client``; else
     joblib processes on ``n_jobs`` local cores (default: all).
@@ -724,7 +725,25 @@ def run_study(
             bar.close()
     order = {t.case_id: i for i, t in enumerate(tasks)}
     records = sorted(finished.values(), key=lambda r: order[r["case_id"]])
-    return records, time.perf_counter() - started
+    return records, _log_invocation(out, len(todo), time.perf_counter() - started)
+
+
+def _log_invocation(out: Path, ran: int, wall_seconds: float) -> float:
+    """Append this invocation to ``out/invocations.jsonl``; return the wall time of every
+    invocation that ran registrations (a killed one is not counted)."""
+    path = out / "invocations.jsonl"
+    entry = {"ran": ran, "wall_seconds": wall_seconds, "finished_unix": time.time(), "version": __version__}
+    if ran:
+        with open(path, "a", encoding="utf-8") as fh:
+            fh.write(json.dumps(entry) + "\n")
+    total = 0.0
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                total += float(json.loads(line)["wall_seconds"])
+            except (ValueError, KeyError, TypeError):
+                continue
+    return total if total else wall_seconds
 
 
 def _stderr(message: str) -> None:

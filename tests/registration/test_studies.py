@@ -137,8 +137,12 @@ def test_phantom_study_runs_resumes_and_reports(tmp_path: Path):
     assert facial and facial[0]["volume_center_mm"] == list(studies.FACIAL_VOLUME_CENTER_MM)
     assert "centered at" in facial[0]["volume_label"]
     # nothing left to do: the log is unchanged
-    run_study(tasks, tmp_path, n_jobs=1, progress=False)
+    _, wall = run_study(tasks, tmp_path, n_jobs=1, progress=False)
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
+    # the wall time adds up the two invocations that ran registrations
+    invocations = [json.loads(line) for line in (tmp_path / "invocations.jsonl").read_text().splitlines()]
+    assert [i["ran"] for i in invocations] == [2, 1]
+    assert wall == pytest.approx(sum(i["wall_seconds"] for i in invocations))
 
     from registration.report import phantom_summary, write_phantom_report
 
