@@ -158,7 +158,7 @@ def phantom_summary(records: Sequence[dict], *, config: dict, wall_seconds: floa
         "config": config,
         "seed": config.get("seed"),
         "version": __version__,
-        "revision": source_revision(),
+        "revision": records_revision(records),
         "paper": {k: v for k, v in PAPER_PHANTOM.items() if k != "table3"},
         "targets": {k: TARGETS[k] for k in ("success_rate_clinically_relevant", "success_rate")},
     }
@@ -227,7 +227,7 @@ def clinical_summary(records: Sequence[dict], *, config: dict, wall_seconds: flo
             "config": config,
             "seed": config.get("seed"),
             "version": __version__,
-            "revision": source_revision(),
+            "revision": records_revision(records),
             "paper": PAPER_CLINICAL,
             "targets": {"translation_success_rate": TARGETS["clinical_success_rate"], "rotation_success_rate": 0.95},
         }
@@ -477,6 +477,15 @@ def source_revision() -> str:
     except (OSError, subprocess.SubprocessError):
         return ""
     return out.stdout.strip() if out.returncode == 0 else ""
+
+
+def records_revision(records: Sequence[dict]) -> str:
+    """The source revision(s) the records were computed with (or today's, marked as such)."""
+    revisions = sorted({r["revision"] for r in records if r.get("revision")})
+    if revisions:
+        return ", ".join(revisions)
+    current = source_revision()
+    return f"{current} at report time" if current else ""
 
 
 def _provenance(summary: dict) -> list[str]:

@@ -559,7 +559,15 @@ def execute(task: StudyTask, threads: int | None = None) -> dict:
     record.update(task.extra)
     record["case_id"] = task.case_id
     record["version"] = __version__
+    record["revision"] = _revision()
     return record
+
+
+@lru_cache(maxsize=1)
+def _revision() -> str:
+    from registration.report import source_revision
+
+    return source_revision()
 
 
 def prebuild(tasks: Iterable[StudyTask], log: Callable[[str], None] | None = None) -> None:
