@@ -98,6 +98,29 @@ def offset_vector(offset: str) -> np.ndarray:
     return values
 
 
+def case_volume(case: Case) -> Volume:
+    """The registration volume of a case: the 3DRA of its phantom and format (cached)."""
+    if any(case.volume_center_mm):
+        from registration.studies import offcenter_volume
+
+        return offcenter_volume(
+            case.phantom_seed,
+            case.volume_format_cm,
+            tuple(case.volume_center_mm),
+            voxels=case.volume_voxels,
+            source=case.volume_source,
+            contrast=case.volume_contrast,
+        )
+    return load_volume(
+        case.phantom_seed,
+        case.facial,
+        case.volume_format_cm,
+        case.volume_voxels,
+        case.volume_source,
+        case.volume_contrast,
+    )
+
+
 def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
     """Simulate the X-ray image of the moved phantom and register the 3DRA to it."""
     from registration.xray import simulate_xray
@@ -109,26 +132,7 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         secondary_deg=case.secondary_deg,
     )
     truth = offsets_to_matrix(offset_vector(case.offset), geometry)
-    if any(case.volume_center_mm):
-        from registration.studies import offcenter_volume
-
-        volume = offcenter_volume(
-            case.phantom_seed,
-            case.volume_format_cm,
-            tuple(case.volume_center_mm),
-            voxels=case.volume_voxels,
-            source=case.volume_source,
-            contrast=case.volume_contrast,
-        )
-    else:
-        volume = load_volume(
-            case.phantom_seed,
-            case.facial,
-            case.volume_format_cm,
-            case.volume_voxels,
-            case.volume_source,
-            case.volume_contrast,
-        )
+    volume = case_volume(case)
     anatomy = _phantom(case.phantom_seed, False, case.facial)  # no contrast in the fluoro image
     xray = simulate_xray(anatomy, geometry, motion=truth, kind=case.image_kind, seed=case.seed)
     result = register(
