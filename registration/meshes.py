@@ -26,12 +26,28 @@ BONE_HU = 700.0
 #: Voxels within this distance (voxels) of bone are not vessel (the bone's partial-volume rim).
 BONE_MARGIN_VOXELS = 2
 #: Vessel components smaller than this many voxels are dropped (noise, isolated bone specks).
-MIN_VESSEL_VOXELS = 20
+MIN_VESSEL_VOXELS = 40
+#: A light morphological opening (this many erosions then dilations with the 6-neighbour
+#: cross) finds the candidates' cores; only components holding a core are kept (an opening
+#: by reconstruction): specks and thin streaks of reconstruction noise have none, while thin
+#: arteries keep their full shape as long as they join a thicker part of the tree.
+OPENING_ITERATIONS = 1
+#: Components within this many voxels of the volume's border, or of the edge of the
+#: reconstructable region (voxels at UNRECONSTRUCTED_HU or below, what FDK sets outside its
+#: cylinder), are dropped when more than MAX_EDGE_FRACTION of their voxels lie there: bone
+#: cut by the border and cone-beam artefacts at the cylinder's edge form flat rings there, while
+#: arteries entering the volume (the carotids at its bottom) only pass through.
+EDGE_MARGIN_VOXELS = 3
+MAX_EDGE_FRACTION = 0.25
+UNRECONSTRUCTED_HU = -1000.0
 #: Arteries run in brain and soft tissue; thin facial bones and sinus walls whose partial-volume
-#: values fall between the thresholds border air. A component whose 2-voxel shell holds more
+#: values fall between the thresholds border air. A component whose SHELL_VOXELS shell holds more
 #: than this fraction of air (< AIR_HU) is not a vessel. (On the phantom the vessel components'
-#: shells hold no air at all and every other component's at least 7 %.)
+#: shells hold no air at all and every other component's at least 7 %; on its FDK
+#: reconstruction, whose air edges are smoothed, the ethmoid's 4-voxel shell holds 9 %.)
 MAX_SHELL_AIR_FRACTION = 0.02
+#: Thickness (voxels) of that shell.
+SHELL_VOXELS = 4
 AIR_HU = -300.0
 
 COLORS = {"vessels": (200, 40, 40, 255), "bone": (228, 218, 196, 255)}
@@ -53,16 +69,35 @@ def _surface(
     return trimesh.Trimesh(vertices=world, faces=faces, process=False)
 
 
+def _edge_region(hu: NDArray[np.float32]) -> NDArray[np.bool_]:
+    """Voxels within EDGE_MARGIN_VOXELS of the border or of the unreconstructed region."""
+    outside = hu <= UNRECONSTRUCTED_HU
+    m = EDGE_MARGIN_VOXELS
+    border = np.ones(hu.shape, dtype=bool)
+    border[m:-m, m:-m, m:-m] = False
+    return border | ndimage.binary_dilation(outside, iterations=m)
+
+
 def _vessel_components(hu: NDArray[np.float32], candidate: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Keep the candidate components big enough and surrounded by tissue, not air."""
+    """Keep the candidate components that are big enough, clear of the volume's edges and
+    surrounded by tissue, not air."""
     labels, count = ndimage.label(candidate)
     if not count:
         return candidate
     sizes = np.bincount(labels.ravel())
+    cored = np.zeros(count + 1, dtype=bool)
+    if OPENING_ITERATIONS:
+        cross = ndimage.generate_binary_structure(3, 1)
+        core = ndimage.binary_opening(candidate, structure=cross, iterations=OPENING_ITERATIONS)
+        cored[np.unique(labels[core])] = True
+    else:
+        cored[:] = True
+    at_edge = np.bincount(labels[_edge_region(hu)], minlength=count + 1)
+    touching = at_edge > MAX_EDGE_FRACTION * sizes
     keep = np.zeros(count + 1, dtype=bool)
-    margin = 2
+    margin = SHELL_VOXELS
     for index, box in enumerate(ndimage.find_objects(labels), start=1):
-        if box is None or sizes[index] < MIN_VESSEL_VOXELS:
+        if box is None or sizes[index] < MIN_VESSEL_VOXELS or touching[index] or not cored[index]:
             continue
         grown = tuple(slice(max(0, b.start - margin), b.stop + margin) for b in box)
         inside = labels[grown] == index
@@ -83,8 +118,10 @@ def surface_meshes(
     """The ``"vessels"`` and ``"bone"`` surfaces of ``volume`` (absent keys: nothing found).
 
     Vessels are the iso-surface at ``vessel_hu`` of the voxels that lie more than
-    BONE_MARGIN_VOXELS from bone, in components of at least MIN_VESSEL_VOXELS surrounded by
-    tissue rather than air (MAX_SHELL_AIR_FRACTION); bone is the iso-surface at ``bone_hu``.
+    BONE_MARGIN_VOXELS from bone, in components of at least MIN_VESSEL_VOXELS that hold a core
+    surviving a light opening (OPENING_ITERATIONS), lie mostly clear of the volume's border and
+    of the reconstructable region's edge (EDGE_MARGIN_VOXELS, MAX_EDGE_FRACTION) and are
+    surrounded by tissue rather than air (MAX_SHELL_AIR_FRACTION); bone is the iso-surface at ``bone_hu``.
     ``step`` > 1 trades detail for speed; ``bone_step`` (default ``step``) sets it for the
     bone alone, whose surface is by far the larger.
     """
