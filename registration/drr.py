@@ -462,8 +462,12 @@ class DRRRenderer:
         level: int = 0,
         mask: NDArray[np.bool_] | None = None,
         out: FloatImage | None = None,
+        parallel: bool | None = None,
     ) -> FloatImage:
         """DRR (rows, cols) float32 of the volume moved by ``motion`` seen through ``geometry``.
+
+        ``parallel``: use the multi-threaded kernel (None: only for jobs big enough to gain);
+        pass False when several Python threads render at once, each on its own core.
 
         ``motion``: 4x4 rigid patient motion M (CONVENTIONS.md §4), identity when None.
         ``level``: pyramid level of the volume (0 = full resolution); the image size is the
@@ -499,6 +503,8 @@ class DRRRenderer:
             if self.step_voxels == 1.0:
                 # small jobs run serially: a parallel launch costs more than it saves
                 serial = geometry.rows * geometry.cols * int(lev.shape_ijk.max()) < _SERIAL_SAMPLES
+                if parallel is not None:
+                    serial = not parallel
                 kernel = _render_joseph_serial if serial else _render_joseph
                 kernel(
                     lev.mu, lev.mu_t, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,

@@ -237,12 +237,18 @@ class CArm:
     @property
     def world_from_view(self) -> Array:
         """The view frame (x = u, y = v, z = u x v = -d, origin at the iso-center)."""
-        rot = np.column_stack([self.u, self.v, -self.direction])
-        return rigid(rot, self.isocenter_mm)
+        cached = self._cache.get("world_from_view")
+        if cached is None:
+            rot = np.column_stack([self.u, self.v, -self.direction])
+            cached = self._cache["world_from_view"] = rigid(rot, self.isocenter_mm)
+        return cached.copy()
 
     @property
     def view_from_world(self) -> Array:
-        return invert_rigid(self.world_from_view)
+        cached = self._cache.get("view_from_world")
+        if cached is None:
+            cached = self._cache["view_from_world"] = invert_rigid(self.world_from_view)
+        return cached.copy()
 
     def _detector_axes(self) -> tuple[Array, Array, Array]:
         """True (u, v, n) of the detector, n = unit normal pointing away from the source."""

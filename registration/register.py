@@ -11,15 +11,18 @@ polish (Powell) at the finest level.
 from __future__ import annotations
 
 import math
+import os
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import optimize
 
-from registration.anneal import AnnealState, Schedule, anneal
+from registration.anneal import AnnealResult, AnnealState, Schedule, anneal
 from registration.drr import DRRRenderer
 from registration.geometry import CArm, check_rigid, offsets_to_matrix
 from registration.metrics import Residual, residuals
@@ -68,6 +71,8 @@ class RegistrationOptions:
     #: Search range around the initial pose: +- translation (mm) and rotation (deg).
     bound_mm: float = 30.0
     bound_deg: float = 15.0
+    #: Threads for independent capture runs (None: one per core).
+    threads: int | None = None
     #: Final local polish at the last level (Powell), and its evaluation budget.
     polish: bool = True
     polish_evaluations: int = 60
@@ -248,9 +253,7 @@ def register(
     def motion_of(x: Array) -> Array:
         return offsets_to_matrix([x[0], x[1], tz0, x[2], x[3], x[4]], geometry) @ m_init
 
-    bounds = np.array(
-        [[-options.bound_mm, options.bound_mm]] * 2 + [[-options.bound_deg, options.bound_deg]] * 3
-    )
+    bounds = np.array([[-options.bound_mm, options.bound_mm]] * 2 + [[-options.bound_deg, options.bound_deg]] * 3)
     x_best = np.zeros(5)
     f_best = math.inf
     trace: list[float] = []
@@ -258,29 +261,40 @@ def register(
     stopped = False
     iteration = 0
 
+    lock = threading.Lock()  # capture runs may report from several threads
+    stop_event = threading.Event()
+
     def report(level: int, temperature: float, x_cur: Array, f_cur: float, x_b: Array, f_b: float) -> bool:
         nonlocal iteration
-        iteration += 1
-        trace.append(-f_b)
-        if callback is None:
-            return False
-        return bool(
-            callback(
-                Progress(
-                    iteration=iteration,
-                    level=level,
-                    temperature=temperature,
-                    current_motion=motion_of(x_cur),
-                    best_motion=motion_of(x_b),
-                    current_similarity=-f_cur,
-                    best_similarity=-f_b,
-                    drr_count=drr_count,
-                    elapsed_s=time.perf_counter() - start,
+        with lock:
+            iteration += 1
+            trace.append(-f_b)
+            if stop_event.is_set():
+                return True
+            if callback is None:
+                return False
+            stop = bool(
+                callback(
+                    Progress(
+                        iteration=iteration,
+                        level=level,
+                        temperature=temperature,
+                        current_motion=motion_of(x_cur),
+                        best_motion=motion_of(x_b),
+                        current_similarity=-f_cur,
+                        best_similarity=-f_b,
+                        drr_count=drr_count,
+                        elapsed_s=time.perf_counter() - start,
+                    )
                 )
             )
-        )
+            if stop:
+                stop_event.set()
+            return stop
 
-    def make_cost(image_px: int, volume_level: int, margin_mm: float | None) -> Callable[[Array], float]:
+    def make_cost(
+        image_px: int, volume_level: int, margin_mm: float | None, parallel: bool | None = None
+    ) -> Callable[[Array], float]:
         vl = min(volume_level, renderer.n_levels - 1)
         # Pixels about as fine as ``image_px`` across the image, or as the volume level's
         # voxels seen at the iso-center, whichever is finer: a volume much smaller than the
@@ -302,30 +316,43 @@ def register(
 
         def cost(x: Array) -> float:
             nonlocal drr_count
-            drr_count += 1
-            drr = renderer.render(level_geom, motion_of(x), level=vl, mask=mask)
+            with lock:
+                if stop_event.is_set():  # another capture run was stopped: render nothing more
+                    return math.inf
+                drr_count += 1
+            drr = renderer.render(level_geom, motion_of(x), level=vl, mask=mask, parallel=parallel)
             return -measure(drr)
 
         return cost
 
     for li, level in enumerate(options.levels):
         margin = None if options.support_margin_mm is None else options.support_margin_mm[li]
-        cost = make_cost(level.image_px, level.volume_level, margin)
 
         def on_iter(state: AnnealState, li: int = li) -> bool:
             return report(li, state.temperature, state.x, state.fun, state.best_x, state.best_fun)
 
-        x_start, best = x_best, None
-        for _ in range(level.restarts):
-            result = anneal(cost, x_start, bounds, rng=rng, schedule=level.schedule, callback=on_iter)
-            if best is None or result.fun < best.fun:
-                best = result
-            if result.message == "stopped by the callback":
-                stopped = True
-                break
-        assert best is not None
+        if level.restarts == 1:
+            cost = make_cost(level.image_px, level.volume_level, margin)
+            results = [anneal(cost, x_best, bounds, rng=rng, schedule=level.schedule, callback=on_iter)]
+        else:
+            # Independent runs, each with its own random stream (same seed, same result
+            # whatever the threads), side by side on the cores with single-threaded DRRs.
+            def chain(
+                chain_rng: np.random.Generator,
+                level_: Level = level,
+                x_start: Array = x_best,
+                margin: float | None = margin,
+            ) -> AnnealResult:
+                cost = make_cost(level_.image_px, level_.volume_level, margin, parallel=False)
+                return anneal(cost, x_start, bounds, rng=chain_rng, schedule=level_.schedule, callback=on_iter)
+
+            workers = max(1, min(level.restarts, options.threads or os.cpu_count() or 1))
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                results = list(pool.map(chain, rng.spawn(level.restarts)))
+        best = min(results, key=lambda r: r.fun)
         x_best, f_best = best.x, best.fun
-        if stopped:
+        if any(r.message == "stopped by the callback" for r in results) or stop_event.is_set():
+            stopped = True
             break
 
     if options.polish and not stopped:

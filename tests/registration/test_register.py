@@ -120,3 +120,17 @@ def test_bad_options():
         RegistrationOptions(support_margin_mm=(1.0,))
     with pytest.raises(ValueError, match="image_px"):
         RegistrationOptions(levels=(Level(8, 0, Schedule()),))
+
+
+def test_capture_runs_give_the_same_result_in_threads_or_in_turn(setup):
+    from registration.xray import simulate_xray
+
+    volume, anatomy = setup
+    geometry = CArm.for_format(27.0, pixels=128)
+    truth = offsets_to_matrix(TABLE_I["T4"], geometry)
+    xray = simulate_xray(anatomy, geometry, motion=truth, kind="fluoro", seed=4)
+    threaded = register(volume, xray, seed=9, options=RegistrationOptions(threads=2))
+    in_turn = register(volume, xray, seed=9, options=RegistrationOptions(threads=1))
+    # Each capture run has its own random stream, so the order they run in cannot matter.
+    np.testing.assert_array_equal(threaded.patient_motion, in_turn.patient_motion)
+    assert threaded.drr_count == in_turn.drr_count
