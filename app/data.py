@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,6 +29,11 @@ __all__ = ["AppConfig", "FileData", "PhantomData", "XRayImage", "simulate_xray",
 
 ProgressFn = Callable[[str, float], None]
 
+#: How long the first FDK 3DRA of a volume format takes here (2 cores, 256^3): the progress bar's pace.
+FDK_EXPECTED_S = 75.0
+#: While waiting for it, the progress line is refreshed this often (seconds).
+TICK_S = 1.0
+
 
 def _quiet(_message: str, _fraction: float) -> None:
     pass
@@ -45,14 +51,20 @@ class AppConfig:
     """Size of each 2-D tile in the panel."""
     skull_detail: int = 64
     """Marching-cubes cells across the skull (the browser draws it, in software on some machines)."""
-    volume_source: str = "resampled"
-    """The phantom's 3DRA: "resampled" (the phantom on the 3DRA grid, seconds) or "fdk" (reconstructed
-    from a simulated rotational run, as a real 3DRA; minutes the first time per format, then cached)."""
+    volume_source: str = "fdk"
+    """The phantom's 3DRA: "fdk" (reconstructed from a simulated rotational run, as a real 3DRA; about a
+    minute the first time per volume format, then cached) or "resampled" (the phantom resampled on the
+    3DRA grid, a quick stand-in; ``ROADMAP3D_APP_VOLUME=resampled``)."""
+    run_pixels: int = 128
+    """Image size of the rotational run shown in the calibration view (simulated on demand)."""
+    run_projections: int = 120
+    """Projections of that run (the reconstruction's protocol)."""
     seed: int = 0
 
     @classmethod
     def from_env(cls) -> AppConfig:
-        """Overrides from ROADMAP3D_APP_VOXELS / ROADMAP3D_APP_PIXELS (for tests and slow machines)."""
+        """Overrides from ROADMAP3D_APP_VOXELS / _PIXELS (tests, slow machines) and ROADMAP3D_APP_VOLUME
+        (``fdk``, the default, or ``resampled``)."""
         voxels = int(os.environ.get("ROADMAP3D_APP_VOXELS", cls.voxels))
         pixels = int(os.environ.get("ROADMAP3D_APP_PIXELS", cls.pixels))
         source = os.environ.get("ROADMAP3D_APP_VOLUME", cls.volume_source)
@@ -108,16 +120,7 @@ class PhantomData:
             if volume_format_cm not in self._volumes:
                 phantom = self.phantom(True)
                 if self.config.volume_source == "fdk":
-                    from registration.reconstruct import reconstruct_3dra
-
-                    self.progress(
-                        f"Loading or reconstructing the {volume_format_cm:g} cm 3DRA (simulated rotational run + "
-                        "FDK; minutes the first time)",
-                        0.2,
-                    )
-                    self._volumes[volume_format_cm] = reconstruct_3dra(
-                        self.config.seed, volume_format_cm=volume_format_cm, voxels=self.config.voxels
-                    )
+                    self._volumes[volume_format_cm] = self._reconstruct(volume_format_cm)
                 else:
                     self.progress(
                         f"Loading or voxelizing the {volume_format_cm:g} cm volume ({self.config.voxels}³ voxels)",
@@ -127,6 +130,33 @@ class PhantomData:
                         phantom, volume_format_cm, voxels=self.config.voxels, seed=self.config.seed
                     )
             return self._volumes[volume_format_cm]
+
+    def _reconstruct(self, volume_format_cm: float) -> Volume:
+        """The FDK 3DRA (cached on disk by the engine), reporting elapsed time while it is built."""
+        from registration.reconstruct import reconstruct_3dra
+
+        what = (
+            f"3DRA {volume_format_cm:g} cm: simulating the rotational run ({self.config.run_projections} views) "
+            f"and reconstructing it (FDK, {self.config.voxels}³)"
+        )
+        self.progress(f"Loading the {volume_format_cm:g} cm 3DRA (FDK reconstruction) from the cache…", 0.15)
+        done = threading.Event()
+        start = time.monotonic()
+
+        def tick() -> None:
+            while not done.wait(TICK_S):
+                elapsed = time.monotonic() - start
+                fraction = 0.15 + 0.4 * min(1.0, elapsed / FDK_EXPECTED_S)
+                message = f"{what}: {elapsed:.0f} s (about {FDK_EXPECTED_S:.0f} s the first time; cached afterwards)"
+                self.progress(message, fraction)
+
+        ticker = threading.Thread(target=tick, name="fdk-progress", daemon=True)
+        ticker.start()
+        try:
+            return reconstruct_3dra(self.config.seed, volume_format_cm=volume_format_cm, voxels=self.config.voxels)
+        finally:
+            done.set()
+            ticker.join()
 
     def renderer(self, volume_format_cm: float) -> DRRRenderer:
         with self._lock:
@@ -145,7 +175,17 @@ class PhantomData:
                     "volume": volume.meta,
                     "label": volume.label,
                     "steps": self.mesh_steps,
-                    "segmentation": (surfaces.VESSEL_HU, surfaces.BONE_HU, surfaces.BONE_MARGIN_VOXELS),
+                    "segmentation": (
+                        surfaces.VESSEL_HU,
+                        surfaces.BONE_HU,
+                        surfaces.BONE_MARGIN_VOXELS,
+                        surfaces.MIN_VESSEL_VOXELS,
+                        surfaces.OPENING_ITERATIONS,
+                        surfaces.EDGE_MARGIN_VOXELS,
+                        surfaces.MAX_EDGE_FRACTION,
+                        surfaces.SHELL_VOXELS,
+                        surfaces.MAX_SHELL_AIR_FRACTION,
+                    ),  # fmt: skip
                 }
 
                 def build() -> dict[str, np.ndarray]:

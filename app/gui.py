@@ -21,6 +21,7 @@ import numpy as np
 import viser
 
 from app import views
+from app.calibration import CalibrationView
 from app.data import PhantomData
 from app.scene import Scene
 from app.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM, Session
@@ -125,11 +126,20 @@ class RoadmapApp:
                 title="Convergence: gradient difference (best) and temperature",
                 height=190,
             )
+        with self.view_panel.add_tab("Calibration", viser.Icon.GRID_DOTS):
+            self.calibration = CalibrationView(
+                self.server,
+                self._phantom_data,
+                angles=self._calibration_angles,
+                message=self.message,
+                on_toggle=self._calibration_toggled,
+            )
         self.view_panel.dock_left()
         self.view_panel.set_width(600)
 
         # Right: the controls.
         gui.add_markdown("**3D roadmap** · automatic patient-motion correction")
+        self.volume_info = gui.add_markdown("")
         self.register_button = gui.add_button("Register", color="green", icon=viser.Icon.TARGET)
         self.stop_button = gui.add_button("Stop", color="red", icon=viser.Icon.PLAYER_STOP, disabled=True)
         self.autocorrect = gui.add_checkbox(
@@ -281,6 +291,7 @@ class RoadmapApp:
         )
         # The patient stays put in the room: its offsets in the new view frame change.
         self._sync_controls()
+        self.calibration.refresh()
         st = self.session.settings
         if st.image_format_cm < 22 or st.volume_format_cm < st.image_format_cm:
             self.message(
@@ -289,6 +300,15 @@ class RoadmapApp:
             )
         elif self.status.content.startswith("Outside"):
             self.message("Ready.")
+
+    def _calibration_angles(self) -> tuple[float, float, float]:
+        with self.session.lock:
+            st = self.session.settings
+        return st.primary_deg, st.secondary_deg, st.volume_format_cm
+
+    def _calibration_toggled(self) -> None:
+        self._force_refresh()
+        self._wake.set()
 
     def _force_refresh(self) -> None:
         self._shown_version = -1
@@ -352,6 +372,12 @@ class RoadmapApp:
         data = self.session.data
         label = data.volume(self.session.settings.volume_format_cm).label
         self.source.content = f"**Showing:** {data.source}  \n<small>{label}</small>"
+        volume = data.volume(self.session.settings.volume_format_cm)
+        fmt = "" if data.fixed_xray is not None else f"{self.session.settings.volume_format_cm:g} cm, "
+        self.volume_info.content = (
+            f"<small>Registration volume: {label} ({fmt}{'x'.join(str(n) for n in volume.shape)} voxels of "
+            f"{float(np.mean(volume.spacing_mm)):.2f} mm)</small>"
+        )
         self.phantom_button.visible = data is not self._phantom_data
         self.show_ghost.disabled = not self.session.has_truth
 
@@ -389,6 +415,7 @@ class RoadmapApp:
         self._thread.start()
 
     def close(self) -> None:
+        self.calibration.close()
         self._quit.set()
         self._wake.set()
         self.session.stop_registration(wait=True, timeout=3.0)
@@ -431,6 +458,7 @@ class RoadmapApp:
             self.message("Loading the volume and its surfaces…")
             self.scene.set_anatomy(s.data.meshes(settings.volume_format_cm))
             self._mesh_key = mesh_key
+            self._show_source()
         is_preview = not s.xray_ready() and self._preview_version != version
         if is_preview:
             # Forming the full image takes a moment: show a quick one first, then come back.
@@ -526,10 +554,10 @@ class RoadmapApp:
                 self._shown_geometry = geometry
             else:
                 self.scene.set_detector_image(detector_image)
-            self.scene.place(motion, truth, show_ghost=bool(self.show_ghost.value))
+            calibrating = bool(self.calibration.enabled.value)  # the dodecahedron is imaged on its own
+            self.scene.place(motion, truth, show_ghost=bool(self.show_ghost.value) and not calibrating)
             for handle in self.scene.patient:
-                if "vessel" not in handle.name:
-                    handle.visible = bool(self.show_skull.value)
+                handle.visible = not calibrating and ("vessel" in handle.name or bool(self.show_skull.value))
             self.images.image = composite
             self.readout.content = readout
             self.badge.content = badge

@@ -60,12 +60,16 @@ def build_app(
     note = gui.add_markdown("**Preparing the 3D roadmap…**")
     bar = gui.add_progress_bar(0.0, animated=True)
     start = time.perf_counter()
+    printed = {"what": "", "at": -1e9}
 
     def progress(message: str, fraction: float) -> None:
         note.content = f"**Preparing the 3D roadmap…**  \n{message}"
         bar.value = max(bar.value, min(100.0, fraction * 100.0))
-        if announce:
-            print(f"  [{time.perf_counter() - start:5.1f} s] {message}", file=sys.stderr, flush=True)
+        now = time.perf_counter()
+        what = message.split(":", 1)[0]  # a new step, or the same step's elapsed time every 10 s
+        if announce and (what != printed["what"] or now - printed["at"] >= 10.0):
+            print(f"  [{now - start:5.1f} s] {message}", file=sys.stderr, flush=True)
+            printed.update(what=what, at=now)
 
     phantom = PhantomData(config, progress)
     session = Session(data if data is not None else phantom, config)

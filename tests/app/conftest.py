@@ -12,9 +12,14 @@ from app.data import AppConfig
 from app.gui import RoadmapApp
 from app.main import build_app, make_server
 
-#: Small grids so the suite stays fast (registration still has to reach < 1 mm in-plane) and a
-#: coarse skull: the browser test draws it with software WebGL on the same 2 cores.
-TEST_CONFIG = AppConfig(voxels=128, pixels=256, display_px=256, skull_detail=32)
+#: Small grids so the suite stays fast (registration still has to reach < 1 mm in-plane), a
+#: coarse skull (the browser test draws it with software WebGL on the same 2 cores), the quick
+#: resampled stand-in volume instead of the FDK 3DRA (a minute to build the first time) and a
+#: short low-resolution rotational run for the calibration view.
+TEST_CONFIG = AppConfig(
+    voxels=128, pixels=256, display_px=256, skull_detail=32, volume_source="resampled", run_pixels=64,
+    run_projections=12,
+)  # fmt: skip
 
 READOUT = re.compile(r"Residual: (\d+\.\d\d) mm in-plane, (\d+\.\d\d) mm total, (\d+\.\d\d)° rotation")
 

@@ -19,7 +19,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def start(*args: str) -> subprocess.Popen[str]:
-    env = {**os.environ, "ROADMAP3D_APP_VOXELS": "128", "ROADMAP3D_APP_PIXELS": "256", "PYTHONUNBUFFERED": "1"}
+    env = {
+        **os.environ,
+        "ROADMAP3D_APP_VOXELS": "128",
+        "ROADMAP3D_APP_PIXELS": "256",
+        "ROADMAP3D_APP_VOLUME": "resampled",  # the quick stand-in (the FDK 3DRA is tested by the engine)
+        "PYTHONUNBUFFERED": "1",
+    }
     return subprocess.Popen(
         [sys.executable, "-c", "from registration.cli import main; main()", *args],
         cwd=ROOT,
