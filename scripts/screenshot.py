@@ -1,9 +1,13 @@
 """Regenerate docs/app.png (the README's picture of the web app) with Playwright + Chromium.
 
 Starts the app in this process on a free port, opens it in Debian's headless Chromium, presses
-T4 and Register, waits for the registration to finish and saves a screenshot.
+T4 and Register, waits for the registration to finish and saves a screenshot. The volume is the
+app's default (the FDK 3DRA; ``ROADMAP3D_APP_VOLUME=resampled`` for the stand-in). With
+``--calibration PATH`` it then opens the Calibration tab, ticks it, shows a rotational-run frame
+and saves that too.
 
     python scripts/screenshot.py [--out docs/app.png] [--chromium /usr/bin/chromium] [--no-register]
+        [--calibration /tmp/calibration.png]
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=1600)
     parser.add_argument("--height", type=int, default=900)
     parser.add_argument("--no-register", action="store_true", help="only T4, no registration")
+    parser.add_argument("--calibration", type=Path, default=None, help="also save the calibration view here")
     args = parser.parse_args()
     if not Path(args.chromium).exists():
         print(f"error: {args.chromium} not found (apt-get install chromium)", file=sys.stderr)
@@ -59,6 +64,14 @@ def main() -> int:
             time.sleep(0.5)
             args.out.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(args.out), timeout=180_000)
+            if args.calibration is not None:
+                page.get_by_role("tab", name="Calibration").click()
+                page.get_by_text("Show the calibration").click()
+                page.get_by_text(re.compile(r"Calibration error: [0-9.]+ mm")).wait_for(timeout=60_000)
+                page.get_by_role("button", name=re.compile("Simulate the rotational run|Simulated")).click()
+                page.get_by_text(re.compile(r"Frame 1 of \d+")).wait_for(timeout=180_000)
+                time.sleep(2.0)
+                page.screenshot(path=str(args.calibration), timeout=180_000)
             browser.close()
     finally:
         app.close()
