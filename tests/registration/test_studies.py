@@ -234,10 +234,12 @@ def test_cli_quick_json(tmp_path: Path, monkeypatch, capsys):
     done |= {"offset": "T1", "variant": "standard", "clinically_relevant": True, "volume_label": "test"}
     ResultsLog(tmp_path / "results.jsonl").append(done)
     with pytest.raises(SystemExit) as exit_info:
-        cli.main(["validate", "phantom", "--out", str(tmp_path), "--quick", "--json", "--jobs", "1", "--seed", "5"])
+        argv = ["validate", "phantom", "--out", str(tmp_path), "--quick", "--json", "--jobs", "1", "--seed", "5"]
+        cli.main([*argv, "--volume-source", "resampled"])
     assert exit_info.value.code == 0
     summary = json.loads(capsys.readouterr().out)
     for key in ("success_rate", "success_rate_clinically_relevant", "runs", "seed", "version"):
         assert key in summary
     assert summary["runs"] == 1 and summary["seed"] == 5
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1  # resumed: nothing ran
     assert (tmp_path / "report.html").exists()
