@@ -264,9 +264,21 @@ def register(
     lock = threading.Lock()  # capture runs may report from several threads
     stop_event = threading.Event()
 
-    def report(level: int, temperature: float, x_cur: Array, f_cur: float, x_b: Array, f_b: float) -> bool:
+    # What the callback sees as "best" and "temperature" spans the level's capture runs.
+    shown: dict = {"level": -1, "f": math.inf, "x": None, "temperatures": {}}
+
+    def report(
+        level: int, temperature: float, x_cur: Array, f_cur: float, x_b: Array, f_b: float, chain: int = 0
+    ) -> bool:
         nonlocal iteration
         with lock:
+            if shown["level"] != level:
+                shown.update(level=level, f=math.inf, x=None, temperatures={})
+            if f_b < shown["f"] or shown["x"] is None:
+                shown["f"], shown["x"] = f_b, x_b
+            shown["temperatures"][chain] = temperature
+            f_b, x_b = shown["f"], shown["x"]
+            temperature = max(shown["temperatures"].values())
             iteration += 1
             trace.append(-f_b)
             if stop_event.is_set():
@@ -328,8 +340,8 @@ def register(
     for li, level in enumerate(options.levels):
         margin = None if options.support_margin_mm is None else options.support_margin_mm[li]
 
-        def on_iter(state: AnnealState, li: int = li) -> bool:
-            return report(li, state.temperature, state.x, state.fun, state.best_x, state.best_fun)
+        def on_iter(state: AnnealState, li: int = li, chain: int = 0) -> bool:
+            return report(li, state.temperature, state.x, state.fun, state.best_x, state.best_fun, chain)
 
         if level.restarts == 1:
             cost = make_cost(level.image_px, level.volume_level, margin)
@@ -338,17 +350,25 @@ def register(
             # Independent runs, each with its own random stream (same seed, same result
             # whatever the threads), side by side on the cores with single-threaded DRRs.
             def chain(
-                chain_rng: np.random.Generator,
+                numbered: tuple[int, np.random.Generator],
                 level_: Level = level,
                 x_start: Array = x_best,
                 margin: float | None = margin,
             ) -> AnnealResult:
+                number, chain_rng = numbered
                 cost = make_cost(level_.image_px, level_.volume_level, margin, parallel=False)
-                return anneal(cost, x_start, bounds, rng=chain_rng, schedule=level_.schedule, callback=on_iter)
+                return anneal(
+                    cost,
+                    x_start,
+                    bounds,
+                    rng=chain_rng,
+                    schedule=level_.schedule,
+                    callback=lambda state: on_iter(state, chain=number),
+                )
 
             workers = max(1, min(level.restarts, options.threads or os.cpu_count() or 1))
             with ThreadPoolExecutor(max_workers=workers) as pool:
-                results = list(pool.map(chain, rng.spawn(level.restarts)))
+                results = list(pool.map(chain, enumerate(rng.spawn(level.restarts))))
         best = min(results, key=lambda r: r.fun)
         x_best, f_best = best.x, best.fun
         if any(r.message == "stopped by the callback" for r in results) or stop_event.is_set():

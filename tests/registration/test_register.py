@@ -134,3 +134,17 @@ def test_capture_runs_give_the_same_result_in_threads_or_in_turn(setup):
     # Each capture run has its own random stream, so the order they run in cannot matter.
     np.testing.assert_array_equal(threaded.patient_motion, in_turn.patient_motion)
     assert threaded.drr_count == in_turn.drr_count
+
+
+def test_progress_best_never_worsens_within_a_level(setup):
+    from registration.xray import simulate_xray
+
+    volume, anatomy = setup
+    geometry = CArm.for_format(27.0, pixels=128)
+    xray = simulate_xray(anatomy, geometry, motion=offsets_to_matrix(TABLE_I["T1"], geometry), seed=0)
+    seen = []
+    register(volume, xray, callback=lambda p: seen.append(p) and False)
+    # Two capture runs report side by side; the best shown spans both, so it only improves.
+    capture = [p.best_similarity for p in seen if p.level == 0]
+    assert len(capture) > 100
+    assert all(b >= a for a, b in zip(capture, capture[1:], strict=False))
