@@ -161,8 +161,14 @@ def test_parallel_processes_match_serial(tmp_path: Path):
     tasks = _tiny_tasks()[:2]
     serial, _ = run_study(tasks, tmp_path / "serial", n_jobs=1, progress=False)
     parallel, _ = run_study(tasks, tmp_path / "parallel", n_jobs=2, progress=False)
-    key = ("inplane_residual_mm", "rotation_residual_deg", "seed", "case_id")
+    key = ("seed", "case_id")
     assert [[r[k] for k in key] for r in serial] == [[r[k] for k in key] for r in parallel]
+    # Same cases, same seeds, same results. Not bitwise: on a cold CI machine a worker process
+    # ended ~5e-7 (relative) away from the in-process run, float rounding of compiled kernels;
+    # 1e-5 still tells a different seed or case apart (those change residuals by > 1e-2).
+    for a, b in zip(serial, parallel, strict=True):
+        assert a["inplane_residual_mm"] == pytest.approx(b["inplane_residual_mm"], rel=1e-5, abs=1e-7)
+        assert a["rotation_residual_deg"] == pytest.approx(b["rotation_residual_deg"], rel=1e-5, abs=1e-7)
 
 
 def test_dask_local_cluster(tmp_path: Path):
