@@ -30,6 +30,7 @@ spanned by the outer voxel centers.
 from __future__ import annotations
 
 import math
+import types
 
 import numba
 import numpy as np
@@ -305,8 +306,22 @@ def _joseph(
             out[r, c] = total * np.float32(step_mm)
 
 
-_render_joseph = numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)(_joseph)
-_render_joseph_serial = numba.njit(parallel=False, fastmath=True, cache=True, nogil=True)(_joseph)
+def _renamed(fn: types.FunctionType, name: str) -> types.FunctionType:
+    """A copy of ``fn`` under another name. numba's on-disk cache keys compiled code by the
+    function's name and line, so two dispatchers of one function (parallel and serial) would
+    share a cache entry and one would silently load the other's code."""
+    copy = types.FunctionType(fn.__code__.replace(co_name=name), fn.__globals__, name, fn.__defaults__)
+    copy.__qualname__ = name
+    copy.__doc__ = fn.__doc__
+    return copy
+
+
+_render_joseph = numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)(
+    _renamed(_joseph, "_joseph_parallel")
+)
+_render_joseph_serial = numba.njit(parallel=False, fastmath=True, cache=True, nogil=True)(
+    _renamed(_joseph, "_joseph_serial")
+)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)
