@@ -197,7 +197,11 @@ def test_parallel_and_serial_kernels_agree(smooth_volume, monkeypatch):
     parallel = renderer.render(geometry, motion, mask=mask).copy()
     monkeypatch.setattr(drr, "_SERIAL_SAMPLES", 10**12)  # always serial
     serial = renderer.render(geometry, motion, mask=mask)
-    assert np.array_equal(parallel, serial)
+    # Two separately compiled kernels (fastmath lets each vectorise and reassociate the sums
+    # its own way): float32 rounding differences only, ~1e-7 of the values; 1e-5 of the
+    # largest line integral is still 100x below any real difference (one voxel's share).
+    np.testing.assert_allclose(parallel, serial, rtol=0, atol=1e-5 * float(serial.max()))
+    assert np.array_equal(parallel == 0, serial == 0)  # the same rays miss and are masked
 
 
 def test_trilinear_marcher_matches_reference(smooth_volume):
