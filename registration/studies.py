@@ -22,6 +22,7 @@ Summaries and reports (plots, ``report.md``, ``report.html``) are in :mod:`regis
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -552,10 +553,14 @@ def execute(task: StudyTask, threads: int | None = None) -> dict:
         import numba
 
         numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    options = task.options
+    if threads:
+        # The capture runs' threads share this worker's cores too (no oversubscription).
+        options = dataclasses.replace(options or RegistrationOptions(), threads=int(threads))
     if isinstance(task.case, ClinicalCase):
-        record = run_clinical_case(task.case, options=task.options)
+        record = run_clinical_case(task.case, options=options)
     else:
-        record = run_case(task.case, options=task.options)
+        record = run_case(task.case, options=options)
     record.update(task.extra)
     record["case_id"] = task.case_id
     record["version"] = __version__
