@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from registration import __version__
 from registration.geometry import TABLE_I, CArm, rigid
 from registration.register import RegistrationOptions
-from registration.validation import Case, load_volume, run_case
+from registration.validation import Case, case_volume, run_case
 
 if TYPE_CHECKING:
     from registration.cli import ClinicalStudy, PhantomStudy
@@ -600,24 +600,7 @@ def prebuild(tasks: Iterable[StudyTask], log: Callable[[str], None] | None = Non
             if key not in done:
                 if log:
                     log(f"preparing the {case.volume_format_cm:g} cm volume ({case.volume_source})")
-                if any(case.volume_center_mm):
-                    offcenter_volume(
-                        case.phantom_seed,
-                        case.volume_format_cm,
-                        tuple(case.volume_center_mm),
-                        voxels=case.volume_voxels,
-                        source=case.volume_source,
-                        contrast=case.volume_contrast,
-                    )
-                else:
-                    load_volume(
-                        case.phantom_seed,
-                        case.facial,
-                        case.volume_format_cm,
-                        case.volume_voxels,
-                        case.volume_source,
-                        case.volume_contrast,
-                    )
+                case_volume(case)
         done.add(key)
 
 
