@@ -9,7 +9,7 @@ checkbox is ticked. Then
 - the panel shows its simulated X-ray image at the current C-arm angles (the true, bent
   geometry) with the detected spheres circled, the projections the angle sensors predict
   (nominal) and those of the fitted geometry, and the errors in mm at the iso-center region
-  (:func:`registration.calibration.machine_based_error_mm`);
+  (:func:`registration.sim.calibration.machine_based_error_mm`);
 - a frame slider steps through a rotational run of the head phantom (from the cache, or
   simulated at low resolution on demand with progress).
 
@@ -33,8 +33,9 @@ import viser
 from app import views
 from app.data import PhantomData
 from app.scene import M_PER_MM
-from registration.cache import cache_dir, cache_key, cached_arrays
-from registration.calibration import (
+from registration.core.geometry import CArm
+from registration.io.cache import cache_dir, cache_key, cached_arrays
+from registration.sim.calibration import (
     CalibrationShot,
     Dodecahedron,
     calibration_shot,
@@ -42,8 +43,7 @@ from registration.calibration import (
     machine_based_error_mm,
     machine_based_geometry,
 )
-from registration.geometry import CArm
-from registration.reconstruct import run_angles
+from registration.sim.reconstruct import run_angles
 
 log = logging.getLogger(__name__)
 
@@ -294,7 +294,7 @@ class CalibrationView:
         self.shots_computed += 1
 
     def _run_params(self, volume_format_cm: float) -> dict[str, Any]:
-        from registration.phantom import PHANTOM_MODEL_VERSION
+        from registration.sim.phantom import PHANTOM_MODEL_VERSION
 
         config = self.data.config
         return {
@@ -317,7 +317,7 @@ class CalibrationView:
         bending = default_bending()
 
         def build() -> dict[str, np.ndarray]:
-            from registration.xray import simulate_xray
+            from registration.sim.xray import simulate_xray
 
             phantom = self.data.phantom(True)
             self.run_bar.value = 0.0

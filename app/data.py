@@ -1,7 +1,7 @@
 """What the app shows, prepared once: phantom, registration volumes, renderers, surface meshes.
 
 Everything expensive is built on first use, reported through a ``progress(message, fraction)``
-callback, and cached on disk by :mod:`registration.cache` (under the user's cache dir), keyed by
+callback, and cached on disk by :mod:`registration.io.cache` (under the user's cache dir), keyed by
 its parameters, so a warm start only loads arrays.
 """
 
@@ -17,13 +17,14 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from registration import meshes as surfaces
-from registration.cache import cached_arrays
-from registration.drr import DRRRenderer
-from registration.meshes import surface_meshes
-from registration.phantom import HeadPhantom, make_head_phantom, registration_volume
-from registration.volume import Volume
-from registration.xray import XRayImage, simulate_xray
+from registration.core.drr import DRRRenderer
+from registration.core.images import XRayImage
+from registration.core.volume import Volume
+from registration.io import meshes as surfaces
+from registration.io.cache import cached_arrays
+from registration.io.meshes import surface_meshes
+from registration.sim.phantom import HeadPhantom, make_head_phantom, registration_volume
+from registration.sim.xray import simulate_xray
 
 __all__ = ["AppConfig", "FileData", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
 
@@ -133,7 +134,7 @@ class PhantomData:
 
     def _reconstruct(self, volume_format_cm: float) -> Volume:
         """The FDK 3DRA (cached on disk by the engine), reporting elapsed time while it is built."""
-        from registration.reconstruct import reconstruct_3dra
+        from registration.sim.reconstruct import reconstruct_3dra
 
         what = (
             f"3DRA {volume_format_cm:g} cm: simulating the rotational run ({self.config.run_projections} views) "
@@ -241,7 +242,7 @@ class FileData:
         config: AppConfig,
     ) -> FileData:  # fmt: skip
         """Read with the engine's DICOM readers (their errors name the file and the tag)."""
-        from registration.dicom import read_volume, read_xray
+        from registration.io.dicom import read_volume, read_xray
 
         volume = read_volume(volume_path)
         xray = read_xray(image_path, frame=frame)

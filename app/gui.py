@@ -26,7 +26,14 @@ from app.data import PhantomData
 from app.scene import Scene
 from app.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM, Session
 from app.upload import limit_uploads
-from registration.geometry import IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I, CArm, matrix_to_offsets
+from registration.core.geometry import (
+    IMAGE_FORMATS_CM,
+    OFFSET_NAMES,
+    TABLE_I,
+    CArm,
+    clinically_relevant,
+    matrix_to_offsets,
+)
 
 log = logging.getLogger(__name__)
 
@@ -293,7 +300,7 @@ class RoadmapApp:
         self._sync_controls()
         self.calibration.refresh()
         st = self.session.settings
-        if st.image_format_cm < 22 or st.volume_format_cm < st.image_format_cm:
+        if not clinically_relevant(st.volume_format_cm, st.image_format_cm):
             self.message(
                 "Outside the paper's clinically relevant subset (image format 15/19 cm, or a volume "
                 "smaller than the image): the product keeps the machine-based registration here."

@@ -14,7 +14,7 @@ import trimesh
 import viser
 import viser.transforms as vtf
 
-from registration.geometry import CArm
+from registration.core.geometry import CArm
 
 M_PER_MM = 1e-3
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from app.data import AppConfig, FileData, PhantomData, XRayImage, simulate_xray
-from registration.geometry import TABLE_I, CArm, default_system, matrix_to_offsets, offsets_to_matrix
-from registration.metrics import Residual, residuals
-from registration.register import Progress, RegistrationResult, register
+from registration.core.geometry import TABLE_I, CArm, default_system, matrix_to_offsets, offsets_to_matrix
+from registration.core.metrics import Residual, residuals
+from registration.core.register import Progress, RegistrationResult, register
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Uploads from the browser: a zip with the user's volume and X-ray image.
 
 The archive is size-limited twice: while it streams in (an oversized transfer is dropped
-before it is buffered whole) and when it is unpacked by :func:`registration.dicom.unpack_upload`
+before it is buffered whole) and when it is unpacked by :func:`registration.io.dicom.unpack_upload`
 (no path from the archive is trusted: no ``..``, absolute names or links; zip bombs refused).
 It is unpacked into a private temporary folder that is deleted as soon as the data is read,
 and read with the same readers and checks as the command line.
@@ -56,7 +56,7 @@ def limit_uploads(server: viser.ViserServer, max_bytes: int, on_refused: Callabl
 
 def read_upload(name: str, content: bytes, *, max_bytes: int, config: AppConfig) -> FileData:
     """The volume and image in an uploaded zip; ValueError (with a message for the page) if not."""
-    from registration.dicom import UploadError, classify_upload, unpack_upload
+    from registration.io.dicom import UploadError, classify_upload, unpack_upload
 
     if not name.lower().endswith(".zip"):
         raise UploadError(f"{name}: expected {EXPECTED}")

@@ -11,7 +11,7 @@ import math
 import cv2
 import numpy as np
 
-from registration.geometry import CArm, apply
+from registration.core.geometry import CArm, apply
 
 RGB = np.ndarray
 

@@ -5,7 +5,7 @@ Run: ``/work/venv/bin/python benchmarks/drr_bench.py [--repeats N] [--sizes 64 1
 For each paired size (image 64^2 from volume 64^3, 128^2 from 128^3, 256^2 from 256^3) it
 prints the median milliseconds of the fast numba renderer and of the map_coordinates reference
 in the same run, their ratio and the largest difference, plus the median time of one prepared
-gradient-difference evaluation at 128^2. The functions live in ``registration.perf`` so that
+gradient-difference evaluation at 128^2. The functions live in ``registration.studies.perf`` so that
 ``roadmap3d bench`` can use them from the installed package.
 """
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from registration.perf import bench_drr, bench_gradient_difference
+from registration.studies.perf import bench_drr, bench_gradient_difference
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ def test_the_fdk_3dra_is_the_default_and_the_stand_in_stays_selectable(monkeypat
 
 def test_the_first_reconstruction_reports_what_it_prepares(monkeypatch) -> None:
     """A reconstruction that takes a while (here a stand-in that sleeps) reports progress each second."""
-    import registration.reconstruct as reconstruct
+    import registration.sim.reconstruct as reconstruct
 
     config = AppConfig(voxels=32, volume_source="fdk")
     calls: list[tuple[int, float, int]] = []

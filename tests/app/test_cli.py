@@ -27,7 +27,7 @@ def start(*args: str) -> subprocess.Popen[str]:
         "PYTHONUNBUFFERED": "1",
     }
     return subprocess.Popen(
-        [sys.executable, "-c", "from registration.cli import main; main()", *args],
+        [sys.executable, "-c", "from app.cli import main; main()", *args],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,

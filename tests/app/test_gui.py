@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from app.gui import RoadmapApp
-from registration.geometry import TABLE_I
+from registration.core.geometry import TABLE_I
 
 from .conftest import parse_readout, wait_until
 

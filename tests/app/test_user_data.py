@@ -12,8 +12,8 @@ import pytest
 from app.data import FileData
 from app.gui import RoadmapApp
 from app.upload import read_upload
-from registration.dicom import UploadError, write_npz, write_xray
-from registration.geometry import TABLE_I, offsets_to_matrix
+from registration.core.geometry import TABLE_I, offsets_to_matrix
+from registration.io.dicom import UploadError, write_npz, write_xray
 
 from .conftest import TEST_CONFIG, wait_until
 

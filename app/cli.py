@@ -1,0 +1,269 @@
+"""The ``roadmap3d`` command line.
+
+This module only declares the commands and their options and turns errors into messages;
+each command's work lives in the module that owns it (imported lazily so ``--help`` is fast).
+Errors meant for users (bad files, bad values) become ``error: ...`` on stderr and exit code 2;
+set ``ROADMAP3D_DEBUG=1`` to see the traceback instead.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1
+
+ImageKind = Literal["fluoro", "exposure"]
+
+
+class UserError(Exception):
+    """A problem with the user's input that deserves a message, not a traceback."""
+
+
+# --------------------------------------------------------------------------------------
+# validate
+# --------------------------------------------------------------------------------------
+Study = (
+    Annotated[Table1, tyro.conf.subcommand("table1")]
+    | Annotated[PhantomStudy, tyro.conf.subcommand("phantom")]
+    | Annotated[ClinicalStudy, tyro.conf.subcommand("clinical")]
+    | Annotated[CalibrationStudy, tyro.conf.subcommand("calibration")]
+)
+
+
+def validate(study: Study) -> int:
+    """Run one of the paper's validation studies."""
+    if isinstance(study, Table1):
+        from app.study_commands import run_table1
+
+        return run_table1(study)
+    if isinstance(study, PhantomStudy):
+        from app.study_commands import run_phantom_study
+
+        return run_phantom_study(study)
+    if isinstance(study, ClinicalStudy):
+        from app.study_commands import run_clinical_study
+
+        return run_clinical_study(study)
+    from app.study_commands import run_calibration_study
+
+    return run_calibration_study(study)
+
+
+# --------------------------------------------------------------------------------------
+# bench
+# --------------------------------------------------------------------------------------
+def bench(json: bool = False, quick: bool = False, seed: int = 0) -> int:
+    """Measure DRR, similarity, registration and reconstruction speed (ratios vs references).
+
+    Args:
+        json: Print one JSON object on stdout.
+        quick: Fewer repetitions and no 256^3 case (for smoke tests).
+        seed: Seed of the phantom and the annealing.
+    """
+    from app.study_commands import run_bench
+
+    return run_bench(json=json, quick=quick, seed=seed)
+
+
+# --------------------------------------------------------------------------------------
+# data in and out
+# --------------------------------------------------------------------------------------
+def register(
+    volume: Path,
+    image: Path,
+    frame: int | None = None,
+    initial_motion: Path | None = None,
+    truth: Path | None = None,
+    out: Path | None = None,
+    isocenter: str | None = None,
+    seed: int = 0,
+) -> int:
+    """Register a 3DRA/CT volume to an XA/RF image and print a summary.
+
+    Args:
+        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
+        image: XA/RF DICOM file (single or multi-frame).
+        frame: Frame of a multi-frame image (0-based).
+        initial_motion: JSON with "patient_motion" (4x4) to start from (default identity).
+        truth: JSON with the true "patient_motion": adds residuals and success.
+        out: Write the result JSON here.
+        isocenter: Iso-center "x,y,z" in mm (default the world origin).
+        seed: Seed of the annealing.
+    """
+    from app.commands import run_register
+
+    return run_register(
+        volume=volume,
+        image=image,
+        frame=frame,
+        initial_motion=initial_motion,
+        truth=truth,
+        out=out,
+        isocenter=isocenter,
+        seed=seed,
+    )
+
+
+def info(path: Path, /, json: bool = False) -> int:
+    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values).
+
+    Args:
+        path: DICOM file, DICOM series folder or .npz volume.
+        json: Print the report as one JSON object.
+    """
+    from app.commands import run_info
+
+    return run_info(path, as_json=json)
+
+
+def phantom(
+    out: Path,
+    volume_format: float = 27.0,
+    image_format: float = 27.0,
+    primary_deg: float = 0.0,
+    secondary_deg: float = 0.0,
+    offset: str = "T4",
+    contrast: bool = True,
+    seed: int = 0,
+    voxels: int = 256,
+    pixels: int = 512,
+    volume_source: Literal["fdk", "resampled"] = "fdk",
+) -> int:
+    """Export the built-in phantom: a DICOM 3DRA series, XA images with known motion, truth JSON.
+
+    Args:
+        out: Output folder (created; must be empty or absent).
+        volume_format: 3DRA volume format in cm.
+        image_format: X-ray image format in cm.
+        primary_deg: LAO(+)/RAO(-) angle of the XA views.
+        secondary_deg: CRAN(+)/CAUD(-) angle of the XA views.
+        offset: Patient motion: T1..T4 (Table I) or "tx,ty,tz,rx,ry,rz".
+        contrast: Iodine contrast in the vessels.
+        seed: Phantom variant and noise seed.
+        voxels: 3DRA grid size along each axis.
+        pixels: X-ray image size (square).
+        volume_source: 3DRA series: FDK of a simulated rotational run (minutes once, then cached) or resampled phantom.
+    """
+    from app.commands import run_phantom_export
+
+    return run_phantom_export(
+        out=out,
+        volume_format=volume_format,
+        image_format=image_format,
+        primary_deg=primary_deg,
+        secondary_deg=secondary_deg,
+        offset=offset,
+        contrast=contrast,
+        seed=seed,
+        voxels=voxels,
+        pixels=pixels,
+        volume_source=volume_source,
+    )
+
+
+def mesh(
+    volume: Path, out: Path, vessel_hu: float | None = None, bone_hu: float | None = None, step: int = 1
+) -> int:
+    """Write the vessel and bone surfaces of a volume (STL, PLY or GLB by the file extension).
+
+    Args:
+        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
+        out: Output mesh file (.stl, .ply or .glb).
+        vessel_hu: Vessel threshold in HU (default 250: iodinated contrast, away from bone).
+        bone_hu: Bone threshold in HU (default 700).
+        step: Marching-cubes step in voxels (2 or more: fewer faces, faster).
+    """
+    from app.commands import run_mesh
+
+    return run_mesh(volume=volume, out=out, vessel_hu=vessel_hu, bone_hu=bone_hu, step=step)
+
+
+# --------------------------------------------------------------------------------------
+# the web app
+# --------------------------------------------------------------------------------------
+def demo(port: int = 8080, host: str = "127.0.0.1", open_browser: bool = False) -> int:
+    """Start the web app on the built-in phantom.
+
+    Args:
+        port: Port to listen on (the next free one is taken if busy).
+        host: Interface to bind; 127.0.0.1 keeps the app on this machine.
+        open_browser: Open the page in the default browser.
+    """
+    from app.main import run_app
+
+    return run_app(host=host, port=port, volume=None, image=None, open_browser=open_browser)
+
+
+def app(
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    volume: Path | None = None,
+    image: Path | None = None,
+    frame: int | None = None,
+    allow_share: bool = False,
+    max_upload_mb: float = 512.0,
+    open_browser: bool = False,
+) -> int:
+    """Start the web app, optionally on your own DICOM data.
+
+    Args:
+        host: Interface to bind; 127.0.0.1 keeps the app on this machine.
+        port: Port to listen on (the next free one is taken if busy).
+        volume: 3DRA/CT volume (DICOM folder, multi-frame file or .npz).
+        image: XA/RF DICOM image.
+        frame: Frame of a multi-frame image.
+        allow_share: Let viser's share button open a public tunnel (off: refused).
+        max_upload_mb: Largest upload accepted from the browser.
+        open_browser: Open the page in the default browser.
+    """
+    from app.main import run_app
+
+    return run_app(
+        host=host,
+        port=port,
+        volume=volume,
+        image=image,
+        frame=frame,
+        allow_share=allow_share,
+        max_upload_mb=max_upload_mb,
+        open_browser=open_browser,
+    )
+
+
+COMMANDS = {
+    "demo": demo,
+    "app": app,
+    "validate": validate,
+    "bench": bench,
+    "register": register,
+    "info": info,
+    "phantom": phantom,
+    "mesh": mesh,
+}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``roadmap3d`` console script."""
+    debug = os.environ.get("ROADMAP3D_DEBUG") == "1"
+    try:
+        code = tyro.extras.subcommand_cli_from_dict(
+            COMMANDS, args=argv, config=(tyro.conf.OmitArgPrefixes,), prog="roadmap3d"
+        )
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
+    except (UserError, ValueError, OSError) as exc:
+        if debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    sys.exit(int(code or 0))
+
+
+if __name__ == "__main__":
+    main()

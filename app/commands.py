@@ -1,0 +1,420 @@
+"""The data commands: ``register``, ``info``, ``phantom`` and ``mesh``.
+
+The only module of ``registration/`` that prints. Bad input raises ``ValueError`` (often a
+:class:`~registration.io.dicom.DicomError` naming the file and the tag), which ``cli.main``
+turns into ``error: ...`` and exit code 2. Output files are written through temporary
+files and renamed, so a failed command leaves no partial output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+import numpy as np
+
+from registration.core.geometry import OFFSET_NAMES, TABLE_I, CArm, check_rigid, matrix_to_offsets, offsets_to_matrix
+from registration.io import dicom
+
+if TYPE_CHECKING:
+    from registration.core.volume import Volume
+    from registration.sim.phantom import HeadPhantom
+
+#: Files written by ``roadmap3d phantom`` inside its output folder.
+PHANTOM_VOLUME_DIR = "volume"
+PHANTOM_FLUORO = "xa_fluoro.dcm"
+PHANTOM_EXPOSURE = "xa_exposure.dcm"
+PHANTOM_TRUTH = "truth.json"
+#: What ``roadmap3d phantom`` writes as the 3DRA series: the FDK reconstruction of a simulated
+#: rotational run (:func:`registration.sim.reconstruct.reconstruct_3dra`), or the phantom resampled to
+#: the 3DRA grid (:func:`registration.sim.phantom.registration_volume`, a fast stand-in).
+VOLUME_SOURCES = ("fdk", "resampled")
+#: Long work (building the FDK 3DRA the first time) is announced on stderr once it has taken
+#: this long (seconds); a cached volume loads well within it ...
+PROGRESS_AFTER_S = 3.0
+#: ... and its elapsed time is repeated this often (seconds).
+PROGRESS_EVERY_S = 30.0
+
+
+def _say(text: str = "", *, stream: TextIO | None = None) -> None:
+    print(text, file=stream or sys.stdout)
+
+
+def _show_warnings(caught: list[warnings.WarningMessage]) -> None:
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        _say(f"warning: {message}", stream=sys.stderr)
+
+
+@contextmanager
+def _progress(message: str, *, after_s: float | None = None, every_s: float | None = None) -> Iterator[None]:
+    """Say ``message`` on stderr if the block runs longer than ``after_s``, then the elapsed time
+    every ``every_s`` and the total at the end (defaults: ``PROGRESS_AFTER_S``, ``PROGRESS_EVERY_S``)."""
+    after = PROGRESS_AFTER_S if after_s is None else after_s
+    every = PROGRESS_EVERY_S if every_s is None else every_s
+    start = time.perf_counter()
+    done = threading.Event()
+    said = threading.Event()
+
+    def watch() -> None:
+        if done.wait(after):
+            return
+        _say(f"{message} ...", stream=sys.stderr)
+        said.set()
+        while not done.wait(every):
+            _say(f"  ... {time.perf_counter() - start:.0f} s", stream=sys.stderr)
+
+    watcher = threading.Thread(target=watch, name="roadmap3d-progress", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        done.set()
+        watcher.join()
+    if said.is_set():
+        _say(f"  done in {time.perf_counter() - start:.0f} s", stream=sys.stderr)
+
+
+def parse_isocenter(text: str | None) -> tuple[float, float, float]:
+    """``"x,y,z"`` in mm (default: the world origin, CONVENTIONS §1)."""
+    if text is None or text.strip() == "":
+        return (0.0, 0.0, 0.0)
+    parts = text.replace(" ", "").split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise ValueError(f"--isocenter must be three numbers 'x,y,z' in mm, got {text!r}") from None
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"--isocenter must be three finite numbers 'x,y,z' in mm, got {text!r}")
+    return (values[0], values[1], values[2])
+
+
+def parse_offset(text: str) -> tuple[str, np.ndarray]:
+    """A Table I name (T1..T4) or ``"tx,ty,tz,rx,ry,rz"`` (mm, degrees, view frame)."""
+    key = text.strip().upper()
+    if key in TABLE_I:
+        return key, np.asarray(TABLE_I[key], dtype=np.float64)
+    try:
+        values = np.array([float(v) for v in text.split(",")], dtype=np.float64)
+    except ValueError:
+        values = np.array([])
+    if values.shape != (6,) or not np.all(np.isfinite(values)):
+        raise ValueError(
+            f"--offset must be one of {', '.join(TABLE_I)} or six numbers 'tx,ty,tz,rx,ry,rz' (mm, deg), got {text!r}"
+        )
+    return "custom", values
+
+
+def read_motion_json(path: Path, *, what: str) -> tuple[np.ndarray, dict[str, Any]]:
+    """The 4x4 ``patient_motion`` of a result/truth JSON file, and the whole document."""
+    try:
+        document = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file ({what})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read the {what} file ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(document, dict) or "patient_motion" not in document:
+        raise ValueError(f"{path}: the {what} file must be a JSON object with a 'patient_motion' 4x4 matrix")
+    try:
+        matrix = np.asarray(document["patient_motion"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: 'patient_motion' must be a 4x4 list of numbers") from None
+    try:
+        motion = check_rigid(matrix, name=f"{path}: patient_motion")
+    except ValueError as exc:
+        raise ValueError(str(exc)) from None
+    return motion, document
+
+
+def _format_offsets(motion: np.ndarray, geometry: CArm) -> str:
+    o = matrix_to_offsets(motion, geometry)
+    o = np.where(np.abs(o) < 5e-3, 0.0, o)  # no "-0.00"
+    return (
+        f"t = ({o[0]:+.2f}, {o[1]:+.2f}, {o[2]:+.2f}) mm, r = ({o[3]:+.2f}, {o[4]:+.2f}, {o[5]:+.2f}) deg "
+        "in the view frame"
+    )
+
+
+# --------------------------------------------------------------------------------------
+# register
+# --------------------------------------------------------------------------------------
+def run_register(
+    *,
+    volume: Path,
+    image: Path,
+    frame: int | None = None,
+    initial_motion: Path | None = None,
+    truth: Path | None = None,
+    out: Path | None = None,
+    isocenter: str | None = None,
+    seed: int = 0,
+) -> int:
+    """Register a volume file to an X-ray file, print a summary, optionally write the JSON."""
+    iso = parse_isocenter(isocenter)
+    if out is not None and Path(out).is_dir():
+        raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
+    m_init = None
+    if initial_motion is not None:
+        m_init, _ = read_motion_json(initial_motion, what="initial motion")
+    m_true = None
+    vessel_points = None
+    if truth is not None:
+        m_true, truth_doc = read_motion_json(truth, what="truth")
+        try:
+            pts = np.asarray(truth_doc.get("vessel_points_mm", []), dtype=np.float64)
+        except (TypeError, ValueError):
+            pts = np.zeros((0, 3))
+        if pts.ndim == 2 and pts.shape[1] == 3 and len(pts) and np.all(np.isfinite(pts)):
+            vessel_points = pts
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vol = dicom.read_volume(volume)
+        xray = dicom.read_xray(image, frame=frame, isocenter_mm=iso)
+    _show_warnings(caught)
+
+    from registration.core.register import register
+
+    g = xray.geometry
+    _say(
+        f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels, "
+        f"{', '.join(f'{s:.3g}' for s in vol.spacing_mm)} mm"
+    )
+    _say(
+        f"image:  {image} frame {xray.meta.get('frame', 0)}: {g.cols}x{g.rows} px, "
+        f"primary {g.primary_deg:+.1f} deg, secondary {g.secondary_deg:+.1f} deg, "
+        f"SID {g.sid_mm:.0f} mm, SOD {g.sod_mm:.0f} mm"
+    )
+    result = register(vol, xray, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points)
+    _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
+    _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
+    if result.residual is not None:
+        r = result.residual
+        verdict = "success" if r.success else "FAILURE"
+        mtre = "" if r.mtre_mm is None else f", mTRE {r.mtre_mm:.2f} mm"
+        _say(
+            f"residual vs truth: {r.inplane_mm:.2f} mm in-plane, {r.translation_mm:.2f} mm total, "
+            f"{r.rotation_deg:.2f} deg{mtre} -> {verdict}"
+        )
+    if out is not None:
+        document = result.to_dict()
+        document["volume"] = {"path": str(volume), "label": vol.label}
+        document["image"] = {"path": str(image), "frame": xray.meta.get("frame", 0), "kind": xray.kind}
+        document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
+        dicom.write_text_atomic(out, dicom.json_dumps(document))
+        _say(f"wrote {out}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# info
+# --------------------------------------------------------------------------------------
+def _print_info(report: dict[str, Any]) -> None:
+    order = ("path", "accepted", "kind", "format", "sop_class", "modality", "label", "image_kind")
+    for key in order:
+        if key in report and report[key] not in ("", None):
+            _say(f"{key:>18}: {report[key]}")
+    for key, value in report.items():
+        if key in order or key in ("warnings", "problem"):
+            continue
+        if key == "geometry" and isinstance(value, dict):
+            g = value
+            _say(
+                f"{'geometry':>18}: primary {g['primary_deg']:+.2f} deg, secondary {g['secondary_deg']:+.2f} deg, "
+                f"SID {g['sid_mm']:.1f} mm, SOD {g['sod_mm']:.1f} mm, {g['cols']}x{g['rows']} px of "
+                f"{g['pixel_mm'][1]:.4g}x{g['pixel_mm'][0]:.4g} mm, iso-center {g['isocenter_mm']}"
+            )
+        elif key == "header" and isinstance(value, dict):
+            _say(f"{'header':>18}:")
+            for tag, text in value.items():
+                _say(f"{tag:>32}  {text[:80]}")
+        elif key == "index_to_world":
+            rows = ["[" + ", ".join(f"{v:9.4f}" for v in row) + "]" for row in value]
+            _say(f"{'index_to_world':>18}: {rows[0]}")
+            for row in rows[1:]:
+                _say(f"{'':>18}  {row}")
+        else:
+            _say(f"{key:>18}: {value}")
+    for message in report.get("warnings", []):
+        _say(f"{'warning':>18}: {message}")
+
+
+def run_info(path: Path, *, as_json: bool = False) -> int:
+    """Print what the project reads from ``path``; exit code 2 when it is not accepted."""
+    report = dicom.inspect(path)
+    if as_json:
+        _say(json.dumps(report, indent=2))
+    else:
+        _print_info(report)
+    if not report.get("accepted"):
+        _say(f"error: {report.get('problem')}", stream=sys.stderr)
+        return 2
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# phantom
+# --------------------------------------------------------------------------------------
+def _phantom_3dra(
+    phantom: HeadPhantom,
+    *,
+    source: str,
+    seed: int,
+    contrast: bool,
+    volume_format: float,
+    voxels: int,
+) -> tuple[Volume, str, dict[str, Any]]:
+    """The 3DRA to export, its SeriesDescription (<= 64 characters) and how it was made (for the truth)."""
+    if source == "resampled":
+        from registration.sim.phantom import registration_volume
+
+        volume = registration_volume(phantom, volume_format, voxels=voxels, seed=seed)
+        return volume, "3DRA stand-in: phantom resampled to the 3DRA grid", {"volume_source": source}
+    from registration.sim.reconstruct import reconstruct_3dra
+
+    message = (
+        f"3DRA: simulating the rotational run and reconstructing it (FDK, {voxels}^3 voxels, "
+        f"{volume_format:g} cm format); this takes minutes the first time and is cached afterwards"
+    )
+    with _progress(message):
+        # The same phantom (seed, contrast) as the XA images; the run's own noise seed and
+        # protocol are reconstruct_3dra's defaults, so the cache entry is shared with the
+        # validation and the app.
+        volume = reconstruct_3dra(seed, volume_format_cm=volume_format, contrast=contrast, voxels=voxels)
+    run = {k: volume.meta[k] for k in ("projections", "arc_deg", "pixels", "kind", "seed") if k in volume.meta}
+    label = f"3DRA: {volume.label}, head phantom seed {seed} {'with' if contrast else 'without'} contrast"
+    description = f"3DRA: FDK reconstruction, {run.get('projections', '?')} projections"
+    return volume.with_data(volume.data, label=label), description, {"volume_source": source, "rotational_run": run}
+
+
+def run_phantom_export(
+    *,
+    out: Path,
+    volume_format: float = 27.0,
+    image_format: float = 27.0,
+    primary_deg: float = 0.0,
+    secondary_deg: float = 0.0,
+    offset: str = "T4",
+    contrast: bool = True,
+    seed: int = 0,
+    voxels: int = 256,
+    pixels: int = 512,
+    volume_source: str = "fdk",
+) -> int:
+    """Export the phantom: DICOM 3DRA series, XA fluoro and exposure with known motion, truth JSON.
+
+    The 3DRA series is ``volume_source`` (one of ``VOLUME_SOURCES``). The XA images are the
+    analytic phantom moved by the known motion and projected with the nominal geometry that
+    their positioner tags state; the FDK volume is reconstructed in the same world frame (from
+    the calibrated geometry of its run), so the truth holds for either source.
+    """
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"{out}: exists and is not an empty folder; refusing to overwrite")
+    if voxels < 8 or pixels < 16:
+        raise ValueError(f"voxels must be >= 8 and pixels >= 16, got {voxels} and {pixels}")
+    if volume_source not in VOLUME_SOURCES:
+        raise ValueError(f"--volume-source must be one of {', '.join(VOLUME_SOURCES)}, got {volume_source!r}")
+    offset_name, offsets = parse_offset(offset)
+
+    from registration.sim.phantom import make_head_phantom
+    from registration.sim.xray import simulate_xray
+
+    start = time.perf_counter()
+    geometry = CArm.for_format(image_format, pixels=pixels, primary_deg=primary_deg, secondary_deg=secondary_deg)
+    motion = offsets_to_matrix(offsets, geometry)
+    phantom = make_head_phantom(seed=seed, contrast=contrast)
+    volume, description, made = _phantom_3dra(
+        phantom, source=volume_source, seed=seed, contrast=contrast, volume_format=volume_format, voxels=voxels
+    )
+    fluoro = simulate_xray(phantom, geometry, motion=motion, kind="fluoro", seed=seed)
+    exposure = simulate_xray(phantom, geometry, motion=motion, kind="exposure", seed=seed + 1)
+    uid_seed = f"roadmap3d phantom {seed} {volume_format} {image_format} {voxels} {pixels} {contrast} {volume_source}"
+    study_uid = str(dicom.make_uid(uid_seed, "study"))
+    vessels = phantom.vessel_centerline_mm()
+    truth = {
+        "patient_motion": motion.tolist(),
+        "offset": {"name": offset_name, **dict(zip(OFFSET_NAMES, offsets.tolist(), strict=True))},
+        "geometry": geometry.to_dict(),
+        "volume_format_cm": volume_format,
+        "image_format_cm": image_format,
+        "phantom": {"seed": seed, "contrast": contrast},
+        "volume_label": volume.label,
+        **made,
+        "images": "the analytic phantom moved by patient_motion, projected with the nominal geometry of the "
+        "XA positioner tags",
+        "files": {
+            "volume": PHANTOM_VOLUME_DIR,
+            "fluoro": PHANTOM_FLUORO,
+            "exposure": PHANTOM_EXPOSURE,
+        },
+        "vessel_points_mm": np.round(vessels[:: max(1, len(vessels) // 200)], 3).tolist(),
+        "conventions": "shared/CONVENTIONS.md §4: anatomy the volume shows at X is at M @ X in the images",
+    }
+    with dicom.atomic_folder(out) as tmp:
+        dicom.write_series(
+            volume, tmp / PHANTOM_VOLUME_DIR, description=description, study_uid=study_uid, uid_seed=uid_seed
+        )
+        dicom.write_xray(fluoro, tmp / PHANTOM_FLUORO, study_uid=study_uid, uid_seed=uid_seed)
+        dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed)
+        dicom.write_text_atomic(tmp / PHANTOM_TRUTH, dicom.json_dumps(truth))
+    _say(f"wrote {out}/ in {time.perf_counter() - start:.1f} s:")
+    _say(
+        f"  {PHANTOM_VOLUME_DIR}/       {volume.shape[0]} CT slices of {volume.shape[2]}x{volume.shape[1]} "
+        f"({volume.label})"
+    )
+    _say(f"  {PHANTOM_FLUORO}    XA fluoroscopy, {pixels}x{pixels} px, {image_format:g} cm format")
+    _say(f"  {PHANTOM_EXPOSURE}  XA exposure")
+    _say(f"  {PHANTOM_TRUTH}      patient motion {offset_name}: {_format_offsets(motion, geometry)}")
+    _say(
+        f"try: roadmap3d register --volume {out / PHANTOM_VOLUME_DIR} --image {out / PHANTOM_FLUORO} "
+        f"--truth {out / PHANTOM_TRUTH}"
+    )
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# mesh
+# --------------------------------------------------------------------------------------
+def run_mesh(
+    *,
+    volume: Path,
+    out: Path,
+    vessel_hu: float | None = None,
+    bone_hu: float | None = None,
+    step: int = 1,
+) -> int:
+    """Write the vessel and bone surfaces of a volume file to STL, PLY or GLB."""
+    from registration.io.meshes import BONE_HU, MESH_SUFFIXES, VESSEL_HU, surface_meshes, write_meshes
+
+    out = Path(out)
+    if out.suffix.lower() not in MESH_SUFFIXES:
+        raise ValueError(f"{out}: the output must end in {', '.join(MESH_SUFFIXES)}")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vol = dicom.read_volume(volume)
+    _show_warnings(caught)
+    meshes = surface_meshes(
+        vol,
+        vessel_hu=VESSEL_HU if vessel_hu is None else vessel_hu,
+        bone_hu=BONE_HU if bone_hu is None else bone_hu,
+        step=step,
+    )
+    if not meshes:
+        raise ValueError(
+            f"{volume}: no vessel or bone surface found (values {vol.data.min():.0f}..{vol.data.max():.0f})"
+        )
+    write_meshes(meshes, out)
+    parts = ", ".join(f"{name}: {len(m.vertices)} vertices, {len(m.faces)} faces" for name, m in meshes.items())
+    if "vessels" not in meshes:
+        _say("note: no contrast-filled vessels found (no voxels above the vessel threshold away from bone)")
+    _say(f"wrote {out} ({parts})")
+    return 0

@@ -1,0 +1,60 @@
+"""The options of ``roadmap3d validate`` (what tyro turns into flags), shared by the command line
+and the runners of :mod:`app.study_commands`. Light: importing it loads no engine module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+
+@dataclass
+class Table1:
+    """Reproduce Table I: T1-T4, fluoro and exposure, formats 27/27 and 48/48 cm."""
+
+    json: bool = False
+    """Print one JSON object {"records": [...], "summary": {...}} on stdout."""
+    seed: int = 0
+    """Seed of the phantom, image noise and annealing."""
+
+
+@dataclass
+class PhantomStudy:
+    """Table II-III and Fig. 6: every volume x image format, T1-T4, fluoro and exposure."""
+
+    out: Path = Path("validation-phantom")
+    """Output folder (results.jsonl, plots, report.md/html); a rerun resumes."""
+    quick: bool = False
+    """A reduced grid that finishes in a few minutes."""
+    json: bool = False
+    """Print the summary as one JSON object."""
+    seed: int = 0
+    jobs: int | None = None
+    """Parallel processes (default: all cores)."""
+    scheduler: str | None = None
+    """Run on a Dask cluster, e.g. tcp://HOST:PORT."""
+    volume_source: Literal["fdk", "resampled"] = "fdk"
+    """Registration volume: the FDK 3DRA, or the phantom resampled to its grid (faster)."""
+
+
+@dataclass
+class ClinicalStudy:
+    """Fig. 7: 10 virtual patients, 100 random registrations each against their own 3DRA."""
+
+    out: Path = Path("validation-clinical")
+    quick: bool = False
+    json: bool = False
+    seed: int = 0
+    jobs: int | None = None
+    scheduler: str | None = None
+
+
+@dataclass
+class CalibrationStudy:
+    """Machine-based registration error at random angles against the true (bent) geometry."""
+
+    json: bool = False
+    seed: int = 0
+    samples: int = 50
+    """Number of random C-arm angles to test."""

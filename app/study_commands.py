@@ -1,0 +1,169 @@
+"""The printing runners of ``roadmap3d validate`` and ``roadmap3d bench``.
+
+The studies live in :mod:`registration.studies` and return data; these functions turn the
+command line's options into the studies' frozen configurations, print progress on stderr and
+results on stdout (a table, or one JSON object with ``--json``).
+"""
+
+from __future__ import annotations
+
+import json
+import json as json_module
+import sys
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1
+from registration import __version__
+from registration.sim.calibration import ERROR_REGION_RADIUS_MM, calibration_study
+from registration.studies import bench, runs
+from registration.studies.cases import format_table, run_case, summarize, table1_cases
+from registration.studies.runs import ClinicalConfig, PhantomConfig
+
+
+def run_table1(args: Table1) -> int:
+    """``roadmap3d validate table1``: 16 registrations, a table or one JSON object."""
+    cases = table1_cases(args.seed)
+    records = []
+    started = time.perf_counter()
+    for i, case in enumerate(cases, 1):
+        if not args.json:
+            print(
+                f"[{i:2d}/{len(cases)}] {case.offset} {case.image_kind:<8} "
+                f"{case.volume_format_cm:.0f}/{case.image_format_cm:.0f} cm ...",
+                end="\r",
+                file=sys.stderr,
+                flush=True,
+            )
+        records.append(run_case(case))
+    summary = summarize(records)
+    summary["wall_seconds"] = time.perf_counter() - started
+    summary["seed"] = args.seed
+    summary["version"] = __version__
+    summary["volume_label"] = records[0]["volume_label"] if records else ""
+    if args.json:
+        print(json.dumps({"records": records, "summary": summary}))
+    else:
+        print(" " * 60, end="\r", file=sys.stderr)
+        print(f"Table I offsets on the simulated head phantom (volume: {summary['volume_label']})")
+        print("Success: in-plane residual at the iso-center < 1 mm and rotation < 3 deg.\n")
+        print(format_table(records))
+        print(
+            f"\n{summary['successes']}/{summary['runs']} successful; median {summary['seconds_median']:.2f} s, "
+            f"{summary['drr_count_median']:.0f} DRRs per registration; seed {args.seed}, roadmap3d {__version__}"
+        )
+        print(
+            f"Preparing the 3DRAs for rendering (once per volume, not per registration): "
+            f"{summary['prepare_seconds_total']:.2f} s in all."
+        )
+    return 0
+
+
+
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def _check_jobs(jobs: int | None) -> int | None:
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
+    return jobs
+
+
+def run_phantom_study(args: PhantomStudy) -> int:
+    """``roadmap3d validate phantom``: Table II-III and Fig. 6, written to ``args.out``."""
+    from registration.studies.report import phantom_summary, write_phantom_report
+
+    config = PhantomConfig.quick_config(args.seed) if args.quick else PhantomConfig(seed=args.seed)
+    if getattr(args, "volume_source", None):
+        config = replace(config, volume_source=args.volume_source)
+    tasks = runs.phantom_tasks(config)
+    log = None if args.json else _stderr
+    records, wall = runs.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
+    summary = phantom_summary(records, config=asdict(config), wall_seconds=wall)
+    write_phantom_report(records, summary, Path(args.out))
+    _print_summary(summary, args.json, Path(args.out))
+    return 0
+
+
+def run_clinical_study(args: ClinicalStudy) -> int:
+    """``roadmap3d validate clinical``: the rotational-run study and Fig. 7, written to ``args.out``."""
+    from registration.studies.report import clinical_summary, write_clinical_report
+
+    config = ClinicalConfig.quick_config(args.seed) if args.quick else ClinicalConfig(seed=args.seed)
+    tasks = runs.clinical_tasks(config)
+    log = None if args.json else _stderr
+    records, wall = runs.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
+    summary = clinical_summary(records, config=asdict(config), wall_seconds=wall)
+    write_clinical_report(records, summary, Path(args.out))
+    _print_summary(summary, args.json, Path(args.out))
+    return 0
+
+
+def _print_summary(summary: dict, as_json: bool, out: Path) -> None:
+    if as_json:
+        print(json.dumps(summary))
+        return
+    from registration.studies.report import summary_lines
+
+    print("\n".join(summary_lines(summary)))
+    print(f"\nwritten: {out / 'results.jsonl'}, {out / 'report.md'}, {out / 'report.html'} and the plots")
+
+
+
+def run_calibration_study(args: CalibrationStudy) -> int:
+    """``roadmap3d validate calibration``: print a table, or one JSON object with ``--json``."""
+    result = calibration_study(samples=args.samples, seed=args.seed)
+    if args.json:
+        out = {k: result[k] for k in ("errors_mm", "median_mm", "max_mm")}
+        out.update({k: result[k] for k in ("uncorrected_median_mm", "region_radius_mm", "target_mm")})
+        out["samples"] = args.samples
+        out["seed"] = args.seed
+        print(json.dumps(out))
+        return 0
+    print(
+        f"Machine-based registration error: max displacement within {ERROR_REGION_RADIUS_MM:.0f} mm "
+        "of the iso-center, at the iso-center plane (mm)"
+    )
+    print(f"{'primary':>9} {'secondary':>10} {'error mm':>9} {'uncorrected mm':>15}")
+    for r in result["records"]:
+        print(f"{r['primary_deg']:9.1f} {r['secondary_deg']:10.1f} {r['error_mm']:9.3f} {r['uncorrected_mm']:15.3f}")
+    print(
+        f"median {result['median_mm']:.3f} mm, max {result['max_mm']:.3f} mm "
+        f"(target < 0.2 mm; without calibration median {result['uncorrected_median_mm']:.2f} mm)"
+    )
+    return 0
+
+
+
+def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
+    """``roadmap3d bench``: a table, or one JSON object with ``--json``."""
+    out = bench.collect(quick=quick, seed=seed, log=None if json else _stderr)
+    if json:
+        print(_json_dumps(out))
+        return 0
+    drr, gd_ms, reg = out["drr"], out["gradient_difference_ms_median"], out["registration"]
+    print("DRR (median ms)        fast    reference   speed-up")
+    for row in drr:
+        ratio = row["reference_ms_median"] / row["ms_median"]
+        print(
+            f"  {row['image_px']:>3}^2 from {row['volume_px']:>3}^3  {row['ms_median']:7.2f}  "
+            f"{row['reference_ms_median']:10.1f}   {ratio:8.0f}x"
+        )
+    print(f"gradient difference     {gd_ms:.3f} ms median")
+    print(
+        f"registration            {reg['seconds_median']:.2f} s median over T1-T4, "
+        f"{100 * reg['success_rate']:.0f} % successful"
+    )
+    if "reconstruction" in out:
+        rec = out["reconstruction"]
+        print(
+            f"reconstruction          {rec['seconds']:.1f} s ({rec['projections']} projections -> {rec['volume_px']}^3)"
+        )
+    print(f"peak memory             {out['peak_rss_mb']:.0f} MB")
+    return 0
+
+
+def _json_dumps(obj: dict) -> str:
+    return json_module.dumps(obj, default=float)

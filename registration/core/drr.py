@@ -1,0 +1,604 @@
+"""Digitally reconstructed radiographs (DRRs): a fast renderer and a slow reference.
+
+A DRR pixel is the line integral of the linear attenuation coefficient (1/mm) along the ray
+from the X-ray source through the pixel center, through the volume moved by the patient motion
+``M`` (CONVENTIONS.md §4: anatomy the volume shows at X is at ``M @ X``). Larger values mean
+more attenuation, as the X-ray images of CONVENTIONS.md §5.
+
+The renderer works from the geometry's general projection matrix ``P = K [I | -S]``, never from
+the nominal angles, so shifted and tilted (calibrated) geometries are exact: the source is the
+null space of ``P`` and the ray through pixel (col, row) runs along ``inv(K) @ (col, row, 1)``.
+With motion, ``P_eff = P @ M``: the source and rays are moved by ``inv(M)`` into the volume's
+world frame, then mapped to voxel indices with ``volume.world_to_index``.
+
+:class:`DRRRenderer` (numba, parallel over image rows) uses Joseph's method: every ray steps
+one slice at a time along its dominant index axis and interpolates bilinearly within the slice,
+which is trilinear interpolation sampled at the slices (step = 1 voxel along that axis); the
+samples are integrated by the trapezoid rule, with the partial slices at both ends of the
+clipped ray integrated exactly, so the DRR is continuous in the pose. A finer ``step_voxels``
+switches to a trilinear marcher. Rays are clipped (slab method) to the box of voxels that can
+contribute (non-zero attenuation, padded by one voxel), so exactly-zero air around the anatomy
+costs nothing (noisy air, above -1000 HU, does count). :func:`render_reference` samples every
+ray with
+``scipy.ndimage.map_coordinates`` at fine steps: slow, obviously correct, the yardstick of the
+tests and of the benchmark.
+
+Both treat the volume as the trilinear interpolant of the voxel centers, zero outside the box
+spanned by the outer voxel centers.
+"""
+
+from __future__ import annotations
+
+import math
+import types
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from registration.core.geometry import CArm, check_rigid
+from registration.core.volume import Volume, hu_to_mu_per_mm
+
+FloatImage = NDArray[np.float32]
+
+#: Default sampling step of the reference renderer, in voxels (of the smallest spacing).
+REFERENCE_STEP_VOXELS = 0.5
+
+
+#: Image rows per work item of the parallel loop (small: balances threads when the machine
+#: is shared and the mask or the clipped volume makes some rows cheaper than others).
+_ROW_CHUNK = 4
+
+#: Below this many samples (pixels x largest volume dimension) the serial kernel is used.
+_SERIAL_SAMPLES = 100_000
+
+#: Zero voxels padded on every side of the volume copies the kernels read (see _render_joseph).
+_PAD = 2
+
+
+# --------------------------------------------------------------------------------------
+# Ray set-up shared by both renderers
+# --------------------------------------------------------------------------------------
+@numba.njit(cache=True)
+def _ray_setup(p: np.ndarray, index_from_world: np.ndarray, motion: np.ndarray, out_source, out_a) -> int:
+    """Source and ray directions in voxel indices; returns 0, or 1 if ``motion`` is not rigid.
+
+    ``P = K [I | -S]``: S = -inv(K) p4 and the ray through (c, r) runs along inv(K) (c, r, 1).
+    The volume moved by M is seen through P @ M, so source and rays are moved by inv(M).
+    """
+    # rigidity of the motion: finite, last row (0, 0, 0, 1), orthonormal block, det > 0
+    for i in range(4):
+        for j in range(4):
+            if not np.isfinite(motion[i, j]):
+                return 1
+    if abs(motion[3, 0]) > 1e-9 or abs(motion[3, 1]) > 1e-9 or abs(motion[3, 2]) > 1e-9:
+        return 1
+    if abs(motion[3, 3] - 1.0) > 1e-9:
+        return 1
+    for i in range(3):
+        for j in range(3):
+            dot = motion[0, i] * motion[0, j] + motion[1, i] * motion[1, j] + motion[2, i] * motion[2, j]
+            if abs(dot - (1.0 if i == j else 0.0)) > 1e-6:
+                return 1
+    det = (
+        motion[0, 0] * (motion[1, 1] * motion[2, 2] - motion[1, 2] * motion[2, 1])
+        - motion[0, 1] * (motion[1, 0] * motion[2, 2] - motion[1, 2] * motion[2, 0])
+        + motion[0, 2] * (motion[1, 0] * motion[2, 1] - motion[1, 1] * motion[2, 0])
+    )
+    if det <= 0:
+        return 1
+    k_inv = np.ascontiguousarray(np.linalg.inv(np.ascontiguousarray(p[:, :3])))
+    source_world = -(k_inv @ np.ascontiguousarray(p[:, 3]))
+    # volume_from_world = inv(M) = [R^T | -R^T t]
+    rt = motion[:3, :3].T.copy()
+    t = motion[:3, 3].copy()
+    src_vol = rt @ (source_world - t)
+    lin = index_from_world[:3, :3].copy()
+    out_source[:] = lin @ src_vol + index_from_world[:3, 3]
+    out_a[:, :] = lin @ (rt @ k_inv)
+    return 0
+
+
+_IDENTITY = np.eye(4)
+
+
+def _rays_in_index_space(
+    index_from_world: NDArray[np.float64], geometry: CArm, motion: ArrayLike | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Source (3,) and the 3x3 ``A`` with direction(col, row) = A @ (col, row, 1), in voxel indices.
+
+    The ray parameter t runs from the source (t = 0): X(t) = S + t * A @ (c, r, 1).
+    """
+    if not isinstance(geometry, CArm):
+        raise ValueError(f"geometry must be a CArm, got {type(geometry).__name__}")
+    if motion is None:
+        m = _IDENTITY
+    else:
+        m = np.asarray(motion, dtype=np.float64)
+        if m.shape != (4, 4):
+            raise ValueError(f"motion must be a 4x4 matrix, got shape {m.shape}")
+    source = np.empty(3)
+    a_mat = np.empty((3, 3))
+    if _ray_setup(geometry.projection_matrix, index_from_world, m, source, a_mat) != 0:
+        check_rigid(m, name="motion")  # raises with the reason
+        raise ValueError("motion is not a rigid transform")
+    return source, a_mat
+
+
+# --------------------------------------------------------------------------------------
+# The compiled kernels
+# --------------------------------------------------------------------------------------
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _clip(
+    s0: float, s1: float, s2: float, d0: float, d1: float, d2: float, lo: np.ndarray, hi: np.ndarray
+) -> tuple[float, float]:
+    """Slab clip of X(t) = S + t D to the box [lo, hi] (index space), t >= 0."""
+    tmin = 0.0
+    tmax = 1e30
+    s = (s0, s1, s2)
+    d = (d0, d1, d2)
+    for a in range(3):
+        if abs(d[a]) < 1e-12:
+            if s[a] < lo[a] or s[a] > hi[a]:
+                return 1.0, 0.0
+        else:
+            inv = 1.0 / d[a]
+            t0 = (lo[a] - s[a]) * inv
+            t1 = (hi[a] - s[a]) * inv
+            if t0 > t1:
+                t0, t1 = t1, t0
+            if t0 > tmin:
+                tmin = t0
+            if t1 < tmax:
+                tmax = t1
+    return tmin, tmax
+
+
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _bilinear(arr: np.ndarray, base_m: np.uint64, pf: np.float32, qf: np.float32, usq: np.uint64) -> np.float32:
+    """Bilinear sample of the slice starting at ``base_m`` at (p, q) = (pf, qf) (padded indices).
+
+    p is the contiguous axis, q has stride ``usq``; pf, qf >= 0 (the padding keeps them so).
+    """
+    ip = np.int32(pf)
+    iq = np.int32(qf)
+    fp = pf - np.float32(ip)
+    fq = qf - np.float32(iq)
+    base = base_m + np.uint64(iq) * usq + np.uint64(ip)
+    v00 = arr[base]
+    v10 = arr[base + np.uint64(1)]
+    v01 = arr[base + usq]
+    v11 = arr[base + usq + np.uint64(1)]
+    a0 = v00 + fp * (v10 - v00)
+    a1 = v01 + fp * (v11 - v01)
+    return a0 + fq * (a1 - a0)
+
+
+def _joseph(
+    mu: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD) volume
+    mu_t: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, ni + 2 PAD, nj + 2 PAD) volume
+    shape_ijk: np.ndarray,  # int64 (ni, nj, nk), unpadded
+    lo: np.ndarray,  # float64 (3,) clip box in (unpadded) index space
+    hi: np.ndarray,
+    source: np.ndarray,  # float64 (3,) source in (unpadded) index space
+    a_mat: np.ndarray,  # float64 (3, 3): direction = A @ (c, r, 1)
+    i2w: np.ndarray,  # float64 (3, 3): index -> world linear part (lengths in mm)
+    mask: np.ndarray,  # uint8 (rows, cols); ignored when use_mask is False
+    use_mask: bool,
+    out: np.ndarray,  # float32 (rows, cols)
+) -> None:
+    """Joseph's method: bilinear samples on the slices of each ray's dominant axis m.
+
+    The samples at the integer slices inside the clipped ray [e0, e1], plus one beyond each
+    end, are integrated as a function linear between slices: the trapezoid rule inside, and
+    the exact area of the interpolated ends over the partial slices. So a ray leaving through
+    a cut (non-air) face of the volume, or ending a hair before a slice by rounding, is
+    integrated correctly, and the result is continuous in the pose (no slice-count jumps).
+
+    The volume is padded by PAD = 2 zero voxels on every side, so every sample (including
+    the two beyond the ends) has its bilinear footprint in memory without clamping; indices
+    are unsigned (no negative-index wraparound code in the inner loop). Rays dominated by the
+    i axis read ``mu_t``, the copy whose fastest axis is j, so the two samples of a bilinear
+    pair are always adjacent in memory.
+    """
+    rows, cols = out.shape
+    ni, nj, nk = shape_ijk[0], shape_ijk[1], shape_ijk[2]
+    ni_p, nj_p = ni + 2 * _PAD, nj + 2 * _PAD
+    s0, s1, s2 = source[0], source[1], source[2]
+    for r in numba.prange(rows):
+        for c in range(cols):
+            out[r, c] = 0.0
+            if use_mask and mask[r, c] == 0:
+                continue
+            d0 = a_mat[0, 0] * c + a_mat[0, 1] * r + a_mat[0, 2]
+            d1 = a_mat[1, 0] * c + a_mat[1, 1] * r + a_mat[1, 2]
+            d2 = a_mat[2, 0] * c + a_mat[2, 1] * r + a_mat[2, 2]
+            tmin, tmax = _clip(s0, s1, s2, d0, d1, d2, lo, hi)
+            if not tmin < tmax:
+                continue
+            # dominant axis m; minor axes p (contiguous in memory) and q
+            ad0, ad1, ad2 = abs(d0), abs(d1), abs(d2)
+            if ad0 >= ad1 and ad0 >= ad2:  # m = i: mu_t, p = j, q = k
+                arr = mu_t
+                nm, np_, nq = ni, nj, nk
+                dm, dp, dq, sm, sp, sq = d0, d1, d2, s0, s1, s2
+                str_m = nj_p
+                str_q = nj_p * ni_p
+            elif ad1 >= ad2:  # m = j: p = i, q = k
+                arr = mu
+                nm, np_, nq = nj, ni, nk
+                dm, dp, dq, sm, sp, sq = d1, d0, d2, s1, s0, s2
+                str_m = ni_p
+                str_q = ni_p * nj_p
+            else:  # m = k: p = i, q = j
+                arr = mu
+                nm, np_, nq = nk, ni, nj
+                dm, dp, dq, sm, sp, sq = d2, d0, d1, s2, s0, s1
+                str_m = ni_p * nj_p
+                str_q = ni_p
+            e0 = sm + tmin * dm
+            e1 = sm + tmax * dm
+            if e0 > e1:
+                e0, e1 = e1, e0
+            e0 = max(e0, 0.0)
+            e1 = min(e1, nm - 1.0)
+            if not e0 < e1:
+                continue
+            m_first = int(math.ceil(e0))
+            m_last = int(math.floor(e1))
+            n_inner = max(m_last - m_first, 0)  # m_last = m_first - 1: within one slice interval
+            rp = dp / dm
+            rq = dq / dm
+            # p, q one slice before the first sample and one after the last
+            p_before = sp + (m_first - 1 - sm) * rp
+            q_before = sq + (m_first - 1 - sm) * rq
+            p_after = p_before + (n_inner + 2) * rp
+            q_after = q_before + (n_inner + 2) * rq
+            # Guard the memory footprint against any numerical surprise (never taken for rays
+            # clipped to the box: the samples lie within one voxel of it).
+            if (
+                min(p_before, p_after) < -1.5
+                or max(p_before, p_after) > np_ + 0.5
+                or min(q_before, q_after) < -1.5
+                or max(q_before, q_after) > nq + 0.5
+            ):
+                continue
+            w0 = i2w[0, 0] * d0 + i2w[0, 1] * d1 + i2w[0, 2] * d2
+            w1 = i2w[1, 0] * d0 + i2w[1, 1] * d1 + i2w[1, 2] * d2
+            w2 = i2w[2, 0] * d0 + i2w[2, 1] * d1 + i2w[2, 2] * d2
+            step_mm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / abs(dm)
+            usm = np.uint64(str_m)
+            usq = np.uint64(str_q)
+            base_m = np.uint64(m_first - 1 + _PAD) * usm
+            pf = np.float32(p_before + _PAD)
+            qf = np.float32(q_before + _PAD)
+            rpf = np.float32(rp)
+            rqf = np.float32(rq)
+            v_before = _bilinear(arr, base_m, pf, qf, usq)
+            pf += rpf
+            qf += rqf
+            base_m += usm
+            v_first = _bilinear(arr, base_m, pf, qf, usq)
+            v_last = v_first
+            acc = v_first
+            for _ in range(n_inner):
+                pf += rpf
+                qf += rqf
+                base_m += usm
+                v_last = _bilinear(arr, base_m, pf, qf, usq)
+                acc += v_last
+            pf += rpf
+            qf += rqf
+            base_m += usm
+            v_after = _bilinear(arr, base_m, pf, qf, usq)
+            if e1 < m_first:  # inside one slice interval [m_first - 1, m_first]
+                f = np.float32(0.5 * (e0 + e1) - (m_first - 1))
+                total = np.float32(e1 - e0) * (v_before + f * (v_first - v_before))
+            else:
+                # trapezoid over [m_first, m_last], then the partial slices at both ends
+                f0 = np.float32(m_first - e0)
+                f1 = np.float32(e1 - m_last)
+                v_e0 = v_first + f0 * (v_before - v_first)
+                v_e1 = v_last + f1 * (v_after - v_last)
+                total = acc - np.float32(0.5) * (v_first + v_last)
+                total += np.float32(0.5) * (f0 * (v_e0 + v_first) + f1 * (v_e1 + v_last))
+            out[r, c] = total * np.float32(step_mm)
+
+
+def _renamed(fn: types.FunctionType, name: str) -> types.FunctionType:
+    """A copy of ``fn`` under another name. numba's on-disk cache keys compiled code by the
+    function's name and line, so two dispatchers of one function (parallel and serial) would
+    share a cache entry and one would silently load the other's code."""
+    copy = types.FunctionType(fn.__code__.replace(co_name=name), fn.__globals__, name, fn.__defaults__)
+    copy.__qualname__ = name
+    copy.__doc__ = fn.__doc__
+    return copy
+
+
+_render_joseph = numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)(
+    _renamed(_joseph, "_joseph_parallel")
+)
+_render_joseph_serial = numba.njit(parallel=False, fastmath=True, cache=True, nogil=True)(
+    _renamed(_joseph, "_joseph_serial")
+)
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)
+def _render_trilinear(
+    mu: np.ndarray,  # float32, flat, padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD)
+    shape_ijk: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    source: np.ndarray,
+    a_mat: np.ndarray,
+    i2w: np.ndarray,
+    mask: np.ndarray,
+    use_mask: bool,
+    step_voxels: float,
+    out: np.ndarray,
+) -> None:
+    """Trilinear marcher, ``step_voxels`` along the dominant axis (midpoint rule)."""
+    rows, cols = out.shape
+    ni, nj = shape_ijk[0] + 2 * _PAD, shape_ijk[1] + 2 * _PAD
+    s0, s1, s2 = source[0] + _PAD, source[1] + _PAD, source[2] + _PAD  # padded indices
+    imax, jmax, kmax = ni - 2, nj - 2, shape_ijk[2] + 2 * _PAD - 2
+    lo_p = lo + _PAD
+    hi_p = hi + _PAD
+    for r in numba.prange(rows):
+        for c in range(cols):
+            out[r, c] = 0.0
+            if use_mask and mask[r, c] == 0:
+                continue
+            d0 = a_mat[0, 0] * c + a_mat[0, 1] * r + a_mat[0, 2]
+            d1 = a_mat[1, 0] * c + a_mat[1, 1] * r + a_mat[1, 2]
+            d2 = a_mat[2, 0] * c + a_mat[2, 1] * r + a_mat[2, 2]
+            tmin, tmax = _clip(s0, s1, s2, d0, d1, d2, lo_p, hi_p)
+            if not tmin < tmax:
+                continue
+            dmax = max(abs(d0), abs(d1), abs(d2))
+            nsteps = max(int(math.ceil((tmax - tmin) * dmax / step_voxels)), 1)
+            dt = (tmax - tmin) / nsteps
+            w0 = i2w[0, 0] * d0 + i2w[0, 1] * d1 + i2w[0, 2] * d2
+            w1 = i2w[1, 0] * d0 + i2w[1, 1] * d1 + i2w[1, 2] * d2
+            w2 = i2w[2, 0] * d0 + i2w[2, 1] * d1 + i2w[2, 2] * d2
+            step_mm = dt * math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            t = tmin + 0.5 * dt
+            x = s0 + t * d0
+            y = s1 + t * d1
+            z = s2 + t * d2
+            dx, dy, dz = dt * d0, dt * d1, dt * d2
+            acc = 0.0
+            for _ in range(nsteps):
+                ii = min(max(int(x), 0), imax)
+                jj = min(max(int(y), 0), jmax)
+                kk = min(max(int(z), 0), kmax)
+                fx = x - ii
+                fy = y - jj
+                fz = z - kk
+                base = (kk * nj + jj) * ni + ii
+                c00 = mu[base] + fx * (mu[base + 1] - mu[base])
+                c10 = mu[base + ni] + fx * (mu[base + ni + 1] - mu[base + ni])
+                b2 = base + ni * nj
+                c01 = mu[b2] + fx * (mu[b2 + 1] - mu[b2])
+                c11 = mu[b2 + ni] + fx * (mu[b2 + ni + 1] - mu[b2 + ni])
+                c0 = c00 + fy * (c10 - c00)
+                c1 = c01 + fy * (c11 - c01)
+                acc += c0 + fz * (c1 - c0)
+                x += dx
+                y += dy
+                z += dz
+            out[r, c] = acc * step_mm
+
+
+# --------------------------------------------------------------------------------------
+# The fast renderer
+# --------------------------------------------------------------------------------------
+class _Level:
+    """One pyramid level ready for the kernels: padded attenuation arrays and the clip box."""
+
+    def __init__(self, volume: Volume) -> None:
+        self.volume = volume
+        mu = hu_to_mu_per_mm(volume.data)  # (nk, nj, ni)
+        padded = np.pad(mu, _PAD)
+        self.mu = padded.reshape(-1)
+        # copy with j fastest, for rays dominated by the i axis
+        self.mu_t = np.ascontiguousarray(padded.transpose(0, 2, 1)).reshape(-1)
+        nk, nj, ni = volume.shape
+        self.shape_ijk = np.array([ni, nj, nk], dtype=np.int64)
+        self.index_from_world = np.ascontiguousarray(volume.world_to_index)
+        self.index_to_world3 = np.ascontiguousarray(volume.index_to_world[:3, :3])
+        # box of voxels that can contribute: non-zero attenuation, padded by one voxel
+        nz = np.nonzero(mu > 0)
+        if nz[0].size == 0:
+            self.lo = np.zeros(3)
+            self.hi = -np.ones(3)  # empty box: every ray misses
+        else:
+            lo_kji = np.array([ax.min() for ax in nz]) - 1
+            hi_kji = np.array([ax.max() for ax in nz]) + 1
+            self.lo = np.maximum(lo_kji[::-1], 0).astype(np.float64)
+            self.hi = np.minimum(hi_kji[::-1], self.shape_ijk - 1).astype(np.float64)
+
+
+class DRRRenderer:
+    """Fast DRRs of one volume for the optimizer, over a multi-resolution pyramid.
+
+    Parameters
+    ----------
+    volume
+        The registration volume in HU; converted once to attenuation per mm
+        (:func:`registration.core.volume.hu_to_mu_per_mm`, air -> 0).
+    levels
+        Pyramid levels: level 0 is the full volume, level L is downsampled by 2**L
+        (fewer levels if the volume gets too small; see ``n_levels``).
+    step_voxels
+        Sampling step along each ray's dominant index axis, in voxels. 1.0 (default) uses
+        Joseph's method (one bilinear sample per slice, the fastest); other values use a
+        trilinear marcher.
+
+    Attributes
+    ----------
+    count
+        Number of DRRs rendered so far (every :meth:`render` call adds one).
+    """
+
+    def __init__(self, volume: Volume, *, levels: int = 3, step_voxels: float = 1.0) -> None:
+        if not isinstance(volume, Volume):
+            raise ValueError(f"volume must be a registration.core.volume.Volume, got {type(volume).__name__}")
+        if int(levels) != levels or levels < 1:
+            raise ValueError(f"levels must be a positive integer, got {levels}")
+        step_voxels = float(step_voxels)
+        if not math.isfinite(step_voxels) or not 0.01 <= step_voxels <= 4.0:
+            raise ValueError(f"step_voxels must lie in [0.01, 4], got {step_voxels}")
+        self.volume = volume
+        self.step_voxels = step_voxels
+        self._levels = [_Level(v) for v in volume.pyramid(int(levels))]
+        self.count = 0
+        self._no_mask = np.zeros((1, 1), dtype=np.uint8)
+
+    @property
+    def n_levels(self) -> int:
+        return len(self._levels)
+
+    def level_volume(self, level: int) -> Volume:
+        """The (HU) volume of pyramid ``level``."""
+        return self._levels[self._check_level(level)].volume
+
+    def _check_level(self, level: int) -> int:
+        if isinstance(level, bool) or int(level) != level or not 0 <= level < len(self._levels):
+            raise ValueError(f"level must be an integer in [0, {len(self._levels) - 1}], got {level}")
+        return int(level)
+
+    def render(
+        self,
+        geometry: CArm,
+        motion: ArrayLike | None = None,
+        *,
+        level: int = 0,
+        mask: NDArray[np.bool_] | None = None,
+        out: FloatImage | None = None,
+        parallel: bool | None = None,
+    ) -> FloatImage:
+        """DRR (rows, cols) float32 of the volume moved by ``motion`` seen through ``geometry``.
+
+        ``parallel``: use the multi-threaded kernel (None: only for jobs big enough to gain);
+        pass False when several Python threads render at once, each on its own core.
+
+        ``motion``: 4x4 rigid patient motion M (CONVENTIONS.md §4), identity when None.
+        ``level``: pyramid level of the volume (0 = full resolution); the image size is the
+        geometry's (pass ``geometry.resized(rows, cols)`` for coarser images).
+        ``mask`` (bool, rows x cols): pixels where it is False are not rendered and set to 0.
+        ``out``: a C-contiguous float32 (rows, cols) buffer to fill and return (no allocation).
+        """
+        lev = self._levels[self._check_level(level)]
+        source, a_mat = _rays_in_index_space(lev.index_from_world, geometry, motion)
+        shape = (geometry.rows, geometry.cols)
+        if out is None:
+            out = np.empty(shape, dtype=np.float32)
+        elif (
+            not isinstance(out, np.ndarray)
+            or out.shape != shape
+            or out.dtype != np.float32
+            or not out.flags.c_contiguous
+            or not out.flags.writeable
+        ):
+            raise ValueError(f"out must be a writable C-contiguous float32 array of shape {shape}")
+        if mask is None:
+            mask_u8, use_mask = self._no_mask, False
+        else:
+            mask = np.asarray(mask)
+            if mask.shape != shape:
+                raise ValueError(f"mask shape {mask.shape} does not match the image shape {shape}")
+            if mask.dtype != np.bool_:
+                raise ValueError(f"mask must be boolean, got dtype {mask.dtype}")
+            mask_u8, use_mask = np.ascontiguousarray(mask).view(np.uint8), True
+        previous_chunk = numba.get_parallel_chunksize()
+        numba.set_parallel_chunksize(_ROW_CHUNK)
+        try:
+            if self.step_voxels == 1.0:
+                # small jobs run serially: a parallel launch costs more than it saves
+                serial = geometry.rows * geometry.cols * int(lev.shape_ijk.max()) < _SERIAL_SAMPLES
+                if parallel is not None:
+                    serial = not parallel
+                kernel = _render_joseph_serial if serial else _render_joseph
+                kernel(
+                    lev.mu, lev.mu_t, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
+                    mask_u8, use_mask, out,
+                )  # fmt: skip
+            else:
+                _render_trilinear(
+                    lev.mu, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
+                    mask_u8, use_mask, self.step_voxels, out,
+                )  # fmt: skip
+        finally:
+            numba.set_parallel_chunksize(previous_chunk)
+        self.count += 1
+        return out
+
+
+# --------------------------------------------------------------------------------------
+# The reference renderer
+# --------------------------------------------------------------------------------------
+def render_reference(
+    volume: Volume,
+    geometry: CArm,
+    motion: ArrayLike | None = None,
+    *,
+    step_mm: float | None = None,
+) -> FloatImage:
+    """Slow, obviously correct DRR: ``map_coordinates`` (order 1) along every ray.
+
+    Each ray from the source through a pixel center is clipped to the box spanned by the outer
+    voxel centers and sampled at the midpoints of the fewest equal sub-intervals no longer than
+    ``step_mm`` (default: half the smallest voxel spacing, ``REFERENCE_STEP_VOXELS``); the sum
+    times the sub-interval length approximates the integral of attenuation per mm. Rays that
+    miss the volume cost nothing.
+    """
+    if step_mm is None:
+        step_mm = REFERENCE_STEP_VOXELS * float(volume.spacing_mm.min())
+    step_mm = float(step_mm)
+    if not math.isfinite(step_mm) or step_mm <= 0:
+        raise ValueError(f"step_mm must be positive and finite, got {step_mm}")
+    mu = hu_to_mu_per_mm(volume.data)
+    nk, nj, ni = volume.shape
+    source, a_mat = _rays_in_index_space(volume.world_to_index, geometry, motion)
+    rr, cc = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
+    pix = np.stack([cc.ravel(), rr.ravel(), np.ones(cc.size)]).astype(np.float64)  # (3, N)
+    dirs = a_mat @ pix  # index-space directions, (3, N)
+    # slab clip to [0, n-1] per axis, t >= 0
+    hi = np.array([ni - 1, nj - 1, nk - 1], dtype=np.float64)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (0.0 - source[:, None]) / dirs
+        t1 = (hi - source[:, None]) / dirs
+    parallel = dirs == 0
+    inside = (source[:, None] >= 0) & (source[:, None] <= hi)
+    t_near = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
+    t_far = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+    tmin = np.maximum(t_near.max(axis=0), 0.0)
+    tmax = t_far.min(axis=0)
+    length_t = np.maximum(tmax - tmin, 0.0)
+    # world length per unit t
+    world_dirs = volume.index_to_world[:3, :3] @ dirs
+    mm_per_t = np.linalg.norm(world_dirs, axis=0)
+    chord_mm = length_t * mm_per_t
+    # every ray gets its own number of equal sub-intervals, none longer than step_mm
+    counts = np.where(chord_mm > 0, np.ceil(chord_mm / step_mm), 0).astype(np.int64)
+    result = np.zeros(cc.size, dtype=np.float64)
+    rays = np.flatnonzero(counts)
+    max_points = 4_000_000
+    start = 0
+    while start < rays.size:
+        # a chunk of rays with at most max_points samples (at least one ray)
+        cum = np.cumsum(counts[rays[start:]])
+        stop = start + max(1, int(np.searchsorted(cum, max_points, side="right")))
+        chunk = rays[start:stop]
+        n = counts[chunk]
+        owner = np.repeat(np.arange(chunk.size), n)
+        first = np.cumsum(n) - n
+        k = np.arange(owner.size) - first[owner]  # sample index within its ray
+        t = tmin[chunk][owner] + (k + 0.5) / n[owner] * length_t[chunk][owner]  # midpoints
+        pts = source[:, None] + dirs[:, chunk][:, owner] * t  # (3, samples) as (i, j, k)
+        vals = ndimage.map_coordinates(mu, pts[::-1], order=1, mode="constant", cval=0.0, prefilter=False)
+        result[chunk] = np.add.reduceat(vals, first) * chord_mm[chunk] / n
+        start = stop
+    return result.reshape(geometry.rows, geometry.cols).astype(np.float32)

@@ -1,0 +1,101 @@
+"""The X-ray image as the engine sees it: attenuation line integrals, a field mask, a geometry.
+
+CONVENTIONS.md §5: larger values mean more attenuation; pixels outside the collimated field
+carry no signal and never drive the similarity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.core.geometry import CArm
+
+#: Kinds of image an :class:`XRayImage` may carry.
+IMAGE_KINDS = ("fluoro", "exposure", "drr", "dicom")
+
+
+@dataclass(frozen=True)
+class XRayImage:
+    """An X-ray image as the engine uses it.
+
+    Attributes
+    ----------
+    image
+        (rows, cols) float32 attenuation line integrals (CONVENTIONS §5: larger = more
+        attenuation); zero outside the field.
+    mask
+        (rows, cols) bool, True inside the collimated field (the only usable pixels).
+    geometry
+        The C-arm view the image was taken with (rows and cols match the image).
+    kind
+        One of ``IMAGE_KINDS``: "fluoro", "exposure", "drr" or "dicom".
+    meta
+        Free-form provenance (dose, seed, devices, ...).
+    """
+
+    image: NDArray[np.float32]
+    mask: NDArray[np.bool_]
+    geometry: CArm
+    kind: str = "fluoro"
+    meta: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        image = np.asarray(self.image)
+        mask = np.asarray(self.mask)
+        if not isinstance(self.geometry, CArm):
+            raise ValueError(f"geometry must be a CArm, got {type(self.geometry).__name__}")
+        if image.ndim != 2:
+            raise ValueError(f"image must be 2-D (rows, cols), got shape {image.shape}")
+        if not np.issubdtype(image.dtype, np.number):
+            raise ValueError(f"image must be numeric, got dtype {image.dtype}")
+        expected = (self.geometry.rows, self.geometry.cols)
+        if image.shape != expected:
+            raise ValueError(
+                f"image shape {image.shape} does not match the geometry's rows x cols {expected}"
+            )
+        if mask.shape != image.shape:
+            raise ValueError(f"mask shape {mask.shape} does not match image shape {image.shape}")
+        if mask.dtype != np.bool_:
+            raise ValueError(f"mask must be boolean, got dtype {mask.dtype}")
+        if not mask.any():
+            raise ValueError("mask is empty: no pixel of the image lies inside the field")
+        image = np.ascontiguousarray(image, dtype=np.float32)
+        bad = ~np.isfinite(image) & mask
+        if bad.any():
+            raise ValueError(f"image has {int(bad.sum())} NaN or infinite pixels inside the mask")
+        if self.kind not in IMAGE_KINDS:
+            raise ValueError(f"kind must be one of {IMAGE_KINDS}, got {self.kind!r}")
+        object.__setattr__(self, "image", image)
+        object.__setattr__(self, "mask", np.ascontiguousarray(mask))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.image.shape[0]), int(self.image.shape[1]))
+
+    def downsample(self, factor: int) -> XRayImage:
+        """Average ``factor`` x ``factor`` pixel blocks; the mask keeps blocks wholly inside.
+
+        The geometry is resized to the same detector area (pixel centers stay exact), so
+        ``rows`` and ``cols`` must be multiples of ``factor``.
+        """
+        if int(factor) != factor or factor < 1:
+            raise ValueError(f"factor must be a positive integer, got {factor}")
+        factor = int(factor)
+        if factor == 1:
+            return self
+        rows, cols = self.shape
+        if rows % factor or cols % factor:
+            raise ValueError(f"image {rows}x{cols} is not a multiple of the factor {factor}")
+        if rows // factor < 2 or cols // factor < 2:
+            raise ValueError(f"image {rows}x{cols} too small to downsample by {factor}")
+        r, c = rows // factor, cols // factor
+        img = np.where(self.mask, self.image, 0.0).reshape(r, factor, c, factor).mean(axis=(1, 3))
+        mask = self.mask.reshape(r, factor, c, factor).all(axis=(1, 3))
+        if not mask.any():
+            raise ValueError(f"no {factor}x{factor} block lies wholly inside the field")
+        img = np.where(mask, img, 0.0).astype(np.float32)
+        meta = {**self.meta, "downsampled_by": factor * int(self.meta.get("downsampled_by", 1))}
+        return XRayImage(img, mask, self.geometry.resized(r, c), self.kind, meta)

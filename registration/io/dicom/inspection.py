@@ -1,0 +1,119 @@
+"""What the project reads from a file or folder, for ``roadmap3d info``."""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydicom.dataset import Dataset
+from pydicom.uid import (
+    UID,
+)
+
+from registration.core.volume import Volume
+from registration.io.dicom._common import (
+    _frames,
+    _is_xray,
+    _sop_class,
+    _text,
+    _transfer_syntax,
+    read_dataset,
+)
+from registration.io.dicom.volumes import read_volume
+from registration.io.dicom.xray import read_xray, read_xray_angles
+
+
+def _range(values: NDArray[Any]) -> list[float]:
+    return [float(np.min(values)), float(np.max(values))] if values.size else []
+
+
+#: Header tags that ``inspect`` shows when present (what the readers look at).
+HEADER_TAGS = (
+    "Rows",
+    "Columns",
+    "NumberOfFrames",
+    "PixelSpacing",
+    "ImagerPixelSpacing",
+    "ImagePositionPatient",
+    "ImageOrientationPatient",
+    "RescaleSlope",
+    "RescaleIntercept",
+    "PositionerPrimaryAngle",
+    "PositionerSecondaryAngle",
+    "DistanceSourceToDetector",
+    "DistanceSourceToPatient",
+    "PixelIntensityRelationship",
+    "PixelIntensityRelationshipSign",
+    "ShutterShape",
+)
+
+
+def inspect(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """What the project reads from ``path``: kind, geometry, shape, spacing, value range.
+
+    Never raises for bad input: the result says ``accepted: False`` and gives the ``problem``;
+    for a DICOM file the ``header`` entry lists the tags the readers look at.
+    """
+    path = Path(path)
+    out: dict[str, Any] = {"path": str(path)}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            if path.is_dir() or path.suffix.lower() == ".npz":
+                out.update(_inspect_volume(read_volume(path)))
+            else:
+                ds = read_dataset(path, stop_before_pixels=True)
+                out["sop_class"] = UID(_sop_class(ds)).name if _sop_class(ds) else ""
+                out["modality"] = _text(ds, "Modality")
+                ts = _transfer_syntax(ds)
+                out["transfer_syntax"] = ts.name if ts is not None else ""
+                out["header"] = {k: _text(ds, k) for k in HEADER_TAGS if _text(ds, k)}
+                if _is_xray(ds):
+                    out.update(_inspect_xray(path, ds))
+                else:
+                    out.update(_inspect_volume(read_volume(path)))
+            out["accepted"] = True
+        except (ValueError, OSError) as exc:
+            out["accepted"] = False
+            out["problem"] = str(exc)
+    out["warnings"] = sorted({str(w.message) for w in caught})
+    return out
+
+
+def _inspect_volume(volume: Volume) -> dict[str, Any]:
+    nk, nj, ni = volume.shape
+    return {
+        "kind": "volume",
+        "format": volume.meta.get("format", ""),
+        "label": volume.label,
+        "shape_kji": [nk, nj, ni],
+        "spacing_mm_ijk": [round(float(s), 6) for s in volume.spacing_mm],
+        "index_to_world": np.round(volume.index_to_world, 6).tolist(),
+        "center_mm": [round(float(c), 3) for c in volume.center_mm],
+        "value_range_hu": [round(v, 1) for v in _range(volume.data)],
+    }
+
+
+def _inspect_xray(path: Path, header: Dataset) -> dict[str, Any]:
+    frames = _frames(path, header)
+    image = read_xray(path, frame=0)
+    sign = image.meta.get("pixel_intensity_relationship_sign")
+    out: dict[str, Any] = {
+        "kind": "xray",
+        "format": image.meta.get("format", ""),
+        "image_kind": image.kind,
+        "frames": frames,
+        "geometry": image.geometry.to_dict(),
+        "field_pixels": int(image.mask.sum()),
+        "mask_from": image.meta.get("mask_from"),
+        "intensity": f"{image.meta.get('pixel_intensity_relationship')}, sign {sign:+d}",
+        "attenuation_range": [round(v, 4) for v in _range(image.image[image.mask])],
+    }
+    if frames > 1:
+        angles = read_xray_angles(path)
+        out["angles_deg"] = [[round(a, 3), round(b, 3)] for a, b in angles[:12]] + (["..."] if frames > 12 else [])
+    return out

@@ -1,0 +1,563 @@
+"""3DRA/CT volumes: DICOM slice series, enhanced multi-frame files, the project's ``.npz``.
+
+Volumes (CONVENTIONS §2)
+    A folder of slices (CT Image Storage and the like) is sorted by position along the slice
+    normal (never by file name); orientation, pixel spacing and size must agree across slices.
+    Gantry tilt and uneven slice spacing are *rejected* (not resampled) with a message. An
+    enhanced multi-frame file (Enhanced CT, X-Ray 3D Angiographic) is read through its
+    functional groups. RescaleSlope/RescaleIntercept give HU. ``index_to_world`` maps
+    (i, j, k) = (column, row, slice) to LPS mm exactly as DICOM defines it.
+
+Writing: a classic CT slice series, one Enhanced CT file, or the ``.npz``.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydicom.dataset import Dataset
+from pydicom.sequence import Sequence as DicomSequence
+from pydicom.uid import (
+    UID,
+    CTImageStorage,
+    EnhancedCTImageStorage,
+    MediaStorageDirectoryStorage,
+)
+
+from registration.core.volume import Volume
+from registration.io.dicom._common import (
+    ENHANCED_VOLUME_CLASSES,
+    IN_PLANE_TOLERANCE,
+    ORIENTATION_TOLERANCE,
+    POSITION_TOLERANCE_MM,
+    SPACING_TOLERANCE,
+    VOLUME_MODALITIES,
+    XRAY_CLASSES,
+    Array,
+    DicomError,
+    _base,
+    _candidate_files,
+    _check_pixel_module,
+    _ds_number,
+    _float,
+    _floats,
+    _frames,
+    _is_xray,
+    _pixels,
+    _save,
+    _short,
+    _sop_class,
+    _text,
+    make_uid,
+    read_dataset,
+    tag_name,
+)
+from registration.io.dicom._files import (
+    _atomic_path,
+    atomic_folder,
+)
+
+
+# --------------------------------------------------------------------------------------
+# Volumes
+# --------------------------------------------------------------------------------------
+@dataclass
+class _Slice:
+    source: str
+    position: Array
+    orientation: Array  # 6 direction cosines (row direction, column direction)
+    spacing: tuple[float, float]  # PixelSpacing: (row spacing, column spacing)
+    rows: int
+    cols: int
+    slope: float
+    intercept: float
+    load: Callable[[], NDArray[Any]]
+
+
+def _orientation(path: Path, values: list[float]) -> Array:
+    iop = np.asarray(values, dtype=np.float64)
+    row, col = iop[:3], iop[3:]
+    if abs(np.linalg.norm(row) - 1) > 1e-3 or abs(np.linalg.norm(col) - 1) > 1e-3 or abs(row @ col) > 1e-3:
+        raise DicomError(path, f"{tag_name('ImageOrientationPatient')} is not two orthogonal unit vectors: {values}")
+    row = row / np.linalg.norm(row)
+    col = col - (col @ row) * row
+    return np.concatenate([row, col / np.linalg.norm(col)])
+
+
+def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Volume:
+    """Sort slices along the slice normal, check the stack and build the volume."""
+    if len(slices) < 2:
+        s = slices[0]
+        raise DicomError(
+            source,
+            f"holds a single 2-D image ({s.rows} x {s.cols}), not a volume: a volume needs at least "
+            "2 slices (a folder of slices or a multi-frame file)",
+        )
+    ref = slices[0]
+    for s in slices[1:]:
+        if (s.rows, s.cols) != (ref.rows, ref.cols):
+            raise DicomError(
+                s.source,
+                f"{tag_name('Rows')}/{tag_name('Columns')} {s.rows}x{s.cols} differ from "
+                f"{ref.rows}x{ref.cols} of {ref.source} (mixed series?)",
+            )
+        if np.max(np.abs(s.orientation - ref.orientation)) > ORIENTATION_TOLERANCE:
+            raise DicomError(
+                s.source,
+                f"{tag_name('ImageOrientationPatient')} differs from {ref.source}: slices of one volume "
+                "share one orientation (mixed series?)",
+            )
+        if np.max(np.abs(np.subtract(s.spacing, ref.spacing))) > 1e-4 * max(ref.spacing):
+            raise DicomError(
+                s.source, f"{tag_name('PixelSpacing')} {s.spacing} differs from {ref.spacing} of {ref.source}"
+            )
+    row_dir, col_dir = ref.orientation[:3], ref.orientation[3:]
+    normal = np.cross(row_dir, col_dir)
+    along = np.array([s.position @ normal for s in slices])
+    order = np.argsort(along, kind="stable")
+    slices = [slices[i] for i in order]
+    along = along[order]
+    steps = np.diff(along)
+    if np.any(steps < POSITION_TOLERANCE_MM):
+        i = int(np.argmin(steps))
+        raise DicomError(
+            source,
+            f"two slices at the same {tag_name('ImagePositionPatient')} ({slices[i].source} and "
+            f"{slices[i + 1].source}): several series, time points or echoes mixed?",
+        )
+    # Fit along = start + k * step; every slice must sit on that line.
+    k = np.arange(len(slices), dtype=np.float64)
+    step, start = (float(v) for v in np.polyfit(k, along, 1))
+    if np.max(np.abs(along - (start + k * step))) > POSITION_TOLERANCE_MM + SPACING_TOLERANCE * step:
+        raise DicomError(
+            source,
+            f"uneven slice spacing along the slice normal ({tag_name('ImagePositionPatient')}): steps from "
+            f"{steps.min():.4g} to {steps.max():.4g} mm (a missing slice?); uneven stacks are rejected, "
+            "not resampled",
+        )
+    first = slices[0].position
+    lateral = np.array([s.position - first for s in slices]) - np.outer(along - along[0], normal)
+    if np.max(np.linalg.norm(lateral, axis=1)) > POSITION_TOLERANCE_MM + IN_PLANE_TOLERANCE * min(ref.spacing):
+        tilt = math.degrees(math.atan2(float(np.linalg.norm(lateral[-1])), float(along[-1] - along[0])))
+        raise DicomError(
+            source,
+            f"slices are shifted within their plane along the stack ({tag_name('ImagePositionPatient')}, "
+            f"gantry tilt of about {tilt:.2f} deg); tilted stacks are rejected, not resampled",
+        )
+    data = np.empty((len(slices), ref.rows, ref.cols), dtype=np.float32)
+    for k, s in enumerate(slices):
+        pixels = s.load()
+        if pixels.shape != (ref.rows, ref.cols):
+            raise DicomError(
+                s.source, f"{tag_name('PixelData')} has shape {pixels.shape}, expected {ref.rows}x{ref.cols}"
+            )
+        data[k] = pixels.astype(np.float32) * np.float32(s.slope) + np.float32(s.intercept)
+    affine = np.eye(4)
+    affine[:3, 0] = row_dir * ref.spacing[1]  # i: along a row (increasing column index)
+    affine[:3, 1] = col_dir * ref.spacing[0]  # j: down a column (increasing row index)
+    affine[:3, 2] = normal * step
+    affine[:3, 3] = first + (start - along[0]) * normal
+    meta = dict(meta, slices=len(slices), slice_spacing_mm=step, pixel_spacing_mm=list(ref.spacing))
+    try:
+        return Volume(data=data, index_to_world=affine, label=label, meta=meta)
+    except ValueError as exc:
+        raise DicomError(source, str(exc)) from None
+
+
+def _check_volume_modality(path: Path, ds: Dataset) -> None:
+    sop = _sop_class(ds)
+    modality = _text(ds, "Modality").upper()
+    if sop in XRAY_CLASSES:
+        raise DicomError(
+            path,
+            f"is an {XRAY_CLASSES[sop]} projection image ({tag_name('SOPClassUID')}), not a volume: "
+            "give it as the X-ray image (--image)",
+        )
+    if sop in ENHANCED_VOLUME_CLASSES or sop == CTImageStorage:
+        return
+    if modality not in VOLUME_MODALITIES:
+        name = UID(sop).name if sop else "unknown class"
+        raise DicomError(
+            path,
+            f"wrong modality: {tag_name('Modality')} is {modality or 'missing'} ({name}); the registration "
+            "needs a volume in Hounsfield units (CT or 3DRA)",
+        )
+
+
+def _slice_from_dataset(path: Path, ds: Dataset) -> _Slice:
+    rows, cols = _check_pixel_module(path, ds, 1)
+    iop = _orientation(path, _floats(path, ds, "ImageOrientationPatient", 6) or [])
+    ipp = np.asarray(_floats(path, ds, "ImagePositionPatient", 3), dtype=np.float64)
+    spacing = _floats(path, ds, "PixelSpacing", 2) or []
+    if min(spacing) <= 0:
+        raise DicomError(path, f"{tag_name('PixelSpacing')} must be positive, got {spacing}")
+    slope = _float(path, ds, "RescaleSlope", default=1.0)
+    intercept = _float(path, ds, "RescaleIntercept", default=0.0)
+    return _Slice(
+        source=str(path),
+        position=ipp,
+        orientation=iop,
+        spacing=(spacing[0], spacing[1]),
+        rows=rows,
+        cols=cols,
+        slope=slope,
+        intercept=intercept,
+        load=lambda: _pixels(path, ds),
+    )
+
+
+def _enhanced_volume(path: Path, ds: Dataset, *, label: str | None) -> Volume:
+    frames = _frames(path, ds)
+    rows, cols = _check_pixel_module(path, ds, frames)
+    if "PerFrameFunctionalGroupsSequence" not in ds and "SharedFunctionalGroupsSequence" not in ds:
+        raise DicomError(
+            path,
+            f"multi-frame file without {tag_name('PerFrameFunctionalGroupsSequence')}: the slice positions are unknown",
+        )
+    per_frame = ds.get("PerFrameFunctionalGroupsSequence") or []
+    if len(per_frame) not in (0, frames):
+        raise DicomError(
+            path,
+            f"{tag_name('PerFrameFunctionalGroupsSequence')} has {len(per_frame)} items for {frames} frames",
+        )
+    cache: dict[str, NDArray[Any]] = {}
+
+    def frame_loader(n: int) -> Callable[[], NDArray[Any]]:
+        def load() -> NDArray[Any]:
+            if "all" not in cache:
+                pixels = _pixels(path, ds)
+                cache["all"] = pixels.reshape(frames, rows, cols) if frames > 1 else pixels[None]
+            return cache["all"][n]
+
+        return load
+
+    slices = []
+    for n in range(frames):
+        where = f"{path} frame {n}"
+        iop = _orientation(Path(where), _floats(Path(where), ds, "ImageOrientationPatient", 6, n) or [])
+        ipp = np.asarray(_floats(Path(where), ds, "ImagePositionPatient", 3, n), dtype=np.float64)
+        spacing = _floats(Path(where), ds, "PixelSpacing", 2, n) or []
+        if min(spacing) <= 0:
+            raise DicomError(where, f"{tag_name('PixelSpacing')} must be positive, got {spacing}")
+        slices.append(
+            _Slice(
+                source=where,
+                position=ipp,
+                orientation=iop,
+                spacing=(spacing[0], spacing[1]),
+                rows=rows,
+                cols=cols,
+                slope=_float(path, ds, "RescaleSlope", n, default=1.0),
+                intercept=_float(path, ds, "RescaleIntercept", n, default=0.0),
+                load=frame_loader(n),
+            )
+        )
+    kind = ENHANCED_VOLUME_CLASSES.get(_sop_class(ds), "multi-frame")
+    meta = _volume_meta(path, ds, kind)
+    return _stack(slices, path, label=label or _volume_label(ds, path, kind), meta=meta)
+
+
+def _volume_label(ds: Dataset, path: Path, kind: str) -> str:
+    derivation = _text(ds, "DerivationDescription")
+    if derivation:
+        return derivation
+    description = _text(ds, "SeriesDescription")
+    modality = _text(ds, "Modality") or "?"
+    return f"{modality} {kind} '{description}' ({path.name})"
+
+
+def _volume_meta(path: Path, ds: Dataset, kind: str) -> dict:
+    return {
+        "source": str(path),
+        "format": kind,
+        "modality": _text(ds, "Modality"),
+        "sop_class": _sop_class(ds),
+        "series_uid": _text(ds, "SeriesInstanceUID"),
+        "frame_of_reference_uid": _text(ds, "FrameOfReferenceUID"),
+        "series_description": _text(ds, "SeriesDescription"),
+    }
+
+
+def read_series(folder: str | os.PathLike[str], *, label: str | None = None) -> Volume:
+    """A volume from a folder of single-frame slices (or holding one multi-frame file)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DicomError(folder, "not a folder")
+    datasets: list[tuple[Path, Dataset]] = []
+    skipped: list[str] = []
+    for p in _candidate_files(folder):
+        try:
+            ds = read_dataset(p)
+        except DicomError as exc:
+            skipped.append(str(exc))
+            continue
+        if _sop_class(ds) == MediaStorageDirectoryStorage:
+            continue
+        datasets.append((p, ds))
+    if not datasets:
+        why = f" ({skipped[0]})" if skipped else ""
+        raise DicomError(folder, f"no DICOM files in the folder{why}")
+    projections = [(p, ds) for p, ds in datasets if _is_xray(ds)]
+    if len(projections) == len(datasets):
+        _check_volume_modality(*projections[0])  # raises: a projection image is not a volume
+    if projections:  # an XA/RF file beside the slices (an upload holding both): not a slice
+        datasets = [(p, ds) for p, ds in datasets if not _is_xray(ds)]
+        skipped += [f"{p}: {XRAY_CLASSES.get(_sop_class(ds), 'X-ray')} projection image" for p, ds in projections]
+    by_series: dict[str, list[tuple[Path, Dataset]]] = {}
+    for p, ds in datasets:
+        by_series.setdefault(_text(ds, "SeriesInstanceUID") or "(no SeriesInstanceUID)", []).append((p, ds))
+    if len(by_series) > 1:
+        parts = ", ".join(
+            f"{len(v)} file(s) of {_text(v[0][1], 'Modality') or '?'} '{_text(v[0][1], 'SeriesDescription')}'"
+            for v in by_series.values()
+        )
+        raise DicomError(
+            folder,
+            f"mixed series: {len(by_series)} different {tag_name('SeriesInstanceUID')} values ({parts}); "
+            "give the folder of one series",
+        )
+    for p, ds in datasets:
+        _check_volume_modality(p, ds)
+    if len(datasets) == 1 and _frames(*datasets[0]) > 1:
+        return _enhanced_volume(datasets[0][0], datasets[0][1], label=label)
+    for p, ds in datasets:
+        if _frames(p, ds) > 1:
+            raise DicomError(p, f"multi-frame file ({tag_name('NumberOfFrames')}) mixed with single slices")
+    slices = [_slice_from_dataset(p, ds) for p, ds in datasets]
+    first = datasets[0][1]
+    meta = _volume_meta(folder, first, "slice series")
+    meta["skipped_files"] = skipped[:20]
+    return _stack(slices, folder, label=label or _volume_label(first, folder, "series"), meta=meta)
+
+
+def read_npz(path: str | os.PathLike[str]) -> Volume:
+    """The project's volume file: arrays ``data`` (k, j, i), ``index_to_world`` (4x4), ``label``."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in ("data", "index_to_world") if k not in npz.files]
+            if missing:
+                raise DicomError(path, f"missing array(s) {', '.join(missing)} in the .npz volume")
+            data = np.asarray(npz["data"])
+            affine = np.asarray(npz["index_to_world"], dtype=np.float64)
+            label = str(npz["label"]) if "label" in npz.files else path.name
+    except DicomError:
+        raise
+    except FileNotFoundError:
+        raise DicomError(path, "no such file") from None
+    except Exception as exc:
+        raise DicomError(path, f"not a readable .npz volume ({type(exc).__name__}: {_short(exc)})") from None
+    try:
+        return Volume(data=data, index_to_world=affine, label=label, meta={"source": str(path), "format": "npz"})
+    except ValueError as exc:
+        raise DicomError(path, str(exc)) from None
+
+
+def read_volume(path: str | os.PathLike[str], *, label: str | None = None) -> Volume:
+    """A volume from a DICOM folder, an enhanced multi-frame file or the project's ``.npz``."""
+    path = Path(path)
+    if not path.exists():
+        raise DicomError(path, "no such file or folder")
+    if path.is_dir():
+        return read_series(path, label=label)
+    if path.suffix.lower() == ".npz":
+        volume = read_npz(path)
+        return volume if label is None else volume.with_data(volume.data, label=label)
+    ds = read_dataset(path)
+    _check_volume_modality(path, ds)
+    if _frames(path, ds) > 1:
+        return _enhanced_volume(path, ds, label=label)
+    return _stack([_slice_from_dataset(path, ds)], path, label="", meta={})
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+def _volume_axes(volume: Volume) -> tuple[Array, Array, Array, tuple[float, float], float]:
+    a = volume.index_to_world[:3, :3]
+    spacing = np.linalg.norm(a, axis=0)
+    row_dir, col_dir, k_axis = a[:, 0] / spacing[0], a[:, 1] / spacing[1], a[:, 2] / spacing[2]
+    if abs(row_dir @ col_dir) > 1e-6:
+        raise ValueError("the volume's i and j axes are not orthogonal: it cannot be written as DICOM slices")
+    normal = np.cross(row_dir, col_dir)
+    if abs(abs(k_axis @ normal) - 1.0) > 1e-6:
+        raise ValueError("the volume's slice axis is not perpendicular to its slices (sheared/tilted affine)")
+    return row_dir, col_dir, normal, (float(spacing[1]), float(spacing[0])), float(spacing[2])
+
+
+def _hu_to_int16(data: NDArray[np.float32]) -> NDArray[np.int16]:
+    return np.clip(np.rint(data), -32768, 32767).astype(np.int16)
+
+
+def write_series(
+    volume: Volume,
+    folder: str | os.PathLike[str],
+    *,
+    modality: str = "CT",
+    description: str | None = None,
+    study_uid: str | None = None,
+    uid_seed: str | None = None,
+    patient_name: str = "roadmap3d^phantom",
+    patient_id: str = "ROADMAP3D",
+) -> list[Path]:
+    """Write ``volume`` as a classic CT Image Storage slice series into ``folder`` (new or empty).
+
+    Values are HU rounded to int16 (RescaleSlope 1, RescaleIntercept 0, RescaleType HU), so
+    they read back within 0.5 HU. Slice k goes to ``slice_{k:04d}.dcm`` at
+    ``index_to_world @ (0, 0, k, 1)``. The folder appears only when every slice is written.
+    """
+    row_dir, col_dir, _normal, pixel_spacing, slice_mm = _volume_axes(volume)
+    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
+    series = make_uid(uid_seed, "series", volume.label)
+    frame_of_reference = make_uid(uid_seed, "frame of reference")
+    description = description or (volume.label or "roadmap3d volume")[:64]
+    nk, nj, ni = volume.shape
+    pixels = _hu_to_int16(volume.data)
+    written: list[Path] = []
+    with atomic_folder(folder) as tmp:
+        for k in range(nk):
+            position = volume.index_to_world @ np.array([0.0, 0.0, float(k), 1.0])
+            ds = _base(
+                CTImageStorage,
+                modality,
+                study_uid=study,
+                series_uid=series,
+                instance_uid=make_uid(uid_seed, "slice", k, volume.label),
+                series_number=1,
+                description=description[:64],
+                patient_name=patient_name,
+                patient_id=patient_id,
+            )
+            ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
+            if volume.label:
+                ds.DerivationDescription = volume.label[:1024]
+            ds.FrameOfReferenceUID = frame_of_reference
+            ds.PositionReferenceIndicator = ""
+            ds.InstanceNumber = k + 1
+            ds.ImagePositionPatient = [_ds_number(v) for v in position[:3]]
+            ds.ImageOrientationPatient = [_ds_number(v) for v in (*row_dir, *col_dir)]
+            ds.PixelSpacing = [_ds_number(pixel_spacing[0]), _ds_number(pixel_spacing[1])]
+            ds.SliceThickness = _ds_number(slice_mm)
+            ds.SpacingBetweenSlices = _ds_number(slice_mm)
+            ds.SliceLocation = _ds_number(float(position[:3] @ _normal))
+            ds.KVP = "90"
+            ds.SamplesPerPixel = 1
+            ds.PhotometricInterpretation = "MONOCHROME2"
+            ds.Rows, ds.Columns = nj, ni
+            ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
+            ds.PixelRepresentation = 1
+            ds.RescaleIntercept = "0"
+            ds.RescaleSlope = "1"
+            ds.RescaleType = "HU"
+            ds.WindowCenter, ds.WindowWidth = "300", "1500"
+            ds.PixelData = np.ascontiguousarray(pixels[k]).tobytes()
+            name = f"slice_{k:04d}.dcm"
+            _save(ds, tmp / name)
+            written.append(Path(folder) / name)
+    return written
+
+
+def write_enhanced(
+    volume: Volume,
+    path: str | os.PathLike[str],
+    *,
+    description: str | None = None,
+    study_uid: str | None = None,
+    uid_seed: str | None = None,
+    patient_name: str = "roadmap3d^phantom",
+    patient_id: str = "ROADMAP3D",
+) -> Path:
+    """Write ``volume`` as one Enhanced CT multi-frame file (frame k = slice k), int16 HU."""
+    row_dir, col_dir, _normal, pixel_spacing, slice_mm = _volume_axes(volume)
+    nk, nj, ni = volume.shape
+    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
+    ds = _base(
+        EnhancedCTImageStorage,
+        "CT",
+        study_uid=study,
+        series_uid=make_uid(uid_seed, "enh series"),
+        instance_uid=make_uid(uid_seed, "enh instance"),
+        series_number=2,
+        description=(description or volume.label or "roadmap3d volume")[:64],
+        patient_name=patient_name,
+        patient_id=patient_id,
+    )
+    ds.ImageType = ["DERIVED", "SECONDARY", "VOLUME", "NONE"]
+    if volume.label:
+        ds.DerivationDescription = volume.label[:1024]
+    ds.FrameOfReferenceUID = make_uid(uid_seed, "frame of reference")
+    ds.PositionReferenceIndicator = ""
+    ds.InstanceNumber = 1
+    ds.ContentQualification = "RESEARCH"
+    ds.AcquisitionDateTime = datetime.now(UTC).strftime("%Y%m%d%H%M%S")
+    ds.BurnedInAnnotation = "NO"
+    ds.NumberOfFrames = nk
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.Rows, ds.Columns = nj, ni
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
+    ds.PixelRepresentation = 1
+    ds.PresentationLUTShape = "IDENTITY"
+    ds.LossyImageCompression = "00"
+    shared = Dataset()
+    measures = Dataset()
+    measures.PixelSpacing = [_ds_number(pixel_spacing[0]), _ds_number(pixel_spacing[1])]
+    measures.SliceThickness = _ds_number(slice_mm)
+    measures.SpacingBetweenSlices = _ds_number(slice_mm)
+    shared.PixelMeasuresSequence = DicomSequence([measures])
+    orientation = Dataset()
+    orientation.ImageOrientationPatient = [_ds_number(v) for v in (*row_dir, *col_dir)]
+    shared.PlaneOrientationSequence = DicomSequence([orientation])
+    transform = Dataset()
+    transform.RescaleIntercept = "0"
+    transform.RescaleSlope = "1"
+    transform.RescaleType = "HU"
+    shared.PixelValueTransformationSequence = DicomSequence([transform])
+    frame_type = Dataset()
+    frame_type.FrameType = ["DERIVED", "SECONDARY", "VOLUME", "NONE"]
+    shared.CTImageFrameTypeSequence = DicomSequence([frame_type])
+    ds.SharedFunctionalGroupsSequence = DicomSequence([shared])
+    per_frame = []
+    for k in range(nk):
+        item = Dataset()
+        position = Dataset()
+        position.ImagePositionPatient = [
+            _ds_number(v) for v in (volume.index_to_world @ np.array([0.0, 0.0, float(k), 1.0]))[:3]
+        ]
+        item.PlanePositionSequence = DicomSequence([position])
+        content = Dataset()
+        content.InStackPositionNumber = k + 1
+        content.StackID = "1"
+        content.DimensionIndexValues = [1, k + 1]
+        item.FrameContentSequence = DicomSequence([content])
+        per_frame.append(item)
+    ds.PerFrameFunctionalGroupsSequence = DicomSequence(per_frame)
+    ds.PixelData = _hu_to_int16(volume.data).tobytes()
+    path = Path(path)
+    with _atomic_path(path) as tmp:
+        _save(ds, tmp)
+    return path
+
+
+def write_npz(volume: Volume, path: str | os.PathLike[str]) -> Path:
+    """The project's volume file (``data``, ``index_to_world``, ``label``), written atomically."""
+    path = Path(path)
+    buffer = io.BytesIO()
+    np.savez_compressed(
+        buffer,
+        data=volume.data.astype(np.float32),
+        index_to_world=volume.index_to_world,
+        label=np.array(volume.label),
+    )
+    with _atomic_path(path) as tmp:
+        tmp.write_bytes(buffer.getvalue())
+    return path

@@ -1,0 +1,503 @@
+"""XA/RF projection images: reading (geometry, intensities, field mask) and writing.
+
+X-ray images (CONVENTIONS §3, §5)
+    XA and RF, single or multi-frame, classic or enhanced. The C-arm comes from
+    PositionerPrimaryAngle, PositionerSecondaryAngle, DistanceSourceToDetector,
+    DistanceSourceToPatient and ImagerPixelSpacing (PixelSpacing as a fallback, with a
+    warning). Per-frame angles of a classic multi-frame image follow DICOM C.8.7.5.1.3: a
+    single increment value is the constant change per frame (angle_n = angle + n * inc); a
+    vector is the offset of each frame from the (initial) angle (angle_n = angle + inc[n]).
+
+    Intensities become attenuation line integrals (larger = more attenuation). With
+    ``m = RescaleSlope * stored + RescaleIntercept`` (slope 1, intercept 0 when absent),
+    ``m_max`` the largest representable ``m`` (from BitsStored), and ``a = m`` for sign -1
+    (higher values = less X-ray intensity) or ``a = m_max - m`` for sign +1 (lower values =
+    less intensity), so that ``a`` grows with attenuation:
+
+    * LOG: ``attenuation = (a - LOG_ZERO_VALUE) / LOG_UNITS_PER_ATTENUATION``
+    * LIN: intensity ``I = m_max - a``; ``attenuation = ln(I_ref / max(I, 1))`` with ``I_ref``
+      the largest ``I`` in the field.
+
+    (DISP, or a missing relationship, is read as LOG with a warning.) The project writes
+    LOG, sign +1 (vessels and bone dark, as viewers show XA), 16-bit unsigned pixels
+    ``65535 - LOG_ZERO_VALUE - round(LOG_UNITS_PER_ATTENUATION * attenuation)`` clipped to
+    1..65535 (attenuation -1 .. 64.5: the quantum noise of air, slightly below zero,
+    survives), and 0 outside the collimated field (no X-ray intensity behind the collimator),
+    so its files read back within 0.5 / LOG_UNITS_PER_ATTENUATION.
+    For other software's LOG images the scale of the logarithm is not stored in DICOM; the
+    result is then attenuation in units of 1/1000 of a stored step, which the similarity
+    measure (gradient difference fits an intensity scale) does not mind.
+
+    The field mask (pixels that carry signal) is the intersection of the display shutters
+    (ShutterShape CIRCULAR with CenterOfCircularShutter/RadiusOfCircularShutter, and/or
+    RECTANGULAR with the four edges; 1-based pixel positions) and the complement of the
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from collections.abc import Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydicom.datadict import tag_for_keyword
+from pydicom.dataset import Dataset
+from pydicom.uid import (
+    UID,
+    XRayAngiographicImageStorage,
+)
+from scipy import ndimage
+
+from registration.core.geometry import CArm
+from registration.io.dicom._common import (
+    ENHANCED_VOLUME_CLASSES,
+    LOG_UNITS_PER_ATTENUATION,
+    LOG_ZERO_VALUE,
+    NO_SIGNAL_VALUE,
+    WRITTEN_SIGN,
+    XRAY_CLASSES,
+    DicomError,
+    _base,
+    _check_pixel_module,
+    _ds_number,
+    _float,
+    _floats,
+    _frames,
+    _max_stored,
+    _pixels,
+    _save,
+    _sop_class,
+    _text,
+    lookup,
+    make_uid,
+    read_dataset,
+    tag_name,
+)
+from registration.io.dicom._files import (
+    _atomic_path,
+)
+
+if TYPE_CHECKING:
+    from registration.core.images import XRayImage
+
+
+def _frame_angles(path: Path, ds: Dataset, frame: int, frames: int) -> tuple[float, float, str]:
+    """Primary and secondary angle of ``frame`` and where they came from."""
+    enhanced = "PerFrameFunctionalGroupsSequence" in ds or "SharedFunctionalGroupsSequence" in ds
+    primary = _float(path, ds, "PositionerPrimaryAngle", frame if enhanced else None)
+    secondary = _float(path, ds, "PositionerSecondaryAngle", frame if enhanced else None)
+    source = "per-frame functional groups" if enhanced else "positioner angles"
+    if not enhanced and frames > 1:
+        for keyword, base, which in (
+            ("PositionerPrimaryAngleIncrement", primary, 0),
+            ("PositionerSecondaryAngleIncrement", secondary, 1),
+        ):
+            inc = _floats(path, ds, keyword, None, required=False)
+            if not inc:
+                continue
+            if len(inc) == 1:
+                angle = base + frame * inc[0]
+            elif len(inc) == frames:
+                angle = base + inc[frame]
+            else:
+                raise DicomError(
+                    path,
+                    f"{tag_name(keyword)} holds {len(inc)} values for {frames} frames (1 or {frames} expected)",
+                )
+            if which == 0:
+                primary = angle
+            else:
+                secondary = angle
+            source = "positioner angles + angle increments"
+    return primary, secondary, source
+
+
+def _geometry(
+    path: Path,
+    ds: Dataset,
+    frame: int,
+    frames: int,
+    rows: int,
+    cols: int,
+    isocenter_mm: tuple[float, float, float],
+) -> tuple[CArm, dict]:
+    primary, secondary, angle_source = _frame_angles(path, ds, frame, frames)
+    sid = _float(path, ds, "DistanceSourceToDetector", frame)
+    sod_values = _floats(path, ds, "DistanceSourceToPatient", None, frame, required=False)
+    if sod_values is None:
+        sod_values = _floats(path, ds, "DistanceSourceToIsocenter", None, frame, required=False)
+    if sod_values is None:
+        raise DicomError(path, f"missing {tag_name('DistanceSourceToPatient')}")
+    spacing = _floats(path, ds, "ImagerPixelSpacing", 2, frame, required=False)
+    spacing_tag = "ImagerPixelSpacing"
+    if spacing is None:
+        spacing = _floats(path, ds, "PixelSpacing", 2, frame, required=False)
+        spacing_tag = "PixelSpacing"
+        if spacing is None:
+            raise DicomError(path, f"missing {tag_name('ImagerPixelSpacing')} (and no PixelSpacing)")
+        warnings.warn(
+            f"{path}: no {tag_name('ImagerPixelSpacing')}; using {tag_name('PixelSpacing')} {spacing} as the "
+            "spacing at the detector",
+            stacklevel=3,
+        )
+    try:
+        geometry = CArm(
+            primary_deg=primary,
+            secondary_deg=secondary,
+            sid_mm=sid,
+            sod_mm=sod_values[0],
+            rows=rows,
+            cols=cols,
+            pixel_mm=(spacing[0], spacing[1]),
+            isocenter_mm=isocenter_mm,
+        )
+    except ValueError as exc:
+        raise DicomError(
+            path,
+            f"inconsistent geometry ({tag_name('DistanceSourceToDetector')}, "
+            f"{tag_name('DistanceSourceToPatient')}, {tag_name(spacing_tag)}, positioner angles): {exc}",
+        ) from None
+    return geometry, {"angles_from": angle_source, "pixel_spacing_from": spacing_tag}
+
+
+def _intensity_to_attenuation(
+    path: Path, ds: Dataset, stored: NDArray[Any], frame: int, field: NDArray[np.bool_]
+) -> tuple[NDArray[np.float32], dict]:
+    relationship = _text(ds, "PixelIntensityRelationship").upper()
+    if not relationship:
+        found = lookup(ds, "PixelIntensityRelationship", frame)
+        relationship = str(found).upper() if found else ""
+    sign_value = lookup(ds, "PixelIntensityRelationshipSign", frame)
+    info: dict[str, Any] = {}
+    if relationship not in ("LOG", "LIN"):
+        warnings.warn(
+            f"{path}: {tag_name('PixelIntensityRelationship')} is {relationship or 'missing'}; reading the "
+            "pixels as LOG (approximate attenuation)",
+            stacklevel=3,
+        )
+        info["intensity_note"] = f"{relationship or 'missing'} read as LOG"
+        relationship = "LOG"
+    if sign_value is None or sign_value == "":
+        sign = 1
+        warnings.warn(f"{path}: missing {tag_name('PixelIntensityRelationshipSign')}; assuming +1", stacklevel=3)
+    else:
+        try:
+            sign = int(sign_value)
+        except (TypeError, ValueError):
+            raise DicomError(
+                path,
+                f"{tag_name('PixelIntensityRelationshipSign')} must be +1 or -1, got {str(sign_value)[:20]!r}",
+            ) from None
+        if sign not in (1, -1):
+            raise DicomError(path, f"{tag_name('PixelIntensityRelationshipSign')} must be +1 or -1, got {sign}")
+    slope = _float(path, ds, "RescaleSlope", frame, default=1.0)
+    intercept = _float(path, ds, "RescaleIntercept", frame, default=0.0)
+    m = stored.astype(np.float64) * slope + intercept
+    m_max = _max_stored(ds) * slope + intercept
+    upward = m if sign == -1 else m_max - m  # grows with attenuation
+    if relationship == "LOG":
+        att = (upward - LOG_ZERO_VALUE) / LOG_UNITS_PER_ATTENUATION
+    else:
+        intensity = m_max - upward
+        inside = intensity[field] if field.any() else intensity
+        ref = float(np.max(inside)) if inside.size else 1.0
+        att = np.log(max(ref, 1.0) / np.maximum(intensity, 1.0))
+    info.update(
+        pixel_intensity_relationship=relationship,
+        pixel_intensity_relationship_sign=sign,
+        rescale_slope=slope,
+        rescale_intercept=intercept,
+    )
+    return att.astype(np.float32), info
+
+
+def _shutter_mask(path: Path, ds: Dataset, rows: int, cols: int) -> NDArray[np.bool_] | None:
+    shape = _text(ds, "ShutterShape").upper()
+    if not shape:
+        return None
+    mask = np.ones((rows, cols), dtype=bool)
+    rr, cc = np.mgrid[0:rows, 0:cols]
+    used = False
+    if "CIRCULAR" in shape:
+        center = _floats(path, ds, "CenterOfCircularShutter", 2)
+        radius = _float(path, ds, "RadiusOfCircularShutter")
+        assert center is not None
+        mask &= (rr - (center[0] - 1)) ** 2 + (cc - (center[1] - 1)) ** 2 <= radius**2
+        used = True
+    if "RECTANGULAR" in shape:
+        left = _float(path, ds, "ShutterLeftVerticalEdge") - 1
+        right = _float(path, ds, "ShutterRightVerticalEdge") - 1
+        upper = _float(path, ds, "ShutterUpperHorizontalEdge") - 1
+        lower = _float(path, ds, "ShutterLowerHorizontalEdge") - 1
+        mask &= (cc >= left) & (cc <= right) & (rr >= upper) & (rr <= lower)
+        used = True
+    return mask if used else None
+
+
+def _border_mask(stored: NDArray[Any]) -> NDArray[np.bool_] | None:
+    """False where the image holds the corners' constant value, connected to the border."""
+    corners = {stored[0, 0].item(), stored[0, -1].item(), stored[-1, 0].item(), stored[-1, -1].item()}
+    if len(corners) != 1:
+        return None
+    value = corners.pop()
+    same = stored == value
+    labels, _ = ndimage.label(same)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    border = border[border > 0]
+    outside = np.isin(labels, border)
+    if outside.all():
+        return None
+    return ~outside
+
+
+def _field_rotation(path: Path, ds: Dataset, image: NDArray[Any]) -> tuple[NDArray[Any], str | None]:
+    rotation_value = ds.get("FieldOfViewRotation")
+    flip = _text(ds, "FieldOfViewHorizontalFlip").upper() == "YES"
+    try:
+        rotation = int(float(rotation_value)) % 360 if rotation_value not in (None, "") else 0
+    except (TypeError, ValueError):
+        raise DicomError(path, f"{tag_name('FieldOfViewRotation')} is not a number") from None
+    if rotation % 90:
+        raise DicomError(path, f"{tag_name('FieldOfViewRotation')} {rotation} is not a multiple of 90")
+    if rotation == 0 and not flip:
+        return image, None
+    if flip:
+        image = image[..., ::-1]
+    image = np.rot90(image, k=rotation // 90, axes=(-2, -1))
+    note = f"undid FieldOfViewRotation {rotation} deg" + (" and horizontal flip" if flip else "")
+    warnings.warn(f"{path}: {note} to restore the CONVENTIONS §3 image axes", stacklevel=3)
+    return np.ascontiguousarray(image), note
+
+
+def _xray_kind(ds: Dataset, kind: str | None) -> tuple[str, str]:
+    """The XRayImage kind and the acquisition type guessed from the header."""
+    from registration.core.images import IMAGE_KINDS
+
+    if _text(ds, "Modality").upper() == "RF" or "FLUORO" in _text(ds, "ImageType").upper():
+        acquisition = "fluoro"
+    else:
+        acquisition = "exposure"
+    if kind is not None:
+        if kind not in IMAGE_KINDS:
+            raise ValueError(f"kind must be one of {IMAGE_KINDS}, got {kind!r}")
+        return kind, acquisition
+    comments = (_text(ds, "ImageComments") + " " + _text(ds, "SeriesDescription")).lower()
+    for name in IMAGE_KINDS:
+        if f"roadmap3d {name}" in comments:  # written by the project
+            return name, name
+    return "dicom", acquisition
+
+
+def read_xray(
+    path: str | os.PathLike[str],
+    *,
+    frame: int | None = None,
+    isocenter_mm: ArrayLike = (0.0, 0.0, 0.0),
+    kind: str | None = None,
+) -> XRayImage:
+    """An XA/RF image (one frame) as attenuation line integrals with its field mask and C-arm.
+
+    ``frame`` is 0-based; a multi-frame file read without it gives frame 0 and a warning.
+    ``isocenter_mm`` places the iso-center (default: the world origin, CONVENTIONS §1).
+    """
+    from registration.core.images import XRayImage
+
+    path = Path(path)
+    iso = np.asarray(isocenter_mm, dtype=np.float64).reshape(-1)
+    if iso.shape != (3,) or not np.all(np.isfinite(iso)):
+        raise ValueError(f"isocenter_mm must be three finite numbers, got {isocenter_mm}")
+    ds = read_dataset(path)
+    sop = _sop_class(ds)
+    modality = _text(ds, "Modality").upper()
+    if sop not in XRAY_CLASSES and modality not in ("XA", "RF"):
+        name = UID(sop).name if sop else "unknown class"
+        raise DicomError(
+            path,
+            f"wrong modality: {tag_name('Modality')} is {modality or 'missing'} ({name}); an XA or RF "
+            "projection image is expected",
+        )
+    if sop in ENHANCED_VOLUME_CLASSES:
+        raise DicomError(path, f"is a {ENHANCED_VOLUME_CLASSES[sop]} volume, not a projection image")
+    frames = _frames(path, ds)
+    rows, cols = _check_pixel_module(path, ds, frames)
+    if frame is None:
+        if frames > 1:
+            warnings.warn(f"{path}: {frames} frames; using frame 0 (choose one with --frame)", stacklevel=2)
+        frame = 0
+    if not 0 <= int(frame) < frames:
+        raise DicomError(path, f"frame {frame} out of range: {tag_name('NumberOfFrames')} is {frames}")
+    frame = int(frame)
+    stored = _pixels(path, ds, index=frame if frames > 1 else None)
+    if stored.ndim == 3 and stored.shape[0] == 1:
+        stored = stored[0]
+    if stored.shape != (rows, cols):
+        raise DicomError(path, f"{tag_name('PixelData')} decodes to shape {stored.shape}, expected {rows}x{cols}")
+    stored, rotation_note = _field_rotation(path, ds, stored)
+    rows, cols = stored.shape
+    geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, (float(iso[0]), float(iso[1]), float(iso[2])))
+    shutter = None if rotation_note else _shutter_mask(path, ds, rows, cols)
+    border = _border_mask(stored)
+    if shutter is None and border is None:
+        warnings.warn(
+            f"{path}: no shutter ({tag_name('ShutterShape')}) and no constant collimator border; using the "
+            "whole image as the field",
+            stacklevel=2,
+        )
+        mask = np.ones((rows, cols), dtype=bool)
+        mask_source = "whole image"
+    else:
+        mask = np.ones((rows, cols), dtype=bool)
+        sources = []
+        if shutter is not None:
+            mask &= shutter
+            sources.append("shutter")
+        if border is not None:
+            mask &= border
+            sources.append("constant border")
+        mask_source = " and ".join(sources)
+    if not mask.any():
+        raise DicomError(path, f"the field is empty (shutter {tag_name('ShutterShape')} or pixel values)")
+    image, intensity = _intensity_to_attenuation(path, ds, stored, frame, mask)
+    image = np.where(mask, image, np.float32(0.0)).astype(np.float32)
+    meta: dict[str, Any] = {
+        "source": str(path),
+        "format": XRAY_CLASSES.get(sop, modality),
+        "modality": modality,
+        "frame": frame,
+        "frames": frames,
+        "mask_from": mask_source,
+        **geo_info,
+        **intensity,
+    }
+    if rotation_note:
+        meta["field_rotation"] = rotation_note
+    try:
+        image_kind, meta["acquisition"] = _xray_kind(ds, kind)
+        return XRayImage(image=image, mask=mask, geometry=geometry, kind=image_kind, meta=meta)
+    except ValueError as exc:
+        raise DicomError(path, str(exc)) from None
+
+
+def read_xray_angles(path: str | os.PathLike[str]) -> list[tuple[float, float]]:
+    """(primary_deg, secondary_deg) of every frame, without decoding the pixels."""
+    path = Path(path)
+    ds = read_dataset(path, stop_before_pixels=True)
+    frames = _frames(path, ds)
+    return [_frame_angles(path, ds, n, frames)[:2] for n in range(frames)]
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+def _encode_attenuation(image: NDArray[Any], mask: NDArray[np.bool_]) -> NDArray[np.uint16]:
+    upward = np.rint(np.asarray(image, dtype=np.float64) * LOG_UNITS_PER_ATTENUATION) + LOG_ZERO_VALUE
+    stored = np.where(mask, np.clip(65535 - upward, NO_SIGNAL_VALUE + 1, 65535), NO_SIGNAL_VALUE)
+    return stored.astype(np.uint16)
+
+
+def write_xray(
+    images: XRayImage | Sequence[XRayImage],
+    path: str | os.PathLike[str],
+    *,
+    study_uid: str | None = None,
+    uid_seed: str | None = None,
+    description: str | None = None,
+    patient_name: str = "roadmap3d^phantom",
+    patient_id: str = "ROADMAP3D",
+) -> Path:
+    """Write one XA image, or a multi-frame XA run (per-frame angles), per the module docstring.
+
+    Frames of a run share size, distances and pixel spacing; their angles are stored as the
+    first frame's PositionerPrimary/SecondaryAngle plus a per-frame vector of offsets in the
+    angle increment tags. The circular field goes into the shutter module and into the pixel
+    values (NO_SIGNAL_VALUE outside the field). Only the nominal geometry is stored: DICOM
+    has no place for the bending shifts of a true geometry.
+    """
+    frames = [images] if not isinstance(images, Sequence) else list(images)
+    if not frames:
+        raise ValueError("no image to write")
+    first = frames[0]
+    g0 = first.geometry
+    for img in frames[1:]:
+        g = img.geometry
+        if (g.rows, g.cols, g.sid_mm, g.sod_mm, g.pixel_mm) != (
+            g0.rows,
+            g0.cols,
+            g0.sid_mm,
+            g0.sod_mm,
+            g0.pixel_mm,
+        ):
+            raise ValueError("frames of one XA run must share size, SID, SOD and pixel spacing")
+    kind = getattr(first, "kind", "exposure")
+    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
+    ds = _base(
+        XRayAngiographicImageStorage,
+        "XA",
+        study_uid=study,
+        series_uid=make_uid(uid_seed, "xa series", kind, len(frames)),
+        instance_uid=make_uid(uid_seed, "xa instance", kind, len(frames)),
+        series_number=10,
+        description=(description or f"roadmap3d {kind}")[:64],
+        patient_name=patient_name,
+        patient_id=patient_id,
+    )
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
+    ds.InstanceNumber = 1
+    ds.ImageComments = (
+        f"roadmap3d {kind}: attenuation line integral = (65535 - {LOG_ZERO_VALUE} - stored value) / "
+        f"{LOG_UNITS_PER_ATTENUATION:g} (LOG, sign +1); {NO_SIGNAL_VALUE} outside the field"
+    )
+    ds.AcquisitionDateTime = datetime.now(UTC).strftime("%Y%m%d%H%M%S")
+    ds.KVP = "80"
+    ds.RadiationSetting = "SC" if kind == "fluoro" else "GR"
+    ds.PositionerPrimaryAngle = _ds_number(g0.primary_deg)
+    ds.PositionerSecondaryAngle = _ds_number(g0.secondary_deg)
+    ds.DistanceSourceToDetector = _ds_number(g0.sid_mm)
+    ds.DistanceSourceToPatient = _ds_number(g0.sod_mm)
+    ds.EstimatedRadiographicMagnificationFactor = _ds_number(g0.sid_mm / g0.sod_mm)
+    ds.ImagerPixelSpacing = [_ds_number(g0.pixel_mm[0]), _ds_number(g0.pixel_mm[1])]
+    ds.IntensifierSize = _ds_number(g0.field_diameter_mm)
+    if len(frames) == 1:
+        ds.PositionerMotion = "STATIC"
+    else:
+        ds.PositionerMotion = "DYNAMIC"
+        ds.NumberOfFrames = len(frames)
+        ds.FrameTime = "33.3"
+        ds.FrameIncrementPointer = tag_for_keyword("FrameTime")
+        ds.FrameDimensionPointer = [
+            tag_for_keyword("PositionerPrimaryAngleIncrement"),
+            tag_for_keyword("PositionerSecondaryAngleIncrement"),
+        ]
+        ds.PositionerPrimaryAngleIncrement = [_ds_number(img.geometry.primary_deg - g0.primary_deg) for img in frames]
+        ds.PositionerSecondaryAngleIncrement = [
+            _ds_number(img.geometry.secondary_deg - g0.secondary_deg) for img in frames
+        ]
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.Rows, ds.Columns = g0.rows, g0.cols
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
+    ds.PixelRepresentation = 0
+    ds.PixelIntensityRelationship = "LOG"
+    ds.PixelIntensityRelationshipSign = WRITTEN_SIGN
+    ds.LossyImageCompression = "00"
+    # The shutter must contain the whole field: DICOM stores integers, the field center may
+    # sit between pixels, so the circle is padded by one pixel (the pixel values give the edge).
+    center_row, center_col = (g0.rows - 1) / 2.0 + 1.0, (g0.cols - 1) / 2.0 + 1.0
+    radius_px = g0.field_diameter_mm / 2.0 / min(g0.pixel_mm)
+    ds.ShutterShape = "CIRCULAR"
+    ds.CenterOfCircularShutter = [int(round(center_row)), int(round(center_col))]
+    ds.RadiusOfCircularShutter = int(math.ceil(radius_px + 1.0))
+    stored = np.stack([_encode_attenuation(img.image, img.mask) for img in frames])
+    low, high = np.percentile(stored[0][first.mask], [0.5, 99.5])
+    ds.WindowCenter = _ds_number(round((low + high) / 2.0))
+    ds.WindowWidth = _ds_number(max(1.0, round(1.1 * (high - low))))
+    ds.PixelData = stored.tobytes()
+    path = Path(path)
+    with _atomic_path(path) as tmp:
+        _save(ds, tmp)
+    return path

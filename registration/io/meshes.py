@@ -1,0 +1,181 @@
+"""Vessel and bone surfaces of a volume (marching cubes), in world millimetres.
+
+Surfaces are extracted from the HU values (sub-voxel, scikit-image's marching cubes) and
+mapped through the volume's ``index_to_world`` (CONVENTIONS.md §2), so they overlay the
+volume and the DRRs exactly. Face winding is fixed so normals point out of the structure.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+from scipy import ndimage
+from skimage.measure import marching_cubes
+
+from registration.core.volume import Volume
+
+#: Iodinated contrast in vessels is ~ +300..+700 HU (CONVENTIONS §2); soft tissue stays below.
+VESSEL_HU = 250.0
+#: Cortical bone is ~ +1000..+2000 HU; its partial-volume rim is excluded from the vessels.
+BONE_HU = 700.0
+#: Voxels within this distance (voxels) of bone are not vessel (the bone's partial-volume rim).
+BONE_MARGIN_VOXELS = 2
+#: Vessel components smaller than this many voxels are dropped (noise, isolated bone specks).
+MIN_VESSEL_VOXELS = 40
+#: A light morphological opening (this many erosions then dilations with the 6-neighbour
+#: cross) finds the candidates' cores; only components holding a core are kept (an opening
+#: by reconstruction): specks and thin streaks of reconstruction noise have none, while thin
+#: arteries keep their full shape as long as they join a thicker part of the tree.
+OPENING_ITERATIONS = 1
+#: Components within this many voxels of the volume's border, or of the edge of the
+#: reconstructable region (voxels at UNRECONSTRUCTED_HU or below, what FDK sets outside its
+#: cylinder), are dropped when more than MAX_EDGE_FRACTION of their voxels lie there: bone
+#: cut by the border and cone-beam artefacts at the cylinder's edge form flat rings there, while
+#: arteries entering the volume (the carotids at its bottom) only pass through.
+EDGE_MARGIN_VOXELS = 3
+MAX_EDGE_FRACTION = 0.25
+UNRECONSTRUCTED_HU = -1000.0
+#: Arteries run in brain and soft tissue; thin facial bones and sinus walls whose partial-volume
+#: values fall between the thresholds border air. A component whose SHELL_VOXELS shell holds more
+#: than this fraction of air (< AIR_HU) is not a vessel. (On the phantom the vessel components'
+#: shells hold no air at all and every other component's at least 7 %; on its FDK
+#: reconstruction, whose air edges are smoothed, the ethmoid's 4-voxel shell holds 9 %.)
+MAX_SHELL_AIR_FRACTION = 0.02
+#: Thickness (voxels) of that shell.
+SHELL_VOXELS = 4
+AIR_HU = -300.0
+
+COLORS = {"vessels": (200, 40, 40, 255), "bone": (228, 218, 196, 255)}
+MESH_SUFFIXES = (".stl", ".ply", ".glb")
+
+
+def _surface(
+    field: NDArray[np.float32], level: float, index_to_world: NDArray[np.float64], step: int
+) -> trimesh.Trimesh | None:
+    if not (field.min() < level < field.max()):
+        return None
+    verts_kji, faces, _normals, _values = marching_cubes(field, level=level, step_size=step)
+    ijk = verts_kji[:, ::-1]
+    world = ijk @ index_to_world[:3, :3].T + index_to_world[:3, 3]
+    # After reordering (k, j, i) -> (i, j, k), scikit-image's winding gives outward normals
+    # for a positive-determinant affine; a mirroring affine reverses it.
+    if np.linalg.det(index_to_world[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    return trimesh.Trimesh(vertices=world, faces=faces, process=False)
+
+
+def _edge_region(hu: NDArray[np.float32]) -> NDArray[np.bool_]:
+    """Voxels within EDGE_MARGIN_VOXELS of the border or of the unreconstructed region."""
+    outside = hu <= UNRECONSTRUCTED_HU
+    m = EDGE_MARGIN_VOXELS
+    border = np.ones(hu.shape, dtype=bool)
+    border[m:-m, m:-m, m:-m] = False
+    return border | ndimage.binary_dilation(outside, iterations=m)
+
+
+def _vessel_components(hu: NDArray[np.float32], candidate: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Keep the candidate components that are big enough, clear of the volume's edges and
+    surrounded by tissue, not air."""
+    labels, count = ndimage.label(candidate)
+    if not count:
+        return candidate
+    sizes = np.bincount(labels.ravel())
+    cored = np.zeros(count + 1, dtype=bool)
+    if OPENING_ITERATIONS:
+        cross = ndimage.generate_binary_structure(3, 1)
+        core = ndimage.binary_opening(candidate, structure=cross, iterations=OPENING_ITERATIONS)
+        cored[np.unique(labels[core])] = True
+    else:
+        cored[:] = True
+    at_edge = np.bincount(labels[_edge_region(hu)], minlength=count + 1)
+    touching = at_edge > MAX_EDGE_FRACTION * sizes
+    keep = np.zeros(count + 1, dtype=bool)
+    margin = SHELL_VOXELS
+    for index, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None or sizes[index] < MIN_VESSEL_VOXELS or touching[index] or not cored[index]:
+            continue
+        grown = tuple(slice(max(0, b.start - margin), b.stop + margin) for b in box)
+        inside = labels[grown] == index
+        shell = ndimage.binary_dilation(inside, iterations=margin) & ~inside
+        air = float(np.mean(hu[grown][shell] < AIR_HU)) if shell.any() else 0.0
+        keep[index] = air <= MAX_SHELL_AIR_FRACTION
+    return keep[labels]
+
+
+def surface_meshes(
+    volume: Volume,
+    *,
+    vessel_hu: float = VESSEL_HU,
+    bone_hu: float = BONE_HU,
+    step: int = 1,
+    bone_step: int | None = None,
+) -> dict[str, trimesh.Trimesh]:
+    """The ``"vessels"`` and ``"bone"`` surfaces of ``volume`` (absent keys: nothing found).
+
+    Vessels are the iso-surface at ``vessel_hu`` of the voxels that lie more than
+    BONE_MARGIN_VOXELS from bone, in components of at least MIN_VESSEL_VOXELS that hold a core
+    surviving a light opening (OPENING_ITERATIONS), lie mostly clear of the volume's border and
+    of the reconstructable region's edge (EDGE_MARGIN_VOXELS, MAX_EDGE_FRACTION) and are
+    surrounded by tissue rather than air (MAX_SHELL_AIR_FRACTION); bone is the iso-surface at ``bone_hu``.
+    ``step`` > 1 trades detail for speed; ``bone_step`` (default ``step``) sets it for the
+    bone alone, whose surface is by far the larger.
+    """
+    if not vessel_hu < bone_hu:
+        raise ValueError(f"vessel_hu ({vessel_hu}) must be below bone_hu ({bone_hu})")
+    bone_step = step if bone_step is None else bone_step
+    for name, value in (("step", step), ("bone_step", bone_step)):
+        if int(value) != value or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value}")
+    hu = volume.data
+    floor = np.float32(min(float(hu.min()), -1000.0))
+    bone = hu >= bone_hu
+    near_bone = ndimage.binary_dilation(bone, iterations=BONE_MARGIN_VOXELS) if bone.any() else bone
+    candidate = (hu > vessel_hu) & ~near_bone
+    candidate = _vessel_components(hu, candidate)
+    vessel_field = np.where(ndimage.binary_dilation(candidate, iterations=1) & ~near_bone, hu, floor)
+    # Padding by one voxel of "nothing" closes surfaces that touch the volume's border; the
+    # padded grid's index 0 is the volume's index -1.
+    padded_to_world = volume.index_to_world.copy()
+    padded_to_world[:3, 3] -= volume.index_to_world[:3, :3].sum(axis=1)
+    out: dict[str, trimesh.Trimesh] = {}
+    parts = (("vessels", vessel_field, vessel_hu, step), ("bone", hu, bone_hu, bone_step))
+    for name, field, level, part_step in parts:
+        padded = np.pad(field.astype(np.float32), 1, mode="constant", constant_values=floor)
+        mesh = _surface(padded, level, padded_to_world, int(part_step))
+        if mesh is not None and len(mesh.faces):
+            mesh.visual.face_colors = np.tile(COLORS[name], (len(mesh.faces), 1))
+            mesh.metadata["name"] = name
+            out[name] = mesh
+    return out
+
+
+def write_meshes(meshes: dict[str, trimesh.Trimesh], path: str | os.PathLike[str]) -> Path:
+    """Write the surfaces to STL or PLY (one combined mesh) or GLB (one node per surface).
+
+    The file is written through a temporary file and renamed, so no partial file is left.
+    """
+    from registration.io.dicom import write_bytes_atomic
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise ValueError(f"{path}: mesh format must be one of {', '.join(MESH_SUFFIXES)}, got {suffix or 'none'}")
+    if not meshes:
+        raise ValueError("no surface to write")
+    if suffix == ".glb":
+        scene = trimesh.Scene()
+        for name, mesh in meshes.items():
+            scene.add_geometry(mesh, node_name=name, geom_name=name)
+        data = scene.export(file_type="glb")
+    else:
+        combined = trimesh.util.concatenate(list(meshes.values()))
+        buffer = io.BytesIO()
+        combined.export(buffer, file_type=suffix[1:])
+        data = buffer.getvalue()
+    write_bytes_atomic(path, data)
+    return path

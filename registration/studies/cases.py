@@ -1,0 +1,331 @@
+"""The paper's validation experiments on the simulated head phantom.
+
+``run_case`` is one registration experiment (phantom, formats, offset, image kind) with the
+honest image model; the studies loop over it. ``validate table1`` reproduces Table I's four
+offsets on two format pairs with fluoro and exposure images.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import __version__
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import TABLE_I, CArm, offsets_to_matrix, rigid
+from registration.core.register import RegistrationOptions, register
+
+if TYPE_CHECKING:
+    from registration.core.volume import Volume
+    from registration.sim.phantom import HeadPhantom
+
+
+@dataclass(frozen=True)
+class Case:
+    """One registration experiment."""
+
+    offset: str
+    image_kind: str
+    volume_format_cm: float
+    image_format_cm: float
+    seed: int = 0
+    primary_deg: float = 0.0
+    secondary_deg: float = 0.0
+    #: Phantom variant (anatomy) seed; the noise and annealing use ``seed``.
+    phantom_seed: int = 0
+    facial: bool = True
+    image_pixels: int = 512
+    volume_voxels: int = 256
+    #: "fdk": the 3DRA reconstructed from a simulated rotational run (issue 5);
+    #: "resampled": the phantom resampled to the 3DRA grid (a faster stand-in).
+    volume_source: str = "fdk"
+    #: Contrast in the rotational run of the 3DRA (the fluoro image never has contrast).
+    volume_contrast: bool = True
+    #: Center of the 3DRA grid (world mm); non-zero for a 3DRA made with the table moved, e.g.
+    #: the alternative 22 cm volume containing the facial structures (registration.studies.runs).
+    volume_center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@lru_cache(maxsize=4)
+def _phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
+    from registration.sim.phantom import make_head_phantom
+
+    return make_head_phantom(seed=seed, contrast=contrast, facial=facial)
+
+
+VOLUME_SOURCES = ("fdk", "resampled")
+
+
+@lru_cache(maxsize=4)
+def load_volume(
+    phantom_seed: int,
+    facial: bool,
+    volume_format_cm: float,
+    voxels: int,
+    source: str = "fdk",
+    contrast: bool = True,
+) -> Volume:
+    """The registration volume of a phantom variant (cached on disk and in memory)."""
+    if source == "fdk":
+        if not facial:
+            raise ValueError("the FDK 3DRA is reconstructed from the full phantom (facial=True)")
+        from registration.sim.reconstruct import reconstruct_3dra
+
+        return reconstruct_3dra(phantom_seed, volume_format_cm=volume_format_cm, contrast=contrast, voxels=voxels)
+    if source == "resampled":
+        from registration.sim.phantom import registration_volume
+
+        return registration_volume(_phantom(phantom_seed, contrast, facial), volume_format_cm, voxels=voxels)
+    raise ValueError(f"volume source must be one of {VOLUME_SOURCES}, got {source!r}")
+
+
+def offset_vector(offset: str) -> np.ndarray:
+    """Table I id ("T1".."T4") or "tx,ty,tz,rx,ry,rz" to six numbers."""
+    if offset in TABLE_I:
+        return np.array(TABLE_I[offset], dtype=np.float64)
+    try:
+        values = np.array([float(v) for v in offset.split(",")])
+    except ValueError:
+        raise ValueError(f"offset must be T1..T4 or six comma-separated numbers, got {offset!r}") from None
+    if values.shape != (6,) or not np.all(np.isfinite(values)):
+        raise ValueError(f"offset must be six finite numbers tx,ty,tz,rx,ry,rz, got {offset!r}")
+    return values
+
+
+_RENDERERS: dict[int, tuple[Volume, DRRRenderer, float]] = {}
+
+
+def prepared_renderer(volume: Volume) -> tuple[DRRRenderer, float]:
+    """The DRR renderer of ``volume`` and the seconds its preparation took (0 when reused).
+
+    As in the product, a 3DRA is prepared once when it is loaded (attenuation and pyramid),
+    not at every registration; the records report that time apart as ``prepare_seconds``.
+    """
+    hit = _RENDERERS.get(id(volume))
+    if hit is not None and hit[0] is volume:
+        return hit[1], 0.0
+    start = time.perf_counter()
+    renderer = DRRRenderer(volume, levels=3)
+    seconds = time.perf_counter() - start
+    if len(_RENDERERS) >= 4:
+        _RENDERERS.pop(next(iter(_RENDERERS)))
+    _RENDERERS[id(volume)] = (volume, renderer, seconds)
+    return renderer, seconds
+
+
+def case_volume(case: Case) -> Volume:
+    """The registration volume of a case: the 3DRA of its phantom and format (cached)."""
+    if any(case.volume_center_mm):
+        return offcenter_volume(
+            case.phantom_seed,
+            case.volume_format_cm,
+            tuple(case.volume_center_mm),
+            voxels=case.volume_voxels,
+            source=case.volume_source,
+            contrast=case.volume_contrast,
+        )
+    return load_volume(
+        case.phantom_seed,
+        case.facial,
+        case.volume_format_cm,
+        case.volume_voxels,
+        case.volume_source,
+        case.volume_contrast,
+    )
+
+
+def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
+    """Simulate the X-ray image of the moved phantom and register the 3DRA to it."""
+    from registration.sim.xray import simulate_xray
+
+    geometry = CArm.for_format(
+        case.image_format_cm,
+        pixels=case.image_pixels,
+        primary_deg=case.primary_deg,
+        secondary_deg=case.secondary_deg,
+    )
+    truth = offsets_to_matrix(offset_vector(case.offset), geometry)
+    volume = case_volume(case)
+    anatomy = _phantom(case.phantom_seed, False, case.facial)  # no contrast in the fluoro image
+    xray = simulate_xray(anatomy, geometry, motion=truth, kind=case.image_kind, seed=case.seed)
+    renderer, prepare_seconds = prepared_renderer(volume)
+    result = register(
+        volume,
+        xray,
+        seed=case.seed,
+        truth=truth,
+        vessel_points_mm=anatomy.vessel_centerline_mm(),
+        options=options,
+        renderer=renderer,
+    )
+    res = result.residual
+    assert res is not None
+    return {
+        "offset": case.offset,
+        "image_kind": case.image_kind,
+        "volume_format_cm": case.volume_format_cm,
+        "image_format_cm": case.image_format_cm,
+        "primary_deg": case.primary_deg,
+        "secondary_deg": case.secondary_deg,
+        "seed": case.seed,
+        "phantom_seed": case.phantom_seed,
+        "facial": case.facial,
+        "translation_residual_mm": res.translation_mm,
+        "inplane_residual_mm": res.inplane_mm,
+        "outofplane_residual_mm": res.outofplane_mm,
+        "rotation_residual_deg": res.rotation_deg,
+        "mtre_mm": res.mtre_mm,
+        "success": bool(res.success),
+        "success_total": bool(res.success_total),
+        "seconds": result.seconds,
+        "prepare_seconds": prepare_seconds,
+        "drr_count": result.drr_count,
+        "similarity": result.similarity,
+        "volume_label": result.volume_label,
+        "version": __version__,
+    }
+
+
+def table1_cases(seed: int = 0) -> list[Case]:
+    return [
+        Case(offset=o, image_kind=kind, volume_format_cm=f, image_format_cm=f, seed=seed)
+        for f in (27.0, 48.0)
+        for kind in ("fluoro", "exposure")
+        for o in TABLE_I
+    ]
+
+
+def summarize(records: list[dict]) -> dict:
+    """Success rate and residual statistics of a list of records."""
+    if not records:
+        return {"runs": 0, "success_rate": None}
+    ok = [r for r in records if r["success"]]
+
+    def stats(key: str, rows: list[dict]) -> dict | None:
+        if not rows:
+            return None
+        v = np.array([r[key] for r in rows], dtype=float)
+        return {"mean": float(v.mean()), "std": float(v.std()), "min": float(v.min()), "max": float(v.max())}
+
+    return {
+        "runs": len(records),
+        "successes": len(ok),
+        "success_rate": len(ok) / len(records),
+        "inplane_residual_mm": stats("inplane_residual_mm", records),
+        "translation_residual_mm": stats("translation_residual_mm", records),
+        "rotation_residual_deg": stats("rotation_residual_deg", records),
+        "inplane_residual_mm_successful": stats("inplane_residual_mm", ok),
+        "rotation_residual_deg_successful": stats("rotation_residual_deg", ok),
+        "seconds_median": float(np.median([r["seconds"] for r in records])),
+        "drr_count_median": float(np.median([r["drr_count"] for r in records])),
+        # Preparing a 3DRA for rendering happens once per volume (when it is loaded).
+        "prepare_seconds_total": float(sum(r.get("prepare_seconds", 0.0) for r in records)),
+    }
+
+
+def format_table(records: list[dict]) -> str:
+    head = (
+        f"{'T':<3} {'kind':<8} {'vol':>4} {'img':>4}  {'in-plane':>9} {'total':>8} {'rot':>7} "
+        f"{'mTRE':>7} {'DRRs':>5} {'s':>6}  ok"
+    )
+    lines = [head, "-" * len(head)]
+    for r in records:
+        mtre = f"{r['mtre_mm']:7.2f}" if r.get("mtre_mm") is not None else "      -"
+        lines.append(
+            f"{r['offset']:<3} {r['image_kind']:<8} {r['volume_format_cm']:>4.0f} {r['image_format_cm']:>4.0f}"
+            f"  {r['inplane_residual_mm']:>6.2f} mm {r['translation_residual_mm']:>5.2f} mm"
+            f" {r['rotation_residual_deg']:>5.2f}° {mtre} {r['drr_count']:>5d} {r['seconds']:>6.2f}"
+            f"  {'yes' if r['success'] else 'NO'}"
+        )
+    return "\n".join(lines)
+
+
+def _translation(t_mm: Sequence[float]) -> NDArray[np.float64]:
+    return rigid(None, np.asarray(t_mm, dtype=np.float64))
+
+
+@lru_cache(maxsize=2)
+def offcenter_volume(
+    phantom_seed: int,
+    volume_format_cm: float,
+    center_mm: tuple[float, float, float],
+    *,
+    voxels: int = 256,
+    source: str = "fdk",
+    contrast: bool = True,
+) -> Volume:
+    """A 3DRA whose grid is centered at ``center_mm`` instead of the iso-center.
+
+    As on a real system, the rotational run is made with the table moved by ``-center_mm``
+    (the phantom imaged moved by that translation, so ``center_mm`` sits at the iso-center of
+    the run), reconstructed around the iso-center with the calibrated geometry, and put back
+    into the world frame of the X-ray images by the known table shift. ``source="resampled"``
+    voxelises the phantom on the shifted grid instead (the fast stand-in). Cached on disk.
+    """
+    from registration.core.volume import Volume, format_grid
+    from registration.io.cache import cached_arrays
+    from registration.sim.phantom import (
+        PHANTOM_MODEL_VERSION,
+        STAND_IN_LABEL,
+        STAND_IN_NOISE_HU,
+        STAND_IN_SMOOTH_VOXELS,
+        make_head_phantom,
+    )
+
+    center = np.asarray(center_mm, dtype=np.float64)
+    phantom = make_head_phantom(seed=phantom_seed, contrast=contrast)
+    params = {
+        "phantom_model": PHANTOM_MODEL_VERSION,
+        "phantom_seed": int(phantom_seed),
+        "volume_format_cm": float(volume_format_cm),
+        "center_mm": [float(c) for c in center],
+        "contrast": bool(contrast),
+        "voxels": int(voxels),
+        "source": source,
+    }
+    if source == "resampled":
+        from scipy import ndimage
+
+        spacing, axis = format_grid(volume_format_cm, voxels=voxels)
+        affine = np.diag([spacing, spacing, spacing, 1.0])
+        affine[:3, 3] = axis[0] + center
+
+        def build_resampled() -> dict[str, np.ndarray]:
+            hu = phantom.voxelize((voxels, voxels, voxels), affine, supersample=2)
+            hu = ndimage.gaussian_filter(hu, STAND_IN_SMOOTH_VOXELS, mode="nearest")
+            hu += np.random.default_rng(0).normal(0.0, STAND_IN_NOISE_HU, hu.shape).astype(np.float32)
+            return {"data": hu.astype(np.float32)}
+
+        data = cached_arrays("standin3dra-offcenter", {**params, "n_prims": phantom.n_primitives}, build_resampled)
+        return Volume(data["data"], affine, label=STAND_IN_LABEL + f", centered at {center.tolist()} mm")
+    if source != "fdk":
+        raise ValueError(f"source must be 'fdk' or 'resampled', got {source!r}")
+    from registration.sim.reconstruct import reconstruct_run, rotational_run
+    from registration.sim.xray import simulate_xray
+
+    table = _translation(-center)  # the phantom as the run sees it: moved by -center
+    pixels, projections, kind, seed = 256, 120, "exposure", 0  # as reconstruct_3dra
+
+    def imager(ph: object, geom: CArm, index: int) -> tuple[np.ndarray, np.ndarray]:
+        xr = simulate_xray(ph, geom, motion=table, kind=kind, seed=seed * 100003 + index)  # type: ignore[arg-type]
+        return np.asarray(xr.image, np.float32), np.asarray(xr.mask, bool)
+
+    def build_fdk() -> dict[str, np.ndarray]:
+        run = rotational_run(
+            phantom, image_format_cm=volume_format_cm, projections=projections, kind=kind, pixels=pixels, imager=imager
+        )
+        vol = reconstruct_run(run, volume_format_cm=volume_format_cm, voxels=voxels)
+        return {"data": vol.data, "index_to_world": _translation(center) @ vol.index_to_world}
+
+    arrays = cached_arrays("fdk-3dra-offcenter", {**params, "pixels": pixels, "projections": projections}, build_fdk)
+    from registration.sim.reconstruct import RECONSTRUCTION_LABEL
+
+    label = RECONSTRUCTION_LABEL.format(n=projections) + f", centered at {center.tolist()} mm"
+    return Volume(arrays["data"], arrays["index_to_world"], label=label, meta=params)
+

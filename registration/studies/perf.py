@@ -1,0 +1,153 @@
+"""Timing of the DRR renderer and of gradient difference (used by ``roadmap3d bench``).
+
+The benchmark volume is a synthetic head-like volume in HU (an ellipsoidal skull shell around
+soft tissue with a few dense and air-filled blobs, in air) on the 3DRA grid of the 27 cm volume
+format, so that timings do not depend on the phantom module; like a real head in that format it
+overfills the cube in two directions. Images use the 27 cm image format with its circular
+field mask, at an oblique view (LAO 30, CRAN 15).
+
+Times are wall-clock medians in milliseconds (``time.perf_counter``) on however many threads
+numba uses; ``cpu_ms_median`` adds the process CPU time per call, which shows how much of a
+slow wall time is the machine being shared.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+from registration.core.drr import DRRRenderer, render_reference
+from registration.core.geometry import CArm
+from registration.core.similarity import GradientDifference
+from registration.core.volume import Volume, format_grid
+
+#: (image pixels, volume voxels) pairs of the benchmark: 64^2 from 64^3, and so on.
+DEFAULT_SIZES: tuple[tuple[int, int], ...] = ((64, 64), (128, 128), (256, 256))
+
+#: Volume and image format of the benchmark (cm).
+BENCH_FORMAT_CM = 27.0
+
+#: View of the benchmark (degrees).
+BENCH_PRIMARY_DEG = 30.0
+BENCH_SECONDARY_DEG = 15.0
+
+
+def bench_volume(voxels: int, *, seed: int = 0) -> Volume:
+    """A head-like HU volume of ``voxels``^3 on the 27 cm 3DRA grid (deterministic).
+
+    An ellipsoidal head (radii 75 mm left-right, 95 mm antero-posterior, 115 mm
+    cranio-caudal) with a 7 mm skull, soft tissue, dense and air-filled blobs and mild noise,
+    smoothed like a reconstruction. Like a real head in the 27 cm format (182 mm field of view
+    at the iso-center) it overfills the cube in two directions, so the renderer's clipping to
+    the non-air box gains little.
+    """
+    if int(voxels) != voxels or voxels < 8:
+        raise ValueError(f"voxels must be an integer >= 8, got {voxels}")
+    spacing, axis = format_grid(BENCH_FORMAT_CM, voxels=int(voxels))
+    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij", sparse=True)
+    radii = np.array([75.0, 95.0, 115.0])
+    rho = np.sqrt((x / radii[0]) ** 2 + (y / radii[1]) ** 2 + ((z + 15.0) / radii[2]) ** 2)
+    hu = np.full(rho.shape, -1000.0, dtype=np.float32)
+    hu[rho < 1.0] = 1300.0  # skull
+    hu[rho < 1.0 - 7.0 / radii[0]] = 35.0  # brain and soft tissue
+    rng = np.random.default_rng(seed)
+    for _ in range(16):  # dense (petrous-like) and air (sinus-like) blobs
+        c = rng.uniform(-50.0, 50.0, 3)
+        r = rng.uniform(5.0, 14.0)
+        inside = (x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2 < r * r
+        hu[inside] = rng.choice([900.0, -900.0])
+    hu += rng.normal(0.0, 20.0, hu.shape).astype(np.float32)
+    hu = ndimage.gaussian_filter(hu, 0.7)
+    return Volume.from_grid(hu, spacing, label="synthetic head-like benchmark volume")
+
+
+def bench_geometry(pixels: int) -> CArm:
+    """The benchmark view: 27 cm format, ``pixels``^2, LAO 30 CRAN 15."""
+    return CArm.for_format(
+        BENCH_FORMAT_CM, pixels=pixels, primary_deg=BENCH_PRIMARY_DEG, secondary_deg=BENCH_SECONDARY_DEG
+    )
+
+
+def _timings(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> tuple[float, float, float]:
+    """Median wall, median process-CPU and minimum wall milliseconds of ``fn()`` over ``repeats`` calls."""
+    for _ in range(warmup):
+        fn()
+    wall, cpu = [], []
+    for _ in range(max(1, repeats)):
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        fn()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall) * 1e3), float(np.median(cpu) * 1e3), float(np.min(wall) * 1e3)
+
+
+def median_ms(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup``."""
+    return _timings(fn, repeats, warmup=warmup)[0]
+
+
+def _bench_one(image_px: int, volume_px: int, repeats: int, reference_repeats: int, masked: bool) -> dict:
+    volume = bench_volume(volume_px)
+    geometry = bench_geometry(image_px)
+    renderer = DRRRenderer(volume, levels=1)
+    mask = geometry.field_mask() if masked else None
+    out = np.empty((geometry.rows, geometry.cols), dtype=np.float32)
+    render = lambda: renderer.render(geometry, mask=mask, out=out)  # noqa: E731
+    fast_ms, fast_cpu_ms, fast_min_ms = _timings(render, repeats, warmup=3)
+    images: list[np.ndarray] = []
+    ref_ms = median_ms(lambda: images.append(render_reference(volume, geometry)), reference_repeats, warmup=0)
+    fast = renderer.render(geometry)
+    ref = images[-1]
+    scale = float(ref.max()) or 1.0
+    return {
+        "image_px": int(image_px),
+        "volume_px": int(volume_px),
+        "ms_median": round(fast_ms, 4),
+        "ms_min": round(fast_min_ms, 4),
+        "cpu_ms_median": round(fast_cpu_ms, 4),
+        "threads": numba.get_num_threads(),
+        "reference_ms_median": round(ref_ms, 2),
+        "speedup": round(ref_ms / fast_ms, 1),
+        "max_rel_error": round(float(np.abs(fast - ref).max()) / scale, 5),
+    }
+
+
+def bench_drr(
+    sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES,
+    repeats: int = 50,
+    *,
+    reference_repeats: int = 3,
+    masked: bool = True,
+) -> list[dict]:
+    """Median DRR time of the fast renderer and of the reference, per (image, volume) size.
+
+    Each record: ``image_px`` and ``volume_px`` (edge lengths), ``ms_median`` (fast renderer,
+    ``repeats`` calls into a reused buffer, with the circular field mask when ``masked``),
+    ``ms_min`` (the fastest call: close to the unloaded machine when others share it),
+    ``cpu_ms_median`` (its process CPU time per call), ``threads`` (numba threads),
+    ``reference_ms_median`` (:func:`registration.core.drr.render_reference` at its default step of
+    half a voxel, ``reference_repeats`` calls, whole image), ``speedup`` and ``max_rel_error``
+    (max |fast - reference| over the reference's maximum, whole image).
+    """
+    return [
+        _bench_one(int(image_px), int(volume_px), repeats, reference_repeats, masked) for image_px, volume_px in sizes
+    ]
+
+
+def bench_gradient_difference(image_px: int = 128, repeats: int = 200) -> float:
+    """Median milliseconds of one prepared gradient-difference evaluation at ``image_px``^2."""
+    volume = bench_volume(64)
+    geometry = bench_geometry(image_px)
+    renderer = DRRRenderer(volume, levels=1)
+    mask = geometry.field_mask()
+    xray = renderer.render(geometry)
+    rng = np.random.default_rng(0)
+    xray = xray + rng.normal(0.0, 0.01 * float(xray.max()), xray.shape).astype(np.float32)
+    shifted = np.roll(renderer.render(geometry), 2, axis=1)
+    measure = GradientDifference(xray, mask)
+    return median_ms(lambda: measure(shifted), repeats, warmup=2)

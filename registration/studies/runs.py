@@ -1,0 +1,663 @@
+"""The paper's validation studies at scale: Table II-III and Fig. 6 (phantom), Fig. 7 (clinical).
+
+``roadmap3d validate phantom`` registers every volume format x image format of Table II, the
+offsets T1-T4 of Table I, fluoro and exposure images (512 registrations), plus the 64 with the
+alternative 22 cm 3DRA that contains the facial structures. ``roadmap3d validate clinical``
+follows the paper's rotational-run method (section II.D / III.B): a random projection of a
+virtual patient's rotational run is registered to that run's own FDK reconstruction after a
+random offset; the ground truth is the run's calibrated geometry.
+
+Execution: each registration is a :class:`StudyTask`; tasks run in joblib processes (default)
+or on a Dask cluster (``scheduler="tcp://HOST:PORT"``). The parent process alone writes
+``results.jsonl``: one JSON record per finished registration, appended, flushed and fsynced,
+keyed by ``case_id``; a rerun skips every id already there, so a killed run loses nothing that
+finished. The id names the case (study, formats, offset, image and volume resolution, seed), not
+the engine: after changing the engine, write to a new output folder. The volumes (and
+rotational runs) are built once in the parent before fanning out; the on-disk cache
+(:mod:`registration.io.cache`) makes workers just load them. Dask workers on other machines should
+share that cache (``ROADMAP3D_CACHE``) or they build what they need themselves.
+
+Summaries and reports (plots, ``report.md``, ``report.html``) are in :mod:`registration.studies.report`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+import zlib
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import __version__
+from registration.core.geometry import TABLE_I, CArm, clinically_relevant, rigid
+from registration.core.register import RegistrationOptions
+from registration.studies.cases import Case, _translation, case_volume, run_case
+
+if TYPE_CHECKING:
+    from registration.core.volume import Volume
+
+#: Image and volume formats of Table II (cm).
+STUDY_FORMATS_CM: tuple[float, ...] = (15.0, 19.0, 22.0, 27.0, 31.0, 37.0, 42.0, 48.0)
+IMAGE_KINDS: tuple[str, ...] = ("exposure", "fluoro")
+
+#: The alternative 22 cm 3DRA "which contained the facial structures" (paper III.A): the
+#: rotational run was made with the table moved so that the reconstruction's center lies
+#: 40 mm caudal and 20 mm anterior of the iso-center of the X-ray images (world mm, LPS).
+#: The standard volumes are centered at the iso-center (the circle of Willis).
+FACIAL_VOLUME_FORMAT_CM = 22.0
+FACIAL_VOLUME_CENTER_MM: tuple[float, float, float] = (0.0, -20.0, -40.0)
+
+#: Clinical study (paper III.B): 10 patients, 6 at 22 cm and 4 at 27 cm, 5 with contrast.
+CLINICAL_PATIENTS: tuple[tuple[float, bool], ...] = (
+    (22.0, True),
+    (22.0, False),
+    (22.0, True),
+    (22.0, False),
+    (22.0, True),
+    (22.0, False),
+    (27.0, True),
+    (27.0, False),
+    (27.0, True),
+    (27.0, False),
+)
+#: Largest random offset of the clinical study: translation length (mm), rotation angle (deg).
+CLINICAL_MAX_TRANSLATION_MM = 25.0
+CLINICAL_MAX_ROTATION_DEG = 10.0
+#: Phantom seeds of the virtual patients start here (seed 0 is the phantom study's head).
+CLINICAL_FIRST_PHANTOM_SEED = 1
+
+
+
+def _stable_seed(base: int, key: str) -> int:
+    """A per-case seed that depends only on the study seed and the case's identity (not on the
+    grid or its resolution: the quick study repeats the full study's draws at lower resolution)."""
+    return int((int(base) * 1_000_003 + zlib.crc32(key.encode())) % (2**31 - 1))
+
+
+# --------------------------------------------------------------------------------------
+# Study configurations
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PhantomConfig:
+    """What the phantom study registers."""
+
+    volume_formats_cm: tuple[float, ...] = STUDY_FORMATS_CM
+    image_formats_cm: tuple[float, ...] = STUDY_FORMATS_CM
+    kinds: tuple[str, ...] = IMAGE_KINDS
+    offsets: tuple[str, ...] = tuple(TABLE_I)
+    #: Image formats registered against the alternative (facial) 22 cm volume; () for none.
+    facial_image_formats_cm: tuple[float, ...] = STUDY_FORMATS_CM
+    image_pixels: int = 512
+    volume_voxels: int = 256
+    volume_source: str = "fdk"
+    seed: int = 0
+    quick: bool = False
+
+    @classmethod
+    def quick_config(cls, seed: int = 0) -> PhantomConfig:
+        """A few minutes on 2 cores: clinically relevant sample, one kind, 256 px, 128^3."""
+        sample = (22.0, 27.0, 37.0, 48.0)
+        return cls(
+            volume_formats_cm=sample,
+            image_formats_cm=sample,
+            kinds=("exposure",),
+            facial_image_formats_cm=(22.0, 27.0),
+            image_pixels=256,
+            volume_voxels=128,
+            seed=seed,
+            quick=True,
+        )
+
+
+@dataclass(frozen=True)
+class ClinicalConfig:
+    """What the clinical (rotational-run) study registers."""
+
+    patients: tuple[tuple[float, bool], ...] = CLINICAL_PATIENTS
+    registrations_per_patient: int = 100
+    projections: int = 120
+    arc_deg: float = 200.0
+    #: Detector pixels of the run (2x2-binned rotational mode, as reconstruct_3dra).
+    run_pixels: int = 256
+    volume_voxels: int = 256
+    max_translation_mm: float = CLINICAL_MAX_TRANSLATION_MM
+    max_rotation_deg: float = CLINICAL_MAX_ROTATION_DEG
+    seed: int = 0
+    quick: bool = False
+
+    @classmethod
+    def quick_config(cls, seed: int = 0) -> ClinicalConfig:
+        """A few minutes on 2 cores: 2 patients (22 cm with contrast, 27 cm without) x 20
+        registrations; full runs (120 projections of 256 px), 128^3 reconstructions.
+
+        Runs of 128 px frames (1.16 mm per pixel at the iso-center for 22 cm) were tried and
+        bias the 22 cm registrations by ~0.5 mm even from the true pose: too coarse for a 1 mm
+        criterion."""
+        return cls(
+            patients=((22.0, True), (27.0, False)),
+            registrations_per_patient=20,
+            projections=120,
+            run_pixels=256,
+            volume_voxels=128,
+            seed=seed,
+            quick=True,
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Tasks
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ClinicalCase:
+    """One registration of the clinical study: a projection of a patient's own rotational run,
+    offset by (translation, rotation about ``rotation_axis``) from its calibrated pose."""
+
+    patient: int
+    phantom_seed: int
+    volume_format_cm: float
+    contrast: bool
+    frame: int
+    translation_mm: tuple[float, float, float]
+    rotation_axis: tuple[float, float, float]
+    rotation_deg: float
+    seed: int
+    projections: int = 120
+    arc_deg: float = 200.0
+    run_pixels: int = 256
+    volume_voxels: int = 256
+
+
+@dataclass(frozen=True)
+class StudyTask:
+    """A unit of work: a phantom :class:`~registration.studies.cases.Case` or a
+    :class:`ClinicalCase`, its id, and fields the record carries along."""
+
+    case_id: str
+    case: Case | ClinicalCase
+    extra: dict = field(default_factory=dict)
+    options: RegistrationOptions | None = None
+
+
+def phantom_tasks(config: PhantomConfig, options: RegistrationOptions | None = None) -> list[StudyTask]:
+    """Every registration of the phantom study, grouped by volume (workers reuse it)."""
+    tag = f"p{config.image_pixels}-v{config.volume_voxels}-{config.volume_source}"
+    tasks = []
+    grid: list[tuple[str, float, tuple[float, ...]]] = [
+        ("standard", v, config.image_formats_cm) for v in config.volume_formats_cm
+    ]
+    if config.facial_image_formats_cm:
+        grid.append(("facial", FACIAL_VOLUME_FORMAT_CM, config.facial_image_formats_cm))
+    for variant, vol, images in grid:
+        for kind in config.kinds:
+            for img in images:
+                for offset in config.offsets:
+                    ident = f"phantom/{variant}/{kind}/v{vol:g}/i{img:g}/{offset}"
+                    case_id = f"{ident}/{tag}/s{config.seed}"
+                    case = Case(
+                        offset=offset,
+                        image_kind=kind,
+                        volume_format_cm=vol,
+                        image_format_cm=img,
+                        seed=_stable_seed(config.seed, ident),
+                        image_pixels=config.image_pixels,
+                        volume_voxels=config.volume_voxels,
+                        volume_source=config.volume_source,
+                        volume_center_mm=FACIAL_VOLUME_CENTER_MM if variant == "facial" else (0.0, 0.0, 0.0),
+                    )
+                    extra = {
+                        "variant": variant,
+                        "clinically_relevant": clinically_relevant(vol, img),
+                        "study_seed": config.seed,
+                        "image_pixels": config.image_pixels,
+                        "volume_voxels": config.volume_voxels,
+                        "volume_source": config.volume_source,
+                        "volume_center_mm": list(case.volume_center_mm),
+                    }
+                    tasks.append(StudyTask(case_id, case, extra, options))
+    return tasks
+
+
+def random_unit_vector(rng: np.random.Generator) -> NDArray[np.float64]:
+    """A direction uniform on the sphere."""
+    while True:
+        v = rng.normal(size=3)
+        n = float(np.linalg.norm(v))
+        if n > 1e-9:
+            return v / n
+
+
+def clinical_tasks(config: ClinicalConfig, options: RegistrationOptions | None = None) -> list[StudyTask]:
+    """Every registration of the clinical study. Each draw (frame, offset, seed) depends only on
+    the study seed, the patient and the registration number."""
+    tag = f"n{config.projections}-p{config.run_pixels}-v{config.volume_voxels}"
+    tasks = []
+    for patient, (fmt, contrast) in enumerate(config.patients):
+        phantom_seed = CLINICAL_FIRST_PHANTOM_SEED + patient
+        for number in range(config.registrations_per_patient):
+            rng = np.random.default_rng([config.seed, patient, number])
+            frame = int(rng.integers(config.projections))
+            length = rng.uniform(0.0, config.max_translation_mm)
+            translation = length * random_unit_vector(rng)
+            axis = random_unit_vector(rng)
+            angle = rng.uniform(0.0, config.max_rotation_deg)
+            ident = f"clinical/patient{patient}/r{number}"
+            case_id = f"{ident}/{tag}/s{config.seed}"
+            case = ClinicalCase(
+                patient=patient,
+                phantom_seed=phantom_seed,
+                volume_format_cm=fmt,
+                contrast=contrast,
+                frame=frame,
+                translation_mm=tuple(float(t) for t in translation),  # type: ignore[arg-type]
+                rotation_axis=tuple(float(a) for a in axis),  # type: ignore[arg-type]
+                rotation_deg=float(angle),
+                seed=_stable_seed(config.seed, ident),
+                projections=config.projections,
+                arc_deg=config.arc_deg,
+                run_pixels=config.run_pixels,
+                volume_voxels=config.volume_voxels,
+            )
+            extra = {"study_seed": config.seed, "registration": number}
+            tasks.append(StudyTask(case_id, case, extra, options))
+    return tasks
+
+
+# --------------------------------------------------------------------------------------
+# Volumes the studies need beyond validation.load_volume
+# --------------------------------------------------------------------------------------
+
+
+
+
+@dataclass(frozen=True)
+class PatientData:
+    """A virtual patient: the rotational run (images, masks, true and calibrated geometries)
+    and the FDK reconstruction of exactly those images."""
+
+    images: NDArray[np.float32]
+    masks: NDArray[np.bool_]
+    true_geometries: tuple[CArm, ...]
+    calibrated_geometries: tuple[CArm, ...]
+    volume: Volume
+
+
+def _patient_params(case: ClinicalCase) -> dict:
+    return {
+        "phantom_seed": case.phantom_seed,
+        "volume_format_cm": case.volume_format_cm,
+        "contrast": case.contrast,
+        "projections": case.projections,
+        "arc_deg": case.arc_deg,
+        "pixels": case.run_pixels,
+        "voxels": case.volume_voxels,
+    }
+
+
+@lru_cache(maxsize=2)
+def patient_data(
+    phantom_seed: int,
+    volume_format_cm: float,
+    contrast: bool,
+    projections: int = 120,
+    arc_deg: float = 200.0,
+    pixels: int = 256,
+    voxels: int = 256,
+) -> PatientData:
+    """Simulate (or load from the cache) a patient's rotational run and its FDK 3DRA.
+
+    The run is an exposure-dose propeller run of the phantom variant ``phantom_seed`` (iodine in
+    the vessels when ``contrast``) at image format = ``volume_format_cm``; images are formed with
+    the true (bent) geometry; the reconstruction uses the calibrated geometry
+    (:func:`registration.sim.reconstruct.rotational_run`, :func:`~registration.sim.reconstruct.reconstruct_run`).
+    """
+    from registration.core.volume import Volume
+    from registration.io.cache import cached_arrays
+    from registration.sim.phantom import PHANTOM_MODEL_VERSION, make_head_phantom
+    from registration.sim.reconstruct import RECONSTRUCTION_LABEL, reconstruct_run, rotational_run
+
+    params = {
+        "phantom_model": PHANTOM_MODEL_VERSION,
+        "phantom_seed": int(phantom_seed),
+        "volume_format_cm": float(volume_format_cm),
+        "contrast": bool(contrast),
+        "projections": int(projections),
+        "arc_deg": float(arc_deg),
+        "pixels": int(pixels),
+        "voxels": int(voxels),
+        "kind": "exposure",
+    }
+
+    def run_with(imager: Any = None) -> Any:
+        return rotational_run(
+            make_head_phantom(seed=phantom_seed, contrast=contrast),
+            image_format_cm=volume_format_cm,
+            projections=projections,
+            arc_deg=arc_deg,
+            kind="exposure",
+            pixels=pixels,
+            seed=phantom_seed,
+            imager=imager,
+        )
+
+    def build() -> dict[str, np.ndarray]:
+        run = run_with()
+        vol = reconstruct_run(run, volume_format_cm=volume_format_cm, voxels=voxels)
+        return {
+            "images": run.images,
+            "masks": run.masks,
+            "volume": vol.data,
+            "index_to_world": vol.index_to_world,
+        }
+
+    arrays = cached_arrays("clinical-patient", params, build)
+
+    # the geometries are cheap: the same run with a blank imager (calibration is cached)
+    def blank(ph: object, geom: CArm, index: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros((geom.rows, geom.cols), np.float32), np.ones((geom.rows, geom.cols), bool)
+
+    geoms = run_with(blank)
+    volume = Volume(
+        arrays["volume"],
+        arrays["index_to_world"],
+        label=RECONSTRUCTION_LABEL.format(n=projections) + ", the patient's own run",
+        meta=params,
+    )
+    return PatientData(
+        images=arrays["images"],
+        masks=arrays["masks"].astype(bool),
+        true_geometries=geoms.true_geometries,
+        calibrated_geometries=geoms.calibrated_geometries,
+        volume=volume,
+    )
+
+
+def _patient_of(case: ClinicalCase) -> PatientData:
+    return patient_data(
+        case.phantom_seed,
+        case.volume_format_cm,
+        case.contrast,
+        case.projections,
+        case.arc_deg,
+        case.run_pixels,
+        case.volume_voxels,
+    )
+
+
+def axis_angle_matrix(axis: Sequence[float], angle_deg: float) -> NDArray[np.float64]:
+    """4x4 rotation by ``angle_deg`` about ``axis`` through the world origin (the iso-center)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    t = math.radians(angle_deg)
+    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    r = np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
+    return rigid(r, None)
+
+
+def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None = None) -> dict:
+    """Register one projection of the patient's run to the run's reconstruction, from a pose
+    offset by the case's translation and rotation. Truth: the identity in the calibrated
+    geometry of that frame (the projection itself was formed with the true, bent geometry)."""
+    from registration.core.images import XRayImage
+    from registration.core.register import register
+
+    data = _patient_of(case)
+    geometry = data.calibrated_geometries[case.frame]
+    xray = XRayImage(
+        data.images[case.frame],
+        data.masks[case.frame],
+        geometry,
+        "exposure",
+        {"frame": case.frame, "source": "rotational run"},
+    )
+    offset = _translation(case.translation_mm) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg)
+    result = register(data.volume, xray, initial_motion=offset, truth=np.eye(4), seed=case.seed, options=options)
+    res = result.residual
+    assert res is not None
+    t = np.asarray(case.translation_mm)
+    t_out = float(t @ geometry.direction)
+    return {
+        "patient": case.patient,
+        "phantom_seed": case.phantom_seed,
+        "volume_format_cm": case.volume_format_cm,
+        "contrast": case.contrast,
+        "frame": case.frame,
+        "primary_deg": geometry.primary_deg,
+        "offset_translation_mm": float(np.linalg.norm(t)),
+        "offset_inplane_mm": float(np.linalg.norm(t - t_out * geometry.direction)),
+        "offset_outofplane_mm": abs(t_out),
+        "offset_rotation_deg": case.rotation_deg,
+        "offset_vector_mm": [float(v) for v in t],
+        "offset_axis": list(case.rotation_axis),
+        "seed": case.seed,
+        "translation_residual_mm": res.translation_mm,
+        "inplane_residual_mm": res.inplane_mm,
+        "outofplane_residual_mm": res.outofplane_mm,
+        "rotation_residual_deg": res.rotation_deg,
+        "translation_success": bool(res.inplane_mm < 1.0),
+        "rotation_success": bool(res.rotation_deg < 3.0),
+        "success": bool(res.success),
+        "success_total": bool(res.success_total),
+        "seconds": result.seconds,
+        "drr_count": result.drr_count,
+        "similarity": result.similarity,
+        "volume_label": result.volume_label,
+        "image_pixels": case.run_pixels,
+        "volume_voxels": case.volume_voxels,
+        "projections": case.projections,
+        "version": __version__,
+    }
+
+
+def execute(task: StudyTask, threads: int | None = None) -> dict:
+    """Run one task (in a worker) and return its record (JSON-ready)."""
+    if threads:
+        import numba
+
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    options = task.options
+    if threads:
+        # The capture runs' threads share this worker's cores too (no oversubscription).
+        options = dataclasses.replace(options or RegistrationOptions(), threads=int(threads))
+    if isinstance(task.case, ClinicalCase):
+        record = run_clinical_case(task.case, options=options)
+    else:
+        record = run_case(task.case, options=options)
+    record.update(task.extra)
+    record["case_id"] = task.case_id
+    record["version"] = __version__
+    record["revision"] = _revision()
+    return record
+
+
+@lru_cache(maxsize=1)
+def _revision() -> str:
+    from registration.studies.report import source_revision
+
+    return source_revision()
+
+
+def prebuild(tasks: Iterable[StudyTask], log: Callable[[str], None] | None = None) -> None:
+    """Build every volume (and rotational run) the tasks need, once, in this process."""
+    done: set = set()
+    for task in tasks:
+        case = task.case
+        if isinstance(case, ClinicalCase):
+            key: tuple = ("patient", *_patient_params(case).values())
+            if key not in done:
+                if log:
+                    log(f"preparing patient {case.patient}: rotational run and FDK ({case.volume_format_cm:g} cm)")
+                _patient_of(case)
+        else:
+            key = (
+                "volume",
+                case.phantom_seed,
+                case.facial,
+                case.volume_format_cm,
+                case.volume_voxels,
+                case.volume_source,
+                case.volume_contrast,
+                case.volume_center_mm,
+            )
+            if key not in done:
+                if log:
+                    log(f"preparing the {case.volume_format_cm:g} cm volume ({case.volume_source})")
+                case_volume(case)
+        done.add(key)
+
+
+# --------------------------------------------------------------------------------------
+# Results log (resume, crash safety)
+# --------------------------------------------------------------------------------------
+class ResultsLog:
+    """``results.jsonl``: one record per line, appended, flushed and fsynced per record.
+
+    Reading drops a torn last line (a kill during a write) and any line that is not a JSON
+    object with a ``case_id``; :meth:`open` truncates the torn tail so appends stay valid.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+
+    def read(self) -> list[dict]:
+        if not self.path.exists():
+            return []
+        records = []
+        for line in self.path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(rec, dict) and "case_id" in rec:
+                records.append(rec)
+        return records
+
+    def _repair_tail(self) -> None:
+        if not self.path.exists():
+            return
+        with open(self.path, "rb+") as fh:
+            data = fh.read()
+            if data and not data.endswith(b"\n"):
+                cut = data.rfind(b"\n") + 1
+                fh.truncate(cut)
+
+    def append(self, record: dict) -> None:
+        self._repair_tail()
+        line = json.dumps(record, sort_keys=True) + "\n"
+        with open(self.path, "a", encoding="utf-8") as fh:
+            fh.write(line)
+            fh.flush()
+            os.fsync(fh.fileno())
+
+
+# --------------------------------------------------------------------------------------
+# Running a study
+# --------------------------------------------------------------------------------------
+def _results_local(tasks: list[StudyTask], n_jobs: int) -> Iterator[dict]:
+    if n_jobs <= 1:
+        for task in tasks:
+            yield execute(task)
+        return
+    from joblib import Parallel, delayed
+
+    # one numba thread per process: the processes already fill the cores
+    parallel = Parallel(n_jobs=n_jobs, backend="loky", return_as="generator_unordered", batch_size=1)
+    yield from parallel(delayed(execute)(task, 1) for task in tasks)
+
+
+def _results_dask(tasks: list[StudyTask], scheduler: Any) -> Iterator[dict]:
+    from distributed import Client, as_completed
+
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    try:
+        futures = client.map(execute, tasks, [1] * len(tasks), pure=False)
+        for future in as_completed(futures):
+            yield future.result()
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+def run_study(
+    tasks: list[StudyTask],
+    out: Path,
+    *,
+    n_jobs: int | None = None,
+    scheduler: Any = None,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> tuple[list[dict], float]:
+    """Run the tasks not yet in ``out/results.jsonl``; return (all records of these tasks, wall
+    seconds of every invocation that ran some of them).
+
+    ``scheduler``: a Dask address (``tcp://HOST:PORT``) or a ``distributed.Client``; else
+    joblib processes on ``n_jobs`` local cores (default: all).
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = ResultsLog(out / "results.jsonl")
+    wanted = {t.case_id for t in tasks}
+    finished = {r["case_id"]: r for r in results.read() if r["case_id"] in wanted}
+    todo = [t for t in tasks if t.case_id not in finished]
+    started = time.perf_counter()
+    if todo:
+        prebuild(todo, log)
+    jobs = n_jobs or os.cpu_count() or 1
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tasks), initial=len(finished), file=sys.stderr, unit="reg", dynamic_ncols=True)
+    ok = sum(bool(r["success"]) for r in finished.values())
+    try:
+        stream = _results_dask(todo, scheduler) if scheduler is not None else _results_local(todo, jobs)
+        for record in stream:
+            results.append(record)
+            finished[record["case_id"]] = record
+            ok += bool(record["success"])
+            if bar is not None:
+                bar.set_postfix_str(f"success {ok}/{len(finished)} ({100.0 * ok / len(finished):.0f}%)")
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    order = {t.case_id: i for i, t in enumerate(tasks)}
+    records = sorted(finished.values(), key=lambda r: order[r["case_id"]])
+    return records, _log_invocation(out, len(todo), time.perf_counter() - started)
+
+
+def _log_invocation(out: Path, ran: int, wall_seconds: float) -> float:
+    """Append this invocation to ``out/invocations.jsonl``; return the wall time of every
+    invocation that ran registrations (a killed one is not counted)."""
+    path = out / "invocations.jsonl"
+    entry = {"ran": ran, "wall_seconds": wall_seconds, "finished_unix": time.time(), "version": __version__}
+    if ran:
+        with open(path, "a", encoding="utf-8") as fh:
+            fh.write(json.dumps(entry) + "\n")
+    total = 0.0
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                total += float(json.loads(line)["wall_seconds"])
+            except (ValueError, KeyError, TypeError):
+                continue
+    return total if total else wall_seconds
+
+
+
+
+
+
+
+
+
+
