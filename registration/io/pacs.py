@@ -1,0 +1,446 @@
+"""A PACS over DICOMweb: QIDO-RS search, WADO-RS retrieve, STOW-RS store (``dicomweb-client``).
+
+What the rest of the project sees: :class:`PacsSettings` (URL, credentials, CA bundle: from the
+environment or a config file, never from the command line), :class:`Pacs` with
+:meth:`Pacs.patients`, :meth:`Pacs.studies`, :meth:`Pacs.series` (plain dataclasses),
+:meth:`Pacs.retrieve_series` (the instances of a series written into a private folder, which
+the DICOM readers of :mod:`registration.io.dicom` then read like any local series) and
+:meth:`Pacs.store` (datasets or files, STOW-RS).
+
+Security:
+
+* credentials come from ``ROADMAP3D_PACS_USERNAME`` / ``ROADMAP3D_PACS_PASSWORD`` or from a
+  JSON config file (``ROADMAP3D_PACS_CONFIG``, default ``<user config dir>/roadmap3d/pacs.json``)
+  that others cannot read (mode 0600); a URL that carries ``user:password@`` is refused, so a
+  password never reaches a command line, a shell history or a log;
+* credentials are sent only over HTTPS, or over HTTP to this machine (loopback); HTTPS
+  verifies the server against the system's CAs or ``ca_bundle``;
+* the ``repr`` of the settings and every error message leave the password out;
+* retrieved series land in a folder only the user can read (0700, files 0600), with a bound on
+  the number of instances and on the bytes.
+
+Errors are :class:`PacsError` (a ``ValueError``) naming the server and what failed.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import logging
+import os
+import stat
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import pydicom
+from pydicom.dataset import Dataset
+
+log = logging.getLogger(__name__)
+
+ENV_URL = "ROADMAP3D_PACS_URL"
+ENV_USERNAME = "ROADMAP3D_PACS_USERNAME"
+ENV_PASSWORD = "ROADMAP3D_PACS_PASSWORD"
+ENV_CA_BUNDLE = "ROADMAP3D_PACS_CA_BUNDLE"
+ENV_CONFIG = "ROADMAP3D_PACS_CONFIG"
+
+#: A series holding more instances than this is not retrieved.
+MAX_SERIES_INSTANCES = 5000
+#: A series larger than this (bytes, as received) is not kept.
+MAX_SERIES_BYTES = 4 * 1024**3
+#: First wait (milliseconds) before trying a failed request again; doubles each time.
+RETRY_WAIT_MS = 500
+#: Seconds to wait for the server (connect, read).
+DEFAULT_TIMEOUT_S = (5.0, 120.0)
+
+#: Modalities that hold volumes and X-ray images, for the browser's labels.
+VOLUME_MODALITIES = {"CT", "MR"}
+XRAY_MODALITIES = {"XA", "RF", "DX"}
+RESULT_MODALITIES = {"REG", "OT", "SC"}
+
+
+class PacsError(ValueError):
+    """A PACS that cannot be reached, refuses a request or answers something unusable."""
+
+
+def default_config_path() -> Path:
+    """``ROADMAP3D_PACS_CONFIG``, else ``<user config dir>/roadmap3d/pacs.json``."""
+    env = os.environ.get(ENV_CONFIG)
+    if env:
+        return Path(env).expanduser()
+    from platformdirs import user_config_dir
+
+    return Path(user_config_dir("roadmap3d")) / "pacs.json"
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class PacsSettings:
+    """Where the DICOMweb service is and how to log in (the password never shows in ``repr``)."""
+
+    url: str
+    username: str | None = None
+    password: str | None = field(default=None, repr=False)
+    ca_bundle: Path | None = None
+    timeout_s: tuple[float, float] = DEFAULT_TIMEOUT_S
+    #: Requests are tried this often (exponential back-off) when the server is busy or unreachable.
+    attempts: int = 3
+
+    def __post_init__(self) -> None:
+        parts = urlsplit(self.url)
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise PacsError(f"PACS URL must be http(s)://host[:port]/path, got {self.display_url!r}")
+        if parts.username is not None or parts.password is not None:
+            raise PacsError(
+                f"PACS URL {self.display_url}: credentials in the URL are refused; set "
+                f"{ENV_USERNAME}/{ENV_PASSWORD} or the config file ({default_config_path()})"
+            )
+        if (self.username is None) != (self.password is None):
+            raise PacsError(f"PACS {self.display_url}: a username needs a password and vice versa")
+        if self.username is not None and parts.scheme != "https" and not _is_loopback(parts.hostname):
+            raise PacsError(
+                f"PACS {self.display_url}: refusing to send credentials over plain HTTP to another machine; use https://"
+            )
+        if self.ca_bundle is not None:
+            if parts.scheme != "https":
+                raise PacsError(f"PACS {self.display_url}: a CA bundle applies to https:// URLs only")
+            if not Path(self.ca_bundle).is_file():
+                raise PacsError(f"CA bundle {self.ca_bundle}: no such file")
+
+    @property
+    def display_url(self) -> str:
+        """The URL without any user information (safe for messages and logs)."""
+        parts = urlsplit(self.url)
+        host = parts.hostname or ""
+        netloc = host if parts.port is None else f"{host}:{parts.port}"
+        return parts._replace(netloc=netloc).geturl()
+
+    @classmethod
+    def resolve(
+        cls,
+        url: str | None,
+        *,
+        ca_bundle: str | os.PathLike[str] | None = None,
+        config: str | os.PathLike[str] | None = None,
+        environ: dict[str, str] | None = None,
+    ) -> PacsSettings:
+        """Settings for ``url`` (or the environment's / config file's URL when None).
+
+        Credentials: the environment first (``ROADMAP3D_PACS_USERNAME``/``_PASSWORD``), else the
+        config file's entry. The config file is JSON, either one object
+        ``{"url": ..., "username": ..., "password": ..., "ca_bundle": ...}`` or a list of them
+        (the entry whose url matches is used); it must not be readable by others when it holds a
+        password.
+        """
+        env = os.environ if environ is None else environ
+        path = Path(config).expanduser() if config is not None else default_config_path()
+        entries = _read_config(path) if (config is not None or path.is_file()) else []
+        url = url or env.get(ENV_URL) or (entries[0].get("url") if len(entries) == 1 else None)
+        if not url:
+            raise PacsError(f"no PACS URL: give --pacs URL, set {ENV_URL} or write it into {path}")
+        entry = next((e for e in entries if str(e.get("url", "")).rstrip("/") == url.rstrip("/")), {})
+        username = env.get(ENV_USERNAME) or entry.get("username")
+        password = env.get(ENV_PASSWORD) or entry.get("password")
+        bundle = ca_bundle or env.get(ENV_CA_BUNDLE) or entry.get("ca_bundle")
+        return cls(
+            url=url,
+            username=username,
+            password=password,
+            ca_bundle=Path(bundle).expanduser() if bundle else None,
+        )
+
+
+def _read_config(path: Path) -> list[dict[str, Any]]:
+    try:
+        info = path.stat()
+        text = path.read_text()
+    except OSError as exc:
+        raise PacsError(f"PACS config {path}: cannot read it ({exc.strerror})") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise PacsError(f"PACS config {path}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    entries = data if isinstance(data, list) else [data]
+    if not all(isinstance(e, dict) for e in entries):
+        raise PacsError(f"PACS config {path}: expected an object or a list of objects")
+    if any("password" in e for e in entries) and info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise PacsError(f"PACS config {path}: holds a password but others can read it; chmod 600 {path}")
+    return entries
+
+
+# --------------------------------------------------------------------------------------
+# What the browser lists
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PatientEntry:
+    patient_id: str
+    name: str
+    studies: int
+
+
+@dataclass(frozen=True)
+class StudyEntry:
+    study_uid: str
+    patient_id: str
+    patient_name: str
+    date: str
+    description: str
+    modalities: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class SeriesEntry:
+    study_uid: str
+    series_uid: str
+    modality: str
+    description: str
+    number: int | None
+    instances: int | None
+
+    @property
+    def role(self) -> str:
+        """``volume`` (CT/3DRA), ``xray`` (XA/RF), ``result`` (REG, captures) or ``other``."""
+        if self.modality in VOLUME_MODALITIES or "3DRA" in self.description.upper():
+            return "volume"
+        if self.modality in XRAY_MODALITIES:
+            return "xray"
+        if self.modality in RESULT_MODALITIES:
+            return "result"
+        return "other"
+
+    def label(self) -> str:
+        count = "" if self.instances is None else f", {self.instances} instance{'s' * (self.instances != 1)}"
+        return f"{self.modality} #{self.number if self.number is not None else '-'} {self.description}{count}".strip()
+
+
+def _value(item: dict[str, Any], keyword: str) -> Any:
+    """A value of a DICOM JSON (PS3.18 F.2) item, by keyword; None when absent."""
+    tag = pydicom.datadict.tag_for_keyword(keyword)
+    entry = item.get(f"{tag:08X}") if tag is not None else None
+    if not entry or not entry.get("Value"):
+        return None
+    value = entry["Value"][0]
+    if isinstance(value, dict):  # person name
+        return value.get("Alphabetic", "")
+    return value
+
+
+def _text(item: dict[str, Any], keyword: str) -> str:
+    v = _value(item, keyword)
+    return "" if v is None else str(v)
+
+
+def _int(item: dict[str, Any], keyword: str) -> int | None:
+    v = _value(item, keyword)
+    try:
+        return None if v is None else int(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def _all(item: dict[str, Any], keyword: str) -> tuple[str, ...]:
+    tag = pydicom.datadict.tag_for_keyword(keyword)
+    entry = item.get(f"{tag:08X}") if tag is not None else None
+    return tuple(str(v) for v in (entry or {}).get("Value", []) or [])
+
+
+# --------------------------------------------------------------------------------------
+# The client
+# --------------------------------------------------------------------------------------
+class Pacs:
+    """A DICOMweb service (QIDO-RS, WADO-RS, STOW-RS under one base URL, e.g. Orthanc's
+    ``http://host:8042/dicom-web``)."""
+
+    def __init__(self, settings: PacsSettings) -> None:
+        import requests
+        from dicomweb_client.api import DICOMwebClient
+
+        self.settings = settings
+        session = requests.Session()
+        if settings.username is not None:
+            session.auth = (settings.username, settings.password or "")
+        session.verify = str(settings.ca_bundle) if settings.ca_bundle is not None else True
+        session.trust_env = False  # no proxy or .netrc credentials from the environment sneak in
+        self._client = DICOMwebClient(settings.url.rstrip("/"), session=session, timeout=settings.timeout_s)
+        self._client.set_http_retry_params(
+            retry=settings.attempts > 1,
+            max_attempts=max(1, settings.attempts),
+            wait_exponential_multiplier=RETRY_WAIT_MS,
+        )
+
+    @property
+    def name(self) -> str:
+        return self.settings.display_url
+
+    def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        import requests
+
+        try:
+            return fn(*args, **kwargs)
+        except requests.exceptions.SSLError:
+            raise PacsError(
+                f"PACS {self.name}: {what}: the server's certificate is not trusted (give --ca-bundle)"
+            ) from None
+        except requests.exceptions.HTTPError as exc:
+            code = exc.response.status_code if exc.response is not None else "?"
+            hint = " (wrong or missing credentials)" if code in (401, 403) else ""
+            raise PacsError(f"PACS {self.name}: {what}: HTTP {code}{hint}") from None
+        except requests.exceptions.RequestException as exc:
+            raise PacsError(f"PACS {self.name}: {what}: cannot connect ({type(exc).__name__})") from None
+        except (ValueError, KeyError, TypeError) as exc:
+            raise PacsError(f"PACS {self.name}: {what}: unusable answer ({exc})") from None
+
+    # ----- QIDO-RS -------------------------------------------------------------------
+    def studies(self, patient_id: str | None = None) -> list[StudyEntry]:
+        """Every study (of one patient when ``patient_id`` is given), newest first."""
+        filters = {"PatientID": patient_id} if patient_id else None
+        fields = ["PatientID", "PatientName", "StudyDate", "StudyDescription", "ModalitiesInStudy"]
+        items = self._call(
+            "searching studies",
+            self._client.search_for_studies,
+            fields=fields,
+            search_filters=filters,
+            get_remaining=True,
+        )
+        out = [
+            StudyEntry(
+                study_uid=_text(i, "StudyInstanceUID"),
+                patient_id=_text(i, "PatientID"),
+                patient_name=_text(i, "PatientName"),
+                date=_text(i, "StudyDate"),
+                description=_text(i, "StudyDescription"),
+                modalities=_all(i, "ModalitiesInStudy"),
+            )
+            for i in items
+        ]
+        return sorted((s for s in out if s.study_uid), key=lambda s: (s.date, s.study_uid), reverse=True)
+
+    def patients(self) -> list[PatientEntry]:
+        """The patients of the stored studies (QIDO-RS has no patient level: grouped from studies)."""
+        counts: dict[str, list[Any]] = {}
+        for s in self.studies():
+            entry = counts.setdefault(s.patient_id, [s.patient_name, 0])
+            entry[1] += 1
+        return [PatientEntry(pid, name, n) for pid, (name, n) in sorted(counts.items())]
+
+    def series(self, study_uid: str) -> list[SeriesEntry]:
+        """The series of a study, by series number."""
+        fields = ["Modality", "SeriesDescription", "SeriesNumber", "NumberOfSeriesRelatedInstances"]
+        items = self._call(
+            f"listing the series of study {study_uid}",
+            self._client.search_for_series,
+            study_instance_uid=study_uid,
+            fields=fields,
+            get_remaining=True,
+        )
+        out = [
+            SeriesEntry(
+                study_uid=study_uid,
+                series_uid=_text(i, "SeriesInstanceUID"),
+                modality=_text(i, "Modality"),
+                description=_text(i, "SeriesDescription"),
+                number=_int(i, "SeriesNumber"),
+                instances=_int(i, "NumberOfSeriesRelatedInstances"),
+            )
+            for i in items
+        ]
+        return sorted((s for s in out if s.series_uid), key=lambda s: (s.number is None, s.number or 0, s.series_uid))
+
+    # ----- WADO-RS -------------------------------------------------------------------
+    def retrieve_series(self, study_uid: str, series_uid: str, folder: str | os.PathLike[str] | None = None) -> Path:
+        """Write the series' instances into ``folder`` (default: a new private temporary folder)
+        as ``NNNN.dcm`` and return the folder. The caller removes a temporary folder."""
+        instances = self._call(
+            f"listing the instances of series {series_uid}",
+            self._client.search_for_instances,
+            study_instance_uid=study_uid,
+            series_instance_uid=series_uid,
+            fields=["SOPInstanceUID"],
+            get_remaining=True,
+        )
+        if not instances:
+            raise PacsError(f"PACS {self.name}: series {series_uid} of study {study_uid} holds no instance")
+        if len(instances) > MAX_SERIES_INSTANCES:
+            raise PacsError(
+                f"PACS {self.name}: series {series_uid} holds {len(instances)} instances "
+                f"(more than {MAX_SERIES_INSTANCES}); refused"
+            )
+        out = Path(folder) if folder is not None else Path(tempfile.mkdtemp(prefix="roadmap3d-pacs-"))
+        out.mkdir(parents=True, exist_ok=True)
+        out.chmod(0o700)
+        total = 0
+        datasets = self._call(
+            f"retrieving series {series_uid}",
+            lambda: list(self._client.iter_series(study_uid, series_uid)),
+        )
+        for n, ds in enumerate(datasets):
+            path = out / f"{n:04d}.dcm"
+            _save(ds, path)
+            total += path.stat().st_size
+            if total > MAX_SERIES_BYTES:
+                raise PacsError(f"PACS {self.name}: series {series_uid} exceeds {MAX_SERIES_BYTES} bytes; refused")
+        log.info("retrieved %d instances (%d bytes) of series %s from %s", len(datasets), total, series_uid, self.name)
+        return out
+
+    # ----- STOW-RS -------------------------------------------------------------------
+    def store(self, items: Iterable[Dataset | str | os.PathLike[str]]) -> int:
+        """Store datasets (or DICOM files) with STOW-RS, one request per study; the number stored."""
+        datasets: list[Dataset] = []
+        for item in items:
+            if isinstance(item, Dataset):
+                datasets.append(item)
+            else:
+                datasets.append(pydicom.dcmread(item))
+        by_study: dict[str, list[Dataset]] = {}
+        for ds in datasets:
+            by_study.setdefault(str(ds.StudyInstanceUID), []).append(ds)
+        stored = 0
+        for study_uid, group in by_study.items():
+            answer = self._call(
+                f"storing {len(group)} instance(s) into study {study_uid}",
+                self._client.store_instances,
+                datasets=group,
+                study_instance_uid=study_uid,
+            )
+            failed = answer.get("FailedSOPSequence") if answer is not None else None
+            if failed:
+                reasons = sorted({str(f.get("FailureReason", "?")) for f in failed})
+                raise PacsError(
+                    f"PACS {self.name}: {len(failed)} of {len(group)} instance(s) refused "
+                    f"(reasons {', '.join(reasons)})"
+                )
+            stored += len(group)
+        log.info("stored %d instance(s) on %s", stored, self.name)
+        return stored
+
+
+def _save(ds: Dataset, path: Path) -> None:
+    """Write a retrieved dataset as a DICOM file only the user can read."""
+    from pydicom.dataset import FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian
+
+    meta = getattr(ds, "file_meta", None) or FileMetaDataset()
+    meta.MediaStorageSOPClassUID = ds.SOPClassUID
+    meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+    if "TransferSyntaxUID" not in meta:
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.file_meta = meta
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as fh:
+        ds.save_as(fh, enforce_file_format=True)
+
+
+def find_series(series: Sequence[SeriesEntry], role: str) -> SeriesEntry | None:
+    """The first series of a study with the given :attr:`SeriesEntry.role`, or None."""
+    return next((s for s in series if s.role == role), None)

@@ -1,0 +1,144 @@
+"""The PACS over DICOMweb (registration/io/pacs.py) against a real Orthanc (tests/orthanc.py).
+
+The phantom's DICOM export is stored with STOW-RS, found with QIDO-RS and retrieved with
+WADO-RS; what comes back must read as exactly what was exported. The settings tests need no
+server: credentials never come from a URL, never cross plain HTTP to another machine, and a
+readable config file holding a password is refused.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app import cli
+from registration.io import dicom
+from registration.io.pacs import Pacs, PacsError, PacsSettings, find_series
+from tests.orthanc import OrthancServer
+
+SMALL = ["--voxels", "48", "--pixels", "96", "--volume-source", "resampled"]
+
+
+# --------------------------------------------------------------------------------------
+# Settings (no server)
+# --------------------------------------------------------------------------------------
+def test_credentials_in_the_url_are_refused() -> None:
+    with pytest.raises(PacsError, match="credentials in the URL") as info:
+        PacsSettings("https://alice:s3cret@pacs.example.org/dicom-web")
+    assert "s3cret" not in str(info.value)
+
+
+def test_credentials_never_cross_plain_http_to_another_machine() -> None:
+    with pytest.raises(PacsError, match="plain HTTP"):
+        PacsSettings("http://pacs.example.org/dicom-web", username="a", password="b")
+    # loopback and https are fine
+    PacsSettings("http://127.0.0.1:8042/dicom-web", username="a", password="b")
+    PacsSettings("https://pacs.example.org/dicom-web", username="a", password="b")
+
+
+def test_password_not_in_repr_and_ca_bundle_checked(tmp_path: Path) -> None:
+    s = PacsSettings("https://pacs.example.org/dicom-web", username="alice", password="s3cret")
+    assert "s3cret" not in repr(s) and "alice" in repr(s)
+    with pytest.raises(PacsError, match="no such file"):
+        PacsSettings("https://pacs.example.org/x", ca_bundle=tmp_path / "missing.pem")
+    with pytest.raises(PacsError, match="https"):
+        (tmp_path / "ca.pem").write_text("x")
+        PacsSettings("http://127.0.0.1/x", ca_bundle=tmp_path / "ca.pem")
+
+
+def test_resolve_from_environment_and_config(tmp_path: Path) -> None:
+    config = tmp_path / "pacs.json"
+    entries = [
+        {"url": "https://a.example.org/dw", "username": "ua", "password": "pa"},
+        {"url": "https://b.example.org/dw", "username": "ub", "password": "pb"},
+    ]
+    config.write_text(json.dumps(entries))
+    config.chmod(0o644)
+    with pytest.raises(PacsError, match="chmod 600"):
+        PacsSettings.resolve("https://b.example.org/dw", config=config, environ={})
+    config.chmod(0o600)
+    s = PacsSettings.resolve("https://b.example.org/dw/", config=config, environ={})
+    assert (s.username, s.password) == ("ub", "pb")
+    env = {"ROADMAP3D_PACS_USERNAME": "envuser", "ROADMAP3D_PACS_PASSWORD": "envpass"}
+    s = PacsSettings.resolve("https://a.example.org/dw", config=config, environ=env)
+    assert (s.username, s.password) == ("envuser", "envpass")
+    with pytest.raises(PacsError, match="no PACS URL"):
+        PacsSettings.resolve(None, config=config, environ={})
+
+
+# --------------------------------------------------------------------------------------
+# Against Orthanc
+# --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("pacs-export") / "phantom"
+    with pytest.raises(SystemExit) as info:
+        cli.main(["phantom", "--out", str(out), "--primary-deg", "15", *SMALL])
+    assert info.value.code == 0
+    return out
+
+
+@pytest.fixture()
+def pacs(orthanc: OrthancServer) -> Pacs:
+    orthanc.clear()
+    return Pacs(PacsSettings(orthanc.dicomweb_url, username=orthanc.username, password=orthanc.password))
+
+
+def _files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*.dcm"))
+
+
+def test_store_list_retrieve_round_trip(pacs: Pacs, export: Path, tmp_path: Path) -> None:
+    files = _files(export)
+    assert pacs.store(files) == len(files)
+
+    patients = pacs.patients()
+    assert [(p.patient_id, p.studies) for p in patients] == [("ROADMAP3D", 1)]
+    studies = pacs.studies(patient_id="ROADMAP3D")
+    assert len(studies) == 1 and set(studies[0].modalities) >= {"CT", "XA"}
+    series = pacs.series(studies[0].study_uid)
+    volume_series = find_series(series, "volume")
+    assert volume_series is not None and volume_series.modality == "CT"
+    assert volume_series.instances == len(_files(export / "volume"))
+    xrays = [s for s in series if s.role == "xray"]
+    assert len(xrays) == 2  # fluoro and exposure
+
+    folder = pacs.retrieve_series(studies[0].study_uid, volume_series.series_uid, tmp_path / "vol")
+    assert (folder.stat().st_mode & 0o777) == 0o700
+    assert all((p.stat().st_mode & 0o777) == 0o600 for p in folder.iterdir())
+    got = dicom.read_volume(folder)
+    want = dicom.read_volume(export / "volume")
+    # the same stored integers travel both ways: bit-identical HU and affine
+    assert np.array_equal(got.data, want.data)
+    assert np.allclose(got.index_to_world, want.index_to_world, atol=1e-9)
+
+    fluoro = next(s for s in xrays if "fluoro" in s.description)
+    xfolder = pacs.retrieve_series(studies[0].study_uid, fluoro.series_uid)
+    try:
+        (image_file,) = list(xfolder.iterdir())
+        got_x = dicom.read_xray(image_file)
+        want_x = dicom.read_xray(export / "xa_fluoro.dcm")
+        assert np.array_equal(got_x.image, want_x.image) and np.array_equal(got_x.mask, want_x.mask)
+        assert got_x.geometry == want_x.geometry
+    finally:
+        for p in xfolder.iterdir():
+            p.unlink()
+        xfolder.rmdir()
+
+
+def test_wrong_password_is_a_clear_error(orthanc: OrthancServer) -> None:
+    bad = Pacs(PacsSettings(orthanc.dicomweb_url, username=orthanc.username, password="wrong-password"))
+    with pytest.raises(PacsError, match="HTTP 401 .wrong or missing credentials") as info:
+        bad.studies()
+    assert "wrong-password" not in str(info.value)
+
+
+def test_unreachable_server_is_a_clear_error() -> None:
+    from tests.orthanc import free_port
+
+    pacs = Pacs(PacsSettings(f"http://127.0.0.1:{free_port()}/dicom-web", timeout_s=(1.0, 1.0), attempts=1))
+    with pytest.raises(PacsError, match="cannot connect"):
+        pacs.studies()
