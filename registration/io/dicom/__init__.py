@@ -12,6 +12,9 @@ Modules (import from the package, ``from registration.io.dicom import read_volum
 ``xray``
     XA/RF images: geometry from the positioner tags (CONVENTIONS §3), intensities to
     attenuation line integrals and the field mask (§5); writing single images and runs.
+``runs``
+    Multi-frame runs (CONVENTIONS §7): :func:`read_xray_run` gives an :class:`XRayRun` (per-frame
+    times, geometry, plane; frames decoded on demand), :func:`write_xray_run` writes one.
 ``inspection``
     :func:`inspect`, what ``roadmap3d info`` shows.
 ``uploads``
@@ -49,6 +52,7 @@ from registration.io.dicom._common import (
 )
 from registration.io.dicom._files import atomic_folder, json_dumps, write_bytes_atomic, write_text_atomic
 from registration.io.dicom.inspection import HEADER_TAGS, inspect
+from registration.io.dicom.runs import XRayRun, frame_times, read_xray_run, write_xray_run
 from registration.io.dicom.uploads import classify_upload, unpack_upload
 from registration.io.dicom.volumes import read_npz, read_series, read_volume, write_enhanced, write_npz, write_series
 from registration.io.dicom.xray import read_xray, read_xray_angles, write_xray
@@ -69,11 +73,13 @@ __all__ = [
     "VOLUME_MODALITIES",
     "WRITTEN_SIGN",
     "XRAY_CLASSES",
+    "XRayRun",
     "Array",
     "DicomError",
     "UploadError",
     "atomic_folder",
     "classify_upload",
+    "frame_times",
     "inspect",
     "json_dumps",
     "lookup",
@@ -84,6 +90,7 @@ __all__ = [
     "read_volume",
     "read_xray",
     "read_xray_angles",
+    "read_xray_run",
     "tag_name",
     "unpack_upload",
     "write_bytes_atomic",
@@ -92,4 +99,5 @@ __all__ = [
     "write_series",
     "write_text_atomic",
     "write_xray",
+    "write_xray_run",
 ]

@@ -49,6 +49,9 @@ from pydicom.datadict import tag_for_keyword
 from pydicom.dataset import Dataset
 from pydicom.uid import (
     UID,
+    ExplicitVRLittleEndian,
+    JPEG2000Lossless,
+    RLELossless,
     XRayAngiographicImageStorage,
 )
 from scipy import ndimage
@@ -117,6 +120,34 @@ def _frame_angles(path: Path, ds: Dataset, frame: int, frames: int) -> tuple[flo
     return primary, secondary, source
 
 
+def _distance(
+    path: Path, ds: Dataset, frame: int, keywords: tuple[str, ...], given: float | None, option: str
+) -> tuple[float, str]:
+    """A distance (mm) from the first of ``keywords`` present, or the caller's ``given`` value.
+
+    ``option`` names the parameter and the command-line flag that supply it (for the message).
+    """
+    found = None
+    for keyword in keywords:
+        values = _floats(path, ds, keyword, None, frame, required=False)
+        if values:
+            found = (values[0], keyword)
+            break
+    if given is not None:
+        value = float(given)
+        if not math.isfinite(value) or value <= 0:
+            raise ValueError(f"{option} must be a positive number of mm, got {given}")
+        if found is not None and abs(found[0] - value) > 1e-6 * max(1.0, value):
+            warnings.warn(
+                f"{path}: {tag_name(found[1])} is {found[0]:g} mm; using the given {value:g} mm instead",
+                stacklevel=4,
+            )
+        return value, option.split(" ")[0]
+    if found is None:
+        raise DicomError(path, f"missing {tag_name(keywords[0])}: supply it with {option}")
+    return found
+
+
 def _geometry(
     path: Path,
     ds: Dataset,
@@ -125,14 +156,15 @@ def _geometry(
     rows: int,
     cols: int,
     isocenter_mm: tuple[float, float, float],
+    *,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
 ) -> tuple[CArm, dict]:
     primary, secondary, angle_source = _frame_angles(path, ds, frame, frames)
-    sid = _float(path, ds, "DistanceSourceToDetector", frame)
-    sod_values = _floats(path, ds, "DistanceSourceToPatient", None, frame, required=False)
-    if sod_values is None:
-        sod_values = _floats(path, ds, "DistanceSourceToIsocenter", None, frame, required=False)
-    if sod_values is None:
-        raise DicomError(path, f"missing {tag_name('DistanceSourceToPatient')}")
+    sid, sid_from = _distance(path, ds, frame, ("DistanceSourceToDetector",), sid_mm, "sid_mm (--sid-mm)")
+    sod, sod_from = _distance(
+        path, ds, frame, ("DistanceSourceToPatient", "DistanceSourceToIsocenter"), sod_mm, "sod_mm (--sod-mm)"
+    )
     spacing = _floats(path, ds, "ImagerPixelSpacing", 2, frame, required=False)
     spacing_tag = "ImagerPixelSpacing"
     if spacing is None:
@@ -150,7 +182,7 @@ def _geometry(
             primary_deg=primary,
             secondary_deg=secondary,
             sid_mm=sid,
-            sod_mm=sod_values[0],
+            sod_mm=sod,
             rows=rows,
             cols=cols,
             pixel_mm=(spacing[0], spacing[1]),
@@ -162,7 +194,12 @@ def _geometry(
             f"inconsistent geometry ({tag_name('DistanceSourceToDetector')}, "
             f"{tag_name('DistanceSourceToPatient')}, {tag_name(spacing_tag)}, positioner angles): {exc}",
         ) from None
-    return geometry, {"angles_from": angle_source, "pixel_spacing_from": spacing_tag}
+    return geometry, {
+        "angles_from": angle_source,
+        "pixel_spacing_from": spacing_tag,
+        "sid_from": sid_from,
+        "sod_from": sod_from,
+    }
 
 
 def _intensity_to_attenuation(
@@ -255,7 +292,8 @@ def _border_mask(stored: NDArray[Any]) -> NDArray[np.bool_] | None:
     return ~outside
 
 
-def _field_rotation(path: Path, ds: Dataset, image: NDArray[Any]) -> tuple[NDArray[Any], str | None]:
+def _field_of_view(path: Path, ds: Dataset) -> tuple[int, bool]:
+    """FieldOfViewRotation (degrees, a multiple of 90) and FieldOfViewHorizontalFlip."""
     rotation_value = ds.get("FieldOfViewRotation")
     flip = _text(ds, "FieldOfViewHorizontalFlip").upper() == "YES"
     try:
@@ -264,6 +302,17 @@ def _field_rotation(path: Path, ds: Dataset, image: NDArray[Any]) -> tuple[NDArr
         raise DicomError(path, f"{tag_name('FieldOfViewRotation')} is not a number") from None
     if rotation % 90:
         raise DicomError(path, f"{tag_name('FieldOfViewRotation')} {rotation} is not a multiple of 90")
+    return rotation, flip
+
+
+def _field_rotation_shape(path: Path, ds: Dataset, rows: int, cols: int) -> tuple[int, int]:
+    """(rows, cols) of the image once the field-of-view rotation is undone."""
+    rotation, _ = _field_of_view(path, ds)
+    return (cols, rows) if rotation in (90, 270) else (rows, cols)
+
+
+def _field_rotation(path: Path, ds: Dataset, image: NDArray[Any]) -> tuple[NDArray[Any], str | None]:
+    rotation, flip = _field_of_view(path, ds)
     if rotation == 0 and not flip:
         return image, None
     if flip:
@@ -299,18 +348,39 @@ def read_xray(
     frame: int | None = None,
     isocenter_mm: ArrayLike = (0.0, 0.0, 0.0),
     kind: str | None = None,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
 ) -> XRayImage:
     """An XA/RF image (one frame) as attenuation line integrals with its field mask and C-arm.
 
     ``frame`` is 0-based; a multi-frame file read without it gives frame 0 and a warning.
     ``isocenter_mm`` places the iso-center (default: the world origin, CONVENTIONS §1).
+    ``sid_mm`` / ``sod_mm`` supply the source-detector and source-iso-center distances for
+    files that lack DistanceSourceToDetector / DistanceSourceToPatient; given for a file that
+    has them, they replace the file's values (with a warning when they differ).
+    A whole run (all frames, their times) is read by :func:`registration.io.dicom.read_xray_run`.
     """
-    from registration.core.images import XRayImage
-
     path = Path(path)
+    iso = _check_isocenter(isocenter_mm)
+    ds, frames, rows, cols = _open_xray(path)
+    if frame is None:
+        if frames > 1:
+            warnings.warn(f"{path}: {frames} frames; using frame 0 (choose one with --frame)", stacklevel=2)
+        frame = 0
+    if not 0 <= int(frame) < frames:
+        raise DicomError(path, f"frame {frame} out of range: {tag_name('NumberOfFrames')} is {frames}")
+    return _xray_frame(path, ds, int(frame), frames, rows, cols, iso, kind=kind, sid_mm=sid_mm, sod_mm=sod_mm)
+
+
+def _check_isocenter(isocenter_mm: ArrayLike) -> tuple[float, float, float]:
     iso = np.asarray(isocenter_mm, dtype=np.float64).reshape(-1)
     if iso.shape != (3,) or not np.all(np.isfinite(iso)):
         raise ValueError(f"isocenter_mm must be three finite numbers, got {isocenter_mm}")
+    return (float(iso[0]), float(iso[1]), float(iso[2]))
+
+
+def _open_xray(path: Path) -> tuple[Dataset, int, int, int]:
+    """The dataset of an XA/RF file, its frame count, rows and columns (as stored)."""
     ds = read_dataset(path)
     sop = _sop_class(ds)
     modality = _text(ds, "Modality").upper()
@@ -325,13 +395,27 @@ def read_xray(
         raise DicomError(path, f"is a {ENHANCED_VOLUME_CLASSES[sop]} volume, not a projection image")
     frames = _frames(path, ds)
     rows, cols = _check_pixel_module(path, ds, frames)
-    if frame is None:
-        if frames > 1:
-            warnings.warn(f"{path}: {frames} frames; using frame 0 (choose one with --frame)", stacklevel=2)
-        frame = 0
-    if not 0 <= int(frame) < frames:
-        raise DicomError(path, f"frame {frame} out of range: {tag_name('NumberOfFrames')} is {frames}")
-    frame = int(frame)
+    return ds, frames, rows, cols
+
+
+def _xray_frame(
+    path: Path,
+    ds: Dataset,
+    frame: int,
+    frames: int,
+    rows: int,
+    cols: int,
+    iso: tuple[float, float, float],
+    *,
+    kind: str | None = None,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
+) -> XRayImage:
+    """Frame ``frame`` of an opened XA/RF dataset as an :class:`XRayImage`."""
+    from registration.core.images import XRayImage
+
+    sop = _sop_class(ds)
+    modality = _text(ds, "Modality").upper()
     stored = _pixels(path, ds, index=frame if frames > 1 else None)
     if stored.ndim == 3 and stored.shape[0] == 1:
         stored = stored[0]
@@ -339,14 +423,14 @@ def read_xray(
         raise DicomError(path, f"{tag_name('PixelData')} decodes to shape {stored.shape}, expected {rows}x{cols}")
     stored, rotation_note = _field_rotation(path, ds, stored)
     rows, cols = stored.shape
-    geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, (float(iso[0]), float(iso[1]), float(iso[2])))
+    geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, iso, sid_mm=sid_mm, sod_mm=sod_mm)
     shutter = None if rotation_note else _shutter_mask(path, ds, rows, cols)
     border = _border_mask(stored)
     if shutter is None and border is None:
         warnings.warn(
             f"{path}: no shutter ({tag_name('ShutterShape')}) and no constant collimator border; using the "
             "whole image as the field",
-            stacklevel=2,
+            stacklevel=3,
         )
         mask = np.ones((rows, cols), dtype=bool)
         mask_source = "whole image"
@@ -400,6 +484,41 @@ def _encode_attenuation(image: NDArray[Any], mask: NDArray[np.bool_]) -> NDArray
     return stored.astype(np.uint16)
 
 
+#: Frame spacing (ms) of a run written without ``times_s`` (30 frames/s).
+DEFAULT_FRAME_TIME_MS = 1000.0 / 30.0
+#: Plane Identification (0018,9457) values (CONVENTIONS §6).
+PLANES = ("MONOPLANE", "PLANE A", "PLANE B")
+#: Lossless transfer syntaxes the writer can compress to (RLE needs no plugin; JPEG 2000 needs
+#: pylibjpeg-openjpeg).
+LOSSLESS_SYNTAXES = (RLELossless, JPEG2000Lossless)
+
+
+def _check_times(times_s: ArrayLike | None, frames: int) -> NDArray[np.float64]:
+    if times_s is None:
+        return np.arange(frames, dtype=np.float64) * DEFAULT_FRAME_TIME_MS / 1000.0
+    times = np.asarray(times_s, dtype=np.float64).reshape(-1)
+    if times.shape != (frames,):
+        raise ValueError(f"times_s must hold one time per frame ({frames}), got {times.size}")
+    if not np.all(np.isfinite(times)):
+        raise ValueError("times_s must be finite")
+    if frames and abs(times[0]) > 1e-9:
+        raise ValueError(f"times_s counts from the first frame: times_s[0] must be 0, got {times[0]}")
+    if np.any(np.diff(times) < 0):
+        raise ValueError("times_s must not decrease")
+    return times
+
+
+def _compress(ds: Dataset, stored: NDArray[Any], syntax: UID, path: Path) -> None:
+    if syntax not in LOSSLESS_SYNTAXES:
+        names = ", ".join(f"{s.name} ({s})" for s in LOSSLESS_SYNTAXES)
+        raise ValueError(f"{path}: transfer_syntax {syntax} is not one the writer compresses to ({names})")
+    try:
+        ds.compress(syntax, np.ascontiguousarray(stored), generate_instance_uid=False)
+    except Exception as exc:  # pydicom raises RuntimeError/ValueError when no encoder is installed
+        raise ValueError(f"{path}: cannot compress to {syntax.name}: {exc}") from None
+    ds.file_meta.TransferSyntaxUID = syntax
+
+
 def write_xray(
     images: XRayImage | Sequence[XRayImage],
     path: str | os.PathLike[str],
@@ -409,6 +528,9 @@ def write_xray(
     description: str | None = None,
     patient_name: str = "roadmap3d^phantom",
     patient_id: str = "ROADMAP3D",
+    times_s: ArrayLike | None = None,
+    plane: str | None = None,
+    transfer_syntax: str | None = None,
 ) -> Path:
     """Write one XA image, or a multi-frame XA run (per-frame angles), per the module docstring.
 
@@ -417,10 +539,20 @@ def write_xray(
     angle increment tags. The circular field goes into the shutter module and into the pixel
     values (NO_SIGNAL_VALUE outside the field). Only the nominal geometry is stored: DICOM
     has no place for the bending shifts of a true geometry.
+
+    ``times_s`` (one per frame, seconds from the first frame, non-decreasing; default
+    ``DEFAULT_FRAME_TIME_MS`` apart) become FrameTime (0018,1063) when evenly spaced, else
+    FrameTimeVector (0018,1065) (CONVENTIONS §7). ``plane`` ("MONOPLANE", "PLANE A", "PLANE B")
+    is written as PlaneIdentification (0018,9457). ``transfer_syntax`` (a UID, e.g. RLE
+    Lossless or JPEG 2000 Lossless; default Explicit VR Little Endian) compresses the pixels
+    losslessly. :func:`registration.io.dicom.write_xray_run` is the run-facing entry point.
     """
     frames = [images] if not isinstance(images, Sequence) else list(images)
     if not frames:
         raise ValueError("no image to write")
+    times = _check_times(times_s, len(frames))
+    if plane is not None and plane not in PLANES:
+        raise ValueError(f"plane must be one of {PLANES}, got {plane!r}")
     first = frames[0]
     g0 = first.geometry
     for img in frames[1:]:
@@ -467,8 +599,13 @@ def write_xray(
     else:
         ds.PositionerMotion = "DYNAMIC"
         ds.NumberOfFrames = len(frames)
-        ds.FrameTime = "33.3"
-        ds.FrameIncrementPointer = tag_for_keyword("FrameTime")
+        steps_ms = np.diff(times) * 1000.0
+        if np.allclose(steps_ms, steps_ms[0], rtol=0.0, atol=1e-6):
+            ds.FrameTime = _ds_number(float(steps_ms[0]))
+            ds.FrameIncrementPointer = tag_for_keyword("FrameTime")
+        else:
+            ds.FrameTimeVector = [_ds_number(0.0)] + [_ds_number(float(v)) for v in steps_ms]
+            ds.FrameIncrementPointer = tag_for_keyword("FrameTimeVector")
         ds.FrameDimensionPointer = [
             tag_for_keyword("PositionerPrimaryAngleIncrement"),
             tag_for_keyword("PositionerSecondaryAngleIncrement"),
@@ -496,8 +633,13 @@ def write_xray(
     low, high = np.percentile(stored[0][first.mask], [0.5, 99.5])
     ds.WindowCenter = _ds_number(round((low + high) / 2.0))
     ds.WindowWidth = _ds_number(max(1.0, round(1.1 * (high - low))))
-    ds.PixelData = stored.tobytes()
+    if plane is not None:
+        ds.PlaneIdentification = plane
     path = Path(path)
+    if transfer_syntax is None or UID(transfer_syntax) == ExplicitVRLittleEndian:
+        ds.PixelData = stored.tobytes()
+    else:
+        _compress(ds, stored if len(frames) > 1 else stored[0], UID(transfer_syntax), path)
     with _atomic_path(path) as tmp:
         _save(ds, tmp)
     return path
