@@ -32,6 +32,7 @@ import viser
 
 from app import views
 from app.data import PhantomData
+from app.panels import PanelContext
 from app.scene import M_PER_MM
 from registration.core.geometry import CArm
 from registration.io.cache import cache_dir, cache_key, cached_arrays
@@ -398,3 +399,26 @@ class CalibrationView:
                 font_screen_scale=0.8,
             )
         )
+
+
+class CalibrationPanel(CalibrationView):
+    """The calibration view mounted as the app's "Calibration" tab (:mod:`app.panels`)."""
+
+    def __init__(self, ctx: PanelContext) -> None:
+        session = ctx.session
+
+        def angles() -> tuple[float, float, float]:
+            with session.lock:
+                st = session.settings
+            return st.primary_deg, st.secondary_deg, st.volume_format_cm
+
+        with ctx.layout.view_tab("Calibration", viser.Icon.GRID_DOTS):
+            super().__init__(ctx.server, ctx.phantom, angles=angles, message=ctx.message, on_toggle=ctx.refresh)
+
+    @property
+    def hides_patient(self) -> bool:
+        """While on, the dodecahedron is imaged on its own: the patient leaves the scene."""
+        return bool(self.enabled.value)
+
+    def settings_changed(self) -> None:
+        self.refresh()

@@ -13,6 +13,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import trimesh
@@ -26,7 +27,7 @@ from registration.io.meshes import surface_meshes
 from registration.sim.phantom import HeadPhantom, make_head_phantom, registration_volume
 from registration.sim.xray import simulate_xray
 
-__all__ = ["AppConfig", "FileData", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
+__all__ = ["AppConfig", "DataSource", "FileData", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
 
 ProgressFn = Callable[[str, float], None]
 
@@ -76,6 +77,41 @@ class AppConfig:
                 f"ROADMAP3D_APP_VOXELS must lie in 32..512 and _PIXELS in 64..2048, got {voxels}, {pixels}"
             )
         return cls(voxels=voxels, pixels=pixels, volume_source=source)
+
+
+@runtime_checkable
+class DataSource(Protocol):
+    """What the app shows and registers: the built-in phantom (:class:`PhantomData`) or the
+    user's files (:class:`FileData`). Methods take the volume format (cm) the C-arm panel
+    selects; a source with one fixed volume ignores it."""
+
+    config: AppConfig
+    #: Where the data came from (the Data tab shows it).
+    source: str
+    #: Whether the true patient motion is known (the phantom: yes; the user's data: no).
+    has_truth: bool
+    #: The user's X-ray image (its geometry fixes the C-arm); None: images are simulated.
+    fixed_xray: XRayImage | None
+
+    def volume(self, volume_format_cm: float) -> Volume:
+        """The registration volume (3DRA)."""
+        ...
+
+    def renderer(self, volume_format_cm: float) -> DRRRenderer:
+        """The DRR renderer of :meth:`volume`, prepared once."""
+        ...
+
+    def meshes(self, volume_format_cm: float) -> dict[str, trimesh.Trimesh]:
+        """Vessel and bone surfaces of :meth:`volume` in world mm."""
+        ...
+
+    def mesh_spacing_mm(self, volume_format_cm: float) -> float:
+        """Typical distance between neighbouring mesh vertices."""
+        ...
+
+    def vessel_points_mm(self) -> np.ndarray | None:
+        """Vessel centerline points for the mTRE (None without ground truth)."""
+        ...
 
 
 def _mesh_arrays(meshes: dict[str, trimesh.Trimesh]) -> dict[str, np.ndarray]:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from app.data import AppConfig, FileData, PhantomData, XRayImage, simulate_xray
+from app.data import AppConfig, DataSource, PhantomData, XRayImage, simulate_xray
 from registration.core.geometry import TABLE_I, CArm, default_system, matrix_to_offsets, offsets_to_matrix
 from registration.core.metrics import Residual, residuals
 from registration.core.register import Progress, RegistrationResult, register
@@ -86,8 +86,8 @@ class RunState:
 class Session:
     """The shared state of the demo and its registration worker."""
 
-    def __init__(self, data: PhantomData | FileData, config: AppConfig | None = None) -> None:
-        self.data: PhantomData | FileData = data
+    def __init__(self, data: DataSource, config: AppConfig | None = None) -> None:
+        self.data: DataSource = data
         self.config = config or data.config
         self.lock = threading.RLock()
         self.settings = CArmSettings()
@@ -114,7 +114,7 @@ class Session:
                 return self.data.fixed_xray.geometry.nominal()
             return self.settings.geometry(self.config.pixels)
 
-    def use_data(self, data: PhantomData | FileData) -> None:
+    def use_data(self, data: DataSource) -> None:
         """Switch to other data (an upload): motion, estimate and run start afresh."""
         with self.lock:
             self._refuse_while_running()
@@ -130,8 +130,11 @@ class Session:
         return settings, motion, (settings, motion.tobytes())
 
     def _simulate(self, settings: CArmSettings, motion: Array, *, pixels: int, supersample: int) -> XRayImage:
+        data = self.data
+        if not isinstance(data, PhantomData):  # a source without a phantom brings its own image
+            raise ValueError(f"{data.source}: no phantom to form X-ray images from")
         return simulate_xray(
-            self.data.phantom(settings.contrast),
+            data.phantom(settings.contrast),
             settings.geometry(pixels),
             motion=motion,
             kind=settings.kind,

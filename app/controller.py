@@ -1,0 +1,270 @@
+"""The controller: what the user's clicks and slider moves do.
+
+Each callback changes only the :class:`~app.session.Session` (which validates and refuses
+while a registration runs) and then wakes the presenter; it never draws. The controller also
+shows the session's state back in the controls (:meth:`Controller.sync_controls`, without
+re-triggering their callbacks), enables and disables them around a run, and runs
+Auto-correct: a registration a moment after the patient last moved.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from functools import wraps
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from app.layout import Layout, format_cm, format_option, offset_limit
+from app.session import Session
+from app.upload import limit_uploads
+from registration.core.geometry import clinically_relevant
+
+if TYPE_CHECKING:
+    import viser
+
+    from app.data import DataSource
+    from app.panels import Panel
+
+log = logging.getLogger(__name__)
+
+#: Auto-correct waits this long after the last patient movement before re-registering.
+AUTOCORRECT_DELAY_S = 0.6
+#: What the status line says when the C-arm leaves the paper's clinically relevant subset.
+OUTSIDE_RELEVANT = (
+    "Outside the paper's clinically relevant subset (image format 15/19 cm, or a volume "
+    "smaller than the image): the product keeps the machine-based registration here."
+)
+
+
+class Controller:
+    """Binds the layout's widgets to the session."""
+
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        session: Session,
+        layout: Layout,
+        *,
+        phantom: DataSource,
+        max_upload_bytes: int,
+        wake: Callable[[], None],
+        force_refresh: Callable[[], None],
+    ) -> None:
+        self.server = server
+        self.session = session
+        self.layout = layout
+        self.phantom = phantom
+        self.max_upload_bytes = max_upload_bytes
+        self.wake = wake
+        self.force_refresh = force_refresh
+        self.panels: list[Panel] = []
+        self.ui_running = False
+        self.autocorrect_due: float | None = None
+        self._sync_depth = 0
+        self._sync_lock = threading.RLock()
+
+    # ----- binding ----------------------------------------------------------------------
+    def guarded(self, fn: Callable[..., None]) -> Callable[..., None]:
+        """Turn any failure of a callback into a message in the page (never a stack trace)."""
+
+        @wraps(fn)
+        def wrapper(*args: Any) -> None:
+            try:
+                fn(*args)
+            except ValueError as exc:
+                self.message(str(exc), error=True)
+                self.sync_controls()
+            except Exception as exc:
+                log.exception("callback failed")
+                self.message(f"Something went wrong: {exc}", error=True)
+                self.sync_controls()
+            self.wake()
+
+        return wrapper
+
+    def bind(self) -> None:
+        ui, s, on = self.layout, self.session, self.guarded
+        for slider in ui.offset_sliders:
+            slider.on_update(on(self._on_offsets))
+        for name, button in ui.table_buttons.items():
+            button.on_click(on(lambda _e, name=name: self._moved(lambda: s.apply_table_offset(name))))
+        ui.random_button.on_click(on(lambda _e: self._moved(s.random_offset)))
+        ui.reset_button.on_click(on(lambda _e: self._moved(s.reset)))
+        for control in ui.carm_controls:
+            control.on_update(on(self._on_carm))
+        ui.register_button.on_click(on(lambda _e: self.start_registration()))
+        ui.stop_button.on_click(on(lambda _e: s.stop_registration()))
+        for box in (ui.show_ghost, ui.show_skull, ui.show_gradients):
+            box.on_update(on(lambda _e: self.force_refresh()))
+        ui.autocorrect.on_update(on(lambda _e: self._on_autocorrect()))
+        ui.upload.on_upload(on(self._on_upload))
+        ui.phantom_button.on_click(on(lambda _e: self.use_data(self.phantom)))
+        self.show_source()
+
+        def refused(_client_id: Any, text: str) -> None:
+            self.message(text, error=True)
+
+        limit_uploads(self.server, self.max_upload_bytes, refused)
+
+    # ----- patient and C-arm ------------------------------------------------------------
+    def syncing(self) -> bool:
+        return self._sync_depth > 0
+
+    def _on_offsets(self, _event: Any) -> None:
+        if self.syncing():
+            return
+        self.session.set_offsets([s.value for s in self.layout.offset_sliders])
+        self.patient_moved()
+
+    def _moved(self, action: Callable[[], object]) -> None:
+        action()
+        self.sync_controls()
+        self.patient_moved()
+
+    def patient_moved(self) -> None:
+        """Schedule Auto-correct (if on)."""
+        if self.layout.autocorrect.value:
+            self.autocorrect_due = time.monotonic() + AUTOCORRECT_DELAY_S
+
+    def _on_autocorrect(self) -> None:
+        if self.layout.autocorrect.value and not self.session.running:
+            self.autocorrect_due = time.monotonic()
+
+    def _on_carm(self, _event: Any) -> None:
+        if self.syncing():
+            return
+        ui = self.layout
+        self.session.update_settings(
+            primary_deg=float(ui.primary.value),
+            secondary_deg=float(ui.secondary.value),
+            sid_mm=float(ui.sid.value),
+            image_format_cm=format_cm(ui.image_format.value),
+            volume_format_cm=format_cm(ui.volume_format.value),
+            kind=str(ui.kind.value),
+            contrast=bool(ui.contrast.value),
+            catheter=bool(ui.catheter.value),
+        )
+        # The patient stays put in the room: its offsets in the new view frame change.
+        self.sync_controls()
+        self._tell_panels()
+        st = self.session.settings
+        if not clinically_relevant(st.volume_format_cm, st.image_format_cm):
+            self.message(OUTSIDE_RELEVANT)
+        elif ui.status.content.startswith("Outside"):
+            self.message("Ready.")
+
+    def _tell_panels(self) -> None:
+        for panel in self.panels:
+            panel.settings_changed()
+
+    def sync_controls(self) -> None:
+        """Show the session's state in the controls without re-triggering their callbacks."""
+        ui, s = self.layout, self.session
+        with self._sync_lock:
+            self._sync_depth += 1
+            try:
+                with s.lock:
+                    offsets = s.offsets()
+                    st = s.settings
+                for i, (slider, value) in enumerate(zip(ui.offset_sliders, offsets, strict=True)):
+                    value = float(np.clip(round(float(value), 2), -offset_limit(i), offset_limit(i)))
+                    if abs(slider.value - value) > 1e-9:
+                        slider.value = value
+                for control, value in (
+                    (ui.primary, st.primary_deg),
+                    (ui.secondary, st.secondary_deg),
+                    (ui.sid, st.sid_mm),
+                    (ui.image_format, format_option(st.image_format_cm)),
+                    (ui.volume_format, format_option(st.volume_format_cm)),
+                    (ui.kind, st.kind),
+                    (ui.contrast, st.contrast),
+                    (ui.catheter, st.catheter),
+                ):
+                    if control.value != value:
+                        control.value = value
+            finally:
+                self._sync_depth -= 1
+
+    # ----- the user's data ----------------------------------------------------------------
+    def _on_upload(self, _event: Any) -> None:
+        uploaded = self.layout.upload.value
+        self.load_upload(uploaded.name, uploaded.content)
+
+    def load_upload(self, name: str, content: bytes) -> bool:
+        """Read an uploaded zip and show it; a refusal becomes a message in the page."""
+        from app.upload import read_upload
+
+        self.message(f"Reading {name} ({len(content) / 1e6:.1f} MB)…")
+        try:
+            data = read_upload(name, content, max_bytes=self.max_upload_bytes, config=self.session.config)
+        except ValueError as exc:  # UploadError, DicomError: say why, keep what is shown
+            self.message(f"Upload refused: {exc}", error=True)
+            return False
+        self.use_data(data)
+        self.message(f"Loaded {name}: {data.label}. Press **Register**.")
+        return True
+
+    def use_data(self, data: DataSource) -> None:
+        self.session.use_data(data)
+        self.layout.autocorrect.value = False
+        self.sync_controls()
+        self.set_running_ui(self.session.running)
+        self.show_source()
+        self._tell_panels()
+
+    def show_source(self) -> None:
+        """The Data tab's source line and the registration volume's description."""
+        ui, data = self.layout, self.session.data
+        fmt_cm = self.session.settings.volume_format_cm
+        volume = data.volume(fmt_cm)
+        ui.source.content = f"**Showing:** {data.source}  \n<small>{volume.label}</small>"
+        fmt = "" if data.fixed_xray is not None else f"{fmt_cm:g} cm, "
+        ui.volume_info.content = (
+            f"<small>Registration volume: {volume.label} ({fmt}{'x'.join(str(n) for n in volume.shape)} voxels of "
+            f"{float(np.mean(volume.spacing_mm)):.2f} mm)</small>"
+        )
+        ui.phantom_button.visible = data is not self.phantom
+        ui.show_ghost.disabled = not self.session.has_truth
+
+    # ----- registration -----------------------------------------------------------------
+    def start_registration(self) -> bool:
+        self.autocorrect_due = None
+        started = self.session.start_registration(on_done=self.wake)
+        if started:
+            self.set_running_ui(True)
+            self.message("Registering…")
+        return started
+
+    def set_running_ui(self, running: bool) -> None:
+        ui = self.layout
+        self.ui_running = running
+        fixed_geometry = self.session.data.fixed_xray is not None  # the user's image sets the C-arm
+        for control in ui.carm_controls:
+            control.disabled = running or fixed_geometry
+        for control in ui.motion_controls:
+            control.disabled = running
+        ui.register_button.disabled = running
+        ui.stop_button.disabled = not running
+
+    def tick(self, now: float) -> None:
+        """Called by the presenter after each frame: the controls follow a run that ended, and a
+        due Auto-correct starts."""
+        if not self.session.running and self.ui_running:
+            self.set_running_ui(False)
+        due = self.autocorrect_due
+        if due is not None and now >= due and self.layout.autocorrect.value and not self.session.running:
+            self.autocorrect_due = None
+            self.start_registration()
+
+    def message(self, text: str, *, error: bool = False) -> None:
+        self.layout.status.content = f"<span style='color:#ff6b6b'>⚠ {text}</span>" if error else text
+        if error:
+            for client in list(self.server.get_clients().values()):
+                try:
+                    client.add_notification("Cannot do that", text, color="red", auto_close_seconds=6.0)
+                except Exception:  # a tab closing right now
+                    pass

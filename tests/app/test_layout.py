@@ -1,0 +1,69 @@
+"""The app's seams: data sources share one declared interface; a new panel mounts by the hook."""
+
+from __future__ import annotations
+
+import numpy as np
+import viser
+
+from app.data import DataSource, FileData, PhantomData
+from app.gui import PANELS, RoadmapApp
+from app.main import make_server
+from app.panels import BasePanel, Panel, PanelContext
+from app.session import Session
+
+
+def test_phantom_and_file_data_implement_the_data_source_protocol(app: RoadmapApp) -> None:
+    phantom = app._phantom_data  # noqa: SLF001
+    assert isinstance(phantom, PhantomData) and isinstance(phantom, DataSource)
+    volume = phantom.volume(27.0)
+    xray = app.session.xray()
+    files = FileData(volume, xray, source="test", config=phantom.config)
+    assert isinstance(files, DataSource)
+    assert files.has_truth is False and files.fixed_xray is xray and files.vessel_points_mm() is None
+
+
+class CountingPanel(BasePanel):
+    """A panel as app/playback.py or app/pacs_panel.py would write it."""
+
+    def __init__(self, ctx: PanelContext) -> None:
+        self.ctx = ctx
+        self.changes = 0
+        self.closed = False
+        with ctx.layout.view_tab("Test panel", viser.Icon.PLAYER_PLAY):
+            self.button = ctx.server.gui.add_button("Say hello")
+        with ctx.layout.control_tab("Test controls"):
+            self.hide = ctx.server.gui.add_checkbox("Hide the patient", False)
+        self.button.on_click(ctx.guarded(lambda _e: ctx.message("hello from the panel")))
+
+    @property
+    def hides_patient(self) -> bool:
+        return bool(self.hide.value)
+
+    def settings_changed(self) -> None:
+        self.changes += 1
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_new_panel_mounts_with_one_line(app: RoadmapApp) -> None:
+    server = make_server("127.0.0.1", 0)
+    session = Session(app._phantom_data, app.session.config)  # noqa: SLF001 - the data is built already
+    built = RoadmapApp(server, session, panels=(*PANELS, CountingPanel))
+    try:
+        panel = built.panels[-1]
+        assert isinstance(panel, CountingPanel) and isinstance(panel, Panel)
+        built.start()
+        panel.button.value = True  # its callback reaches the status line
+        assert "hello from the panel" in built.status.content
+        built.primary.value = 20.0  # C-arm changes reach every panel
+        assert panel.changes == 1 and session.settings.primary_deg == 20.0
+        panel.hide.value = True
+        built.presenter.force_refresh()
+        built.presenter.present()
+        assert built.scene.patient and not any(h.visible for h in built.scene.patient)
+        assert np.allclose(session.true_motion, np.eye(4))
+    finally:
+        built.close()
+        server.stop()
+    assert panel.closed
