@@ -522,7 +522,8 @@ class ResultsLog:
     """``results.jsonl``: one record per line, appended, flushed and fsynced per record.
 
     Reading drops a torn last line (a kill during a write) and any line that is not a JSON
-    object with a ``case_id``; :meth:`open` truncates the torn tail so appends stay valid.
+    object with a ``case_id``; before appending, a last line that does not parse is cut off
+    and one that only lost its newline gets it back, so no finished record is ever dropped.
     """
 
     def __init__(self, path: Path) -> None:
@@ -542,13 +543,27 @@ class ResultsLog:
         return records
 
     def _repair_tail(self) -> None:
+        """Make the file end with a newline without losing a record.
+
+        A last line that parses (only its newline was lost) is kept and gets its newline; a
+        last line that does not parse (torn by a kill during a write) is cut off.
+        """
         if not self.path.exists():
             return
         with open(self.path, "rb+") as fh:
             data = fh.read()
-            if data and not data.endswith(b"\n"):
-                cut = data.rfind(b"\n") + 1
+            if not data or data.endswith(b"\n"):
+                return
+            cut = data.rfind(b"\n") + 1
+            try:
+                json.loads(data[cut:].decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError):
                 fh.truncate(cut)
+            else:
+                fh.seek(0, os.SEEK_END)
+                fh.write(b"\n")
+            fh.flush()
+            os.fsync(fh.fileno())
 
     def append(self, record: dict) -> None:
         self._repair_tail()

@@ -115,6 +115,19 @@ def test_results_log_drops_a_torn_line_and_appends_cleanly(tmp_path: Path):
     assert log.path.read_text().count("\n") == 2
 
 
+def test_results_log_keeps_a_last_record_that_only_lost_its_newline(tmp_path: Path):
+    """Issue 15: a finished record whose trailing newline was lost counts as finished, so the
+    repair before the next append must keep it (the study reported 72, the file held 71)."""
+    log = ResultsLog(tmp_path / "results.jsonl")
+    log.append({"case_id": "a", "success": True})
+    with open(log.path, "a") as fh:
+        fh.write('{"case_id": "b", "success": true}')  # complete, only the newline is missing
+    assert [r["case_id"] for r in log.read()] == ["a", "b"]
+    log.append({"case_id": "c", "success": False})
+    assert [r["case_id"] for r in log.read()] == ["a", "b", "c"]
+    assert log.path.read_text().count("\n") == 3
+
+
 def _tiny_tasks() -> list:
     return phantom_tasks(TINY_PHANTOM, TINY_OPTIONS)
 
