@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 import pydicom
 from numpy.typing import NDArray
-from pydicom.datadict import tag_for_keyword
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.errors import InvalidDicomError
 from pydicom.uid import (
@@ -33,6 +32,9 @@ from pydicom.uid import (
     XRayRadiofluoroscopicImageStorage,
     generate_uid,
 )
+
+from registration.io.dicom._errors import DicomError, UploadError, tag_name  # noqa: F401 - re-exported
+from registration.io.dicom.limits import check_dataset_file, check_values
 
 #: Stored LOG pixel steps per unit of attenuation line integral (see :mod:`registration.io.dicom.xray`).
 LOG_UNITS_PER_ATTENUATION = 1000.0
@@ -76,26 +78,6 @@ IMPLEMENTATION_UID = PYDICOM_IMPLEMENTATION_UID
 Array = NDArray[np.float64]
 
 
-class DicomError(ValueError):
-    """A file or folder the project cannot read, with the file and the tag at fault."""
-
-    def __init__(self, path: str | os.PathLike[str], message: str) -> None:
-        self.path = str(path)
-        super().__init__(f"{path}: {message}")
-
-
-class UploadError(ValueError):
-    """An uploaded archive that is refused (size, unsafe names, links, not a zip)."""
-
-
-def tag_name(keyword: str) -> str:
-    """``'DistanceSourceToDetector (0018,1110)'`` for a DICOM keyword."""
-    tag = tag_for_keyword(keyword)
-    if tag is None:
-        return keyword
-    return f"{keyword} ({tag >> 16:04X},{tag & 0xFFFF:04X})"
-
-
 # --------------------------------------------------------------------------------------
 # Low-level reading helpers
 # --------------------------------------------------------------------------------------
@@ -108,6 +90,7 @@ def read_dataset(path: str | os.PathLike[str], *, stop_before_pixels: bool = Fal
         raise DicomError(path, "is a folder, expected a DICOM file")
     if not path.is_file():
         raise DicomError(path, "not a regular file")
+    check_dataset_file(path)  # size, and a deflated data set's inflated size, before reading it whole
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -194,6 +177,7 @@ def _floats(
         raise DicomError(path, f"{tag_name(keyword)} must hold {count} numbers, got {len(out)}")
     if not all(math.isfinite(v) for v in out):
         raise DicomError(path, f"{tag_name(keyword)} holds a NaN or infinite value")
+    check_values(path, keyword, out)  # plausible ranges of geometry and rescale tags
     return out
 
 

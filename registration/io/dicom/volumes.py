@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -65,6 +66,7 @@ from registration.io.dicom._files import (
     _atomic_path,
     atomic_folder,
 )
+from registration.io.dicom.limits import check_affine, check_dataset_pixels, check_npz_member, check_voxels
 
 
 # --------------------------------------------------------------------------------------
@@ -153,6 +155,7 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
             f"slices are shifted within their plane along the stack ({tag_name('ImagePositionPatient')}, "
             f"gantry tilt of about {tilt:.2f} deg); tilted stacks are rejected, not resampled",
         )
+    check_voxels(source, (len(slices), ref.rows, ref.cols), what="slices x Rows x Columns")
     data = np.empty((len(slices), ref.rows, ref.cols), dtype=np.float32)
     for k, s in enumerate(slices):
         pixels = s.load()
@@ -193,14 +196,26 @@ def _check_volume_modality(path: Path, ds: Dataset) -> None:
         )
 
 
+def _hu_slope(path: Path, slope: float) -> float:
+    """A volume's RescaleSlope: HU grow with the stored values, so it must be positive."""
+    if slope <= 0:
+        raise DicomError(
+            path,
+            f"{tag_name('RescaleSlope')} is {slope:g}: a volume in Hounsfield units needs a positive slope "
+            "(0 makes every voxel equal, a negative one inverts bone and air)",
+        )
+    return slope
+
+
 def _slice_from_dataset(path: Path, ds: Dataset) -> _Slice:
     rows, cols = _check_pixel_module(path, ds, 1)
+    check_dataset_pixels(path, ds, 1)
     iop = _orientation(path, _floats(path, ds, "ImageOrientationPatient", 6) or [])
     ipp = np.asarray(_floats(path, ds, "ImagePositionPatient", 3), dtype=np.float64)
     spacing = _floats(path, ds, "PixelSpacing", 2) or []
     if min(spacing) <= 0:
         raise DicomError(path, f"{tag_name('PixelSpacing')} must be positive, got {spacing}")
-    slope = _float(path, ds, "RescaleSlope", default=1.0)
+    slope = _hu_slope(path, _float(path, ds, "RescaleSlope", default=1.0))
     intercept = _float(path, ds, "RescaleIntercept", default=0.0)
     return _Slice(
         source=str(path),
@@ -218,6 +233,7 @@ def _slice_from_dataset(path: Path, ds: Dataset) -> _Slice:
 def _enhanced_volume(path: Path, ds: Dataset, *, label: str | None) -> Volume:
     frames = _frames(path, ds)
     rows, cols = _check_pixel_module(path, ds, frames)
+    check_dataset_pixels(path, ds, frames)  # before the loop over the frames
     if "PerFrameFunctionalGroupsSequence" not in ds and "SharedFunctionalGroupsSequence" not in ds:
         raise DicomError(
             path,
@@ -256,7 +272,7 @@ def _enhanced_volume(path: Path, ds: Dataset, *, label: str | None) -> Volume:
                 spacing=(spacing[0], spacing[1]),
                 rows=rows,
                 cols=cols,
-                slope=_float(path, ds, "RescaleSlope", n, default=1.0),
+                slope=_hu_slope(Path(where), _float(path, ds, "RescaleSlope", n, default=1.0)),
                 intercept=_float(path, ds, "RescaleIntercept", n, default=0.0),
                 load=frame_loader(n),
             )
@@ -327,6 +343,13 @@ def read_series(folder: str | os.PathLike[str], *, label: str | None = None) -> 
         )
     for p, ds in datasets:
         _check_volume_modality(p, ds)
+    modalities = sorted({_text(ds, "Modality").upper() or "?" for _p, ds in datasets})
+    if len(modalities) > 1:  # e.g. Modality XA slices inside a CT series
+        raise DicomError(
+            folder,
+            f"one series with several {tag_name('Modality')} values ({', '.join(modalities)}): slices of one "
+            "volume share one modality",
+        )
     if len(datasets) == 1 and _frames(*datasets[0]) > 1:
         return _enhanced_volume(datasets[0][0], datasets[0][1], label=label)
     for p, ds in datasets:
@@ -340,16 +363,37 @@ def read_series(folder: str | os.PathLike[str], *, label: str | None = None) -> 
 
 
 def read_npz(path: str | os.PathLike[str]) -> Volume:
-    """The project's volume file: arrays ``data`` (k, j, i), ``index_to_world`` (4x4), ``label``."""
+    """The project's volume file: arrays ``data`` (k, j, i), ``index_to_world`` (4x4), ``label``.
+
+    Shapes and dtypes come from the members' ``.npy`` headers and are checked against the
+    ceilings of :mod:`registration.io.dicom.limits` before anything is inflated.
+    """
     path = Path(path)
+    if not path.exists():
+        raise DicomError(path, "no such file")
+    if not path.is_file():
+        raise DicomError(path, "not a regular file")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            missing = [k for k in ("data", "index_to_world") if k not in npz.files]
+        with zipfile.ZipFile(path) as archive:
+            names = set(archive.namelist())
+            missing = [k for k in ("data", "index_to_world") if f"{k}.npy" not in names]
             if missing:
                 raise DicomError(path, f"missing array(s) {', '.join(missing)} in the .npz volume")
+            shape, _dtype = check_npz_member(path, archive, "data")
+            if len(shape) != 3:
+                raise DicomError(path, f"array 'data' has shape {shape}: a volume has 3 axes (k, j, i)")
+            affine_shape, _ = check_npz_member(path, archive, "index_to_world")
+            if affine_shape != (4, 4):
+                raise DicomError(path, f"array 'index_to_world' has shape {affine_shape}, expected (4, 4)")
+            if "label.npy" in names:
+                label_shape, label_dtype = check_npz_member(path, archive, "label")
+                if label_shape != () or label_dtype.itemsize > 4 * 4096:
+                    raise DicomError(path, f"array 'label' must be one short string, got {label_shape} {label_dtype}")
+        with np.load(path, allow_pickle=False) as npz:
             data = np.asarray(npz["data"])
             affine = np.asarray(npz["index_to_world"], dtype=np.float64)
             label = str(npz["label"]) if "label" in npz.files else path.name
+        check_affine(path, affine)
     except DicomError:
         raise
     except FileNotFoundError:
@@ -358,8 +402,8 @@ def read_npz(path: str | os.PathLike[str]) -> Volume:
         raise DicomError(path, f"not a readable .npz volume ({type(exc).__name__}: {_short(exc)})") from None
     try:
         return Volume(data=data, index_to_world=affine, label=label, meta={"source": str(path), "format": "npz"})
-    except ValueError as exc:
-        raise DicomError(path, str(exc)) from None
+    except (ValueError, TypeError, ArithmeticError) as exc:
+        raise DicomError(path, f"not a usable volume: {_short(exc)}") from None
 
 
 def read_volume(path: str | os.PathLike[str], *, label: str | None = None) -> Volume:

@@ -84,6 +84,7 @@ from registration.io.dicom._common import (
 from registration.io.dicom._files import (
     _atomic_path,
 )
+from registration.io.dicom.limits import check_dataset_pixels, check_frame_count
 
 if TYPE_CHECKING:
     from registration.core.images import XRayImage
@@ -161,6 +162,12 @@ def _geometry(
     sod_mm: float | None = None,
 ) -> tuple[CArm, dict]:
     primary, secondary, angle_source = _frame_angles(path, ds, frame, frames)
+    if abs(primary) > 180 or abs(secondary) > 90:  # legal for the C-arm, outside DICOM's defined range
+        warnings.warn(
+            f"{path}: positioner angles {primary:g}, {secondary:g} deg lie outside DICOM's ranges (primary "
+            "-180..180, secondary -90..90); used as given",
+            stacklevel=3,
+        )
     sid, sid_from = _distance(path, ds, frame, ("DistanceSourceToDetector",), sid_mm, "sid_mm (--sid-mm)")
     sod, sod_from = _distance(
         path, ds, frame, ("DistanceSourceToPatient", "DistanceSourceToIsocenter"), sod_mm, "sod_mm (--sod-mm)"
@@ -298,8 +305,8 @@ def _field_of_view(path: Path, ds: Dataset) -> tuple[int, bool]:
     flip = _text(ds, "FieldOfViewHorizontalFlip").upper() == "YES"
     try:
         rotation = int(float(rotation_value)) % 360 if rotation_value not in (None, "") else 0
-    except (TypeError, ValueError):
-        raise DicomError(path, f"{tag_name('FieldOfViewRotation')} is not a number") from None
+    except (TypeError, ValueError, OverflowError):  # OverflowError: inf
+        raise DicomError(path, f"{tag_name('FieldOfViewRotation')} is not a finite number") from None
     if rotation % 90:
         raise DicomError(path, f"{tag_name('FieldOfViewRotation')} {rotation} is not a multiple of 90")
     return rotation, flip
@@ -395,6 +402,7 @@ def _open_xray(path: Path) -> tuple[Dataset, int, int, int]:
         raise DicomError(path, f"is a {ENHANCED_VOLUME_CLASSES[sop]} volume, not a projection image")
     frames = _frames(path, ds)
     rows, cols = _check_pixel_module(path, ds, frames)
+    check_dataset_pixels(path, ds, frames)  # declared sizes against the bytes present, before decoding
     return ds, frames, rows, cols
 
 
@@ -472,6 +480,7 @@ def read_xray_angles(path: str | os.PathLike[str]) -> list[tuple[float, float]]:
     path = Path(path)
     ds = read_dataset(path, stop_before_pixels=True)
     frames = _frames(path, ds)
+    check_frame_count(path, frames)
     return [_frame_angles(path, ds, n, frames)[:2] for n in range(frames)]
 
 
