@@ -80,8 +80,11 @@ def register(
     initial_motion: Path | None = None,
     truth: Path | None = None,
     out: Path | None = None,
+    out_dicom: Path | None = None,
     isocenter: str | None = None,
     seed: int = 0,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -89,11 +92,14 @@ def register(
         volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
         image: XA/RF DICOM file (single or multi-frame).
         frame: Frame of a multi-frame image (0-based).
-        initial_motion: JSON with "patient_motion" (4x4) to start from (default identity).
-        truth: JSON with the true "patient_motion": adds residuals and success.
+        initial_motion: JSON with "patient_motion" (4x4), or a DICOM Spatial Registration, to start from.
+        truth: JSON with the true "patient_motion", or a DICOM Spatial Registration: adds residuals and success.
         out: Write the result JSON here.
+        out_dicom: Write the result as a DICOM Spatial Registration object (REG) here.
         isocenter: Iso-center "x,y,z" in mm (default the world origin).
         seed: Seed of the annealing.
+        sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
+        sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
     """
     from app.commands import run_register
 
@@ -104,8 +110,11 @@ def register(
         initial_motion=initial_motion,
         truth=truth,
         out=out,
+        out_dicom=out_dicom,
         isocenter=isocenter,
         seed=seed,
+        sid_mm=sid_mm,
+        sod_mm=sod_mm,
     )
 
 

@@ -135,6 +135,24 @@ def read_motion_json(path: Path, *, what: str) -> tuple[np.ndarray, dict[str, An
     return motion, document
 
 
+def read_motion(path: Path, *, what: str, volume_frame_of_reference: str | None = None) -> tuple[np.ndarray, dict]:
+    """The patient motion of a result/truth file: the project's JSON or a DICOM Spatial Registration.
+
+    For a DICOM object the motion is the one from the volume's Frame of Reference (when the
+    object names it) into the other frame it relates; see :mod:`registration.io.dicom.spatial`.
+    """
+    path = Path(path)
+    if path.is_file() and path.read_bytes()[:1] != b"{":
+        try:
+            dicom.read_dataset(path, stop_before_pixels=True)
+        except dicom.DicomError:
+            pass  # not DICOM: the JSON reader says what is wrong with it
+        else:
+            reg = dicom.read_registration(path)  # names the SOP class of any other DICOM object
+            return reg.volume_motion(volume_frame_of_reference), {"dicom_registration": reg.sop_instance_uid}
+    return read_motion_json(path, what=what)
+
+
 def _format_offsets(motion: np.ndarray, geometry: CArm) -> str:
     o = matrix_to_offsets(motion, geometry)
     o = np.where(np.abs(o) < 5e-3, 0.0, o)  # no "-0.00"
@@ -155,31 +173,37 @@ def run_register(
     initial_motion: Path | None = None,
     truth: Path | None = None,
     out: Path | None = None,
+    out_dicom: Path | None = None,
     isocenter: str | None = None,
     seed: int = 0,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
 ) -> int:
-    """Register a volume file to an X-ray file, print a summary, optionally write the JSON."""
+    """Register a volume file to an X-ray file, print a summary, optionally write the JSON and
+    the DICOM Spatial Registration object."""
     iso = parse_isocenter(isocenter)
-    if out is not None and Path(out).is_dir():
-        raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
+    for target, flag, kind in ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM")):
+        if target is not None and Path(target).is_dir():
+            raise ValueError(f"{target}: is a folder; {flag} takes a {kind} file name")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vol = dicom.read_volume(volume)
+        xray = dicom.read_xray(image, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
+    _show_warnings(caught)
+    volume_for = str(vol.meta.get("frame_of_reference_uid") or "") or None
     m_init = None
     if initial_motion is not None:
-        m_init, _ = read_motion_json(initial_motion, what="initial motion")
+        m_init, _ = read_motion(initial_motion, what="initial motion", volume_frame_of_reference=volume_for)
     m_true = None
     vessel_points = None
     if truth is not None:
-        m_true, truth_doc = read_motion_json(truth, what="truth")
+        m_true, truth_doc = read_motion(truth, what="truth", volume_frame_of_reference=volume_for)
         try:
             pts = np.asarray(truth_doc.get("vessel_points_mm", []), dtype=np.float64)
         except (TypeError, ValueError):
             pts = np.zeros((0, 3))
         if pts.ndim == 2 and pts.shape[1] == 3 and len(pts) and np.all(np.isfinite(pts)):
             vessel_points = pts
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        vol = dicom.read_volume(volume)
-        xray = dicom.read_xray(image, frame=frame, isocenter_mm=iso)
-    _show_warnings(caught)
 
     from registration.core.register import register
 
@@ -211,6 +235,15 @@ def run_register(
         document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
         dicom.write_text_atomic(out, dicom.json_dumps(document))
         _say(f"wrote {out}")
+    if out_dicom is not None:
+        dicom.write_registration(
+            out_dicom,
+            result.patient_motion,
+            volume=vol,
+            xray=xray,
+            description=f"roadmap3d: similarity {result.similarity:.4f}, {result.drr_count} DRRs",
+        )
+        _say(f"wrote {out_dicom} (DICOM Spatial Registration: volume frame of reference -> X-ray image)")
     return 0
 
 

@@ -139,6 +139,7 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
             "--image", str(exported / cli_io.PHANTOM_EXPOSURE),
             "--truth", str(exported / cli_io.PHANTOM_TRUTH),
             "--out", str(result_path),
+            "--out-dicom", str(tmp_path / "result.dcm"),
         ],
         capsys,
     )  # fmt: skip
@@ -156,6 +157,16 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     assert result["success"] is True
     # --initial-motion takes the result's own form.
     assert np.allclose(cli_io.read_motion_json(result_path, what="result")[0], result["patient_motion"])
+    # ... and the DICOM Spatial Registration written beside it: the same motion (DS strings keep
+    # 16 characters: ~1e-13 relative), relating the exported series' frame to the image's.
+    volume = dicom.read_volume(exported / cli_io.PHANTOM_VOLUME_DIR)
+    motion, _ = cli_io.read_motion(
+        tmp_path / "result.dcm", what="truth", volume_frame_of_reference=volume.meta["frame_of_reference_uid"]
+    )
+    np.testing.assert_allclose(motion, result["patient_motion"], rtol=0, atol=1e-9)
+    reg = dicom.read_registration(tmp_path / "result.dcm")
+    assert volume.meta["series_uid"] in reg.referenced_series
+    assert reg.moving_uids == [volume.meta["frame_of_reference_uid"]]
 
 
 def test_phantom_export_refuses_a_non_empty_folder(tmp_path: Path, capsys) -> None:
@@ -187,6 +198,8 @@ def test_failed_export_leaves_nothing(tmp_path: Path, capsys, monkeypatch) -> No
         (["--volume", "{vol}", "--image", "{xa}", "--truth", "{tmp}/bad.json"], "not valid JSON"),
         (["--volume", "{vol}", "--image", "{xa}", "--initial-motion", "{tmp}/scaled.json"], "patient_motion must"),
         (["--volume", "{vol}", "--image", "{xa}", "--frame", "3"], "out of range"),
+        (["--volume", "{vol}", "--image", "{xa}", "--truth", "{xa}"], "not a Spatial Registration object"),
+        (["--volume", "{vol}", "--image", "{xa}", "--sid-mm", "-5"], "sid_mm (--sid-mm) must be a positive"),
     ],
 )
 def test_register_bad_input_exits_2_without_output(

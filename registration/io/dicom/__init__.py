@@ -15,6 +15,9 @@ Modules (import from the package, ``from registration.io.dicom import read_volum
 ``runs``
     Multi-frame runs (CONVENTIONS §7): :func:`read_xray_run` gives an :class:`XRayRun` (per-frame
     times, geometry, plane; frames decoded on demand), :func:`write_xray_run` writes one.
+``spatial``
+    The registration result as a DICOM Spatial Registration object: :func:`write_registration`,
+    :func:`read_registration` (a :class:`SpatialRegistration`), :func:`is_registration_file`.
 ``inspection``
     :func:`inspect`, what ``roadmap3d info`` shows.
 ``uploads``
@@ -53,6 +56,12 @@ from registration.io.dicom._common import (
 from registration.io.dicom._files import atomic_folder, json_dumps, write_bytes_atomic, write_text_atomic
 from registration.io.dicom.inspection import HEADER_TAGS, inspect
 from registration.io.dicom.runs import XRayRun, frame_times, read_xray_run, write_xray_run
+from registration.io.dicom.spatial import (
+    SpatialRegistration,
+    is_registration_file,
+    read_registration,
+    write_registration,
+)
 from registration.io.dicom.uploads import classify_upload, unpack_upload
 from registration.io.dicom.volumes import read_npz, read_series, read_volume, write_enhanced, write_npz, write_series
 from registration.io.dicom.xray import read_xray, read_xray_angles, write_xray
@@ -73,6 +82,7 @@ __all__ = [
     "VOLUME_MODALITIES",
     "WRITTEN_SIGN",
     "XRAY_CLASSES",
+    "SpatialRegistration",
     "XRayRun",
     "Array",
     "DicomError",
@@ -81,11 +91,13 @@ __all__ = [
     "classify_upload",
     "frame_times",
     "inspect",
+    "is_registration_file",
     "json_dumps",
     "lookup",
     "make_uid",
     "read_dataset",
     "read_npz",
+    "read_registration",
     "read_series",
     "read_volume",
     "read_xray",
@@ -96,6 +108,7 @@ __all__ = [
     "write_bytes_atomic",
     "write_enhanced",
     "write_npz",
+    "write_registration",
     "write_series",
     "write_text_atomic",
     "write_xray",

@@ -300,6 +300,17 @@ def _volume_meta(path: Path, ds: Dataset, kind: str) -> dict:
         "series_uid": _text(ds, "SeriesInstanceUID"),
         "frame_of_reference_uid": _text(ds, "FrameOfReferenceUID"),
         "series_description": _text(ds, "SeriesDescription"),
+        **_reference_meta(ds),
+    }
+
+
+def _reference_meta(ds: Dataset) -> dict:
+    """What a Spatial Registration object needs to reference this data (patient, study, instance)."""
+    return {
+        "study_uid": _text(ds, "StudyInstanceUID"),
+        "patient_name": _text(ds, "PatientName"),
+        "patient_id": _text(ds, "PatientID"),
+        "instances": [[_sop_class(ds), _text(ds, "SOPInstanceUID")]] if _text(ds, "SOPInstanceUID") else [],
     }
 
 
@@ -359,6 +370,7 @@ def read_series(folder: str | os.PathLike[str], *, label: str | None = None) -> 
     first = datasets[0][1]
     meta = _volume_meta(folder, first, "slice series")
     meta["skipped_files"] = skipped[:20]
+    meta["instances"] = [[_sop_class(ds), _text(ds, "SOPInstanceUID")] for _, ds in datasets if "SOPInstanceUID" in ds]
     return _stack(slices, folder, label=label or _volume_label(first, folder, "series"), meta=meta)
 
 

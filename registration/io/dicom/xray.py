@@ -406,6 +406,22 @@ def _open_xray(path: Path) -> tuple[Dataset, int, int, int]:
     return ds, frames, rows, cols
 
 
+def _image_references(ds: Dataset) -> dict[str, str]:
+    """The UIDs and patient of an X-ray image (for the Spatial Registration object)."""
+    return {
+        key: _text(ds, keyword)
+        for key, keyword in (
+            ("sop_class", "SOPClassUID"),
+            ("sop_instance_uid", "SOPInstanceUID"),
+            ("series_uid", "SeriesInstanceUID"),
+            ("study_uid", "StudyInstanceUID"),
+            ("frame_of_reference_uid", "FrameOfReferenceUID"),
+            ("patient_name", "PatientName"),
+            ("patient_id", "PatientID"),
+        )
+    }
+
+
 def _xray_frame(
     path: Path,
     ds: Dataset,
@@ -463,6 +479,7 @@ def _xray_frame(
         "frame": frame,
         "frames": frames,
         "mask_from": mask_source,
+        **_image_references(ds),
         **geo_info,
         **intensity,
     }
