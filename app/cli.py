@@ -193,6 +193,32 @@ def mesh(
 
 
 # --------------------------------------------------------------------------------------
+# the hospital network
+# --------------------------------------------------------------------------------------
+def listen(
+    allow: tuple[str, ...] = (),
+    ae_title: str = "ROADMAP3D",
+    port: int = 11112,
+    host: str = "127.0.0.1",
+    folder: Path | None = None,
+    volume: Path | None = None,
+) -> int:
+    """Receive images from the C-arm: a DICOM node (C-ECHO, C-STORE SCP) until Ctrl-C.
+
+    Args:
+        allow: Calling AE titles accepted (the C-arm's, the PACS's); everyone else is refused.
+        ae_title: This node's AE title (callers must call it by this name).
+        port: Port to listen on (0: any free port, printed).
+        host: Interface to bind; 127.0.0.1 keeps the node on this machine.
+        folder: Private folder (0700) for received files (default: the user data dir's roadmap3d/received).
+        volume: Register every received XA/RF image (a run: its newest frame) to this 3DRA/CT.
+    """
+    from app.net_commands import run_listen
+
+    return run_listen(ae_title=ae_title, port=port, host=host, allow=allow, folder=folder, volume=volume)
+
+
+# --------------------------------------------------------------------------------------
 # the web app
 # --------------------------------------------------------------------------------------
 def demo(port: int = 8080, host: str = "127.0.0.1", open_browser: bool = False) -> int:
@@ -253,6 +279,7 @@ COMMANDS = {
     "info": info,
     "phantom": phantom,
     "mesh": mesh,
+    "listen": listen,
 }
 
 

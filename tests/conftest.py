@@ -9,6 +9,21 @@ import pytest
 
 from tests.orthanc import OrthancServer, missing, start_orthanc
 
+#: The network tests' phantom export: small (48^3 resampled 3DRA, 96^2 XA images), seconds to make.
+SMALL_EXPORT = ["--voxels", "48", "--pixels", "96", "--volume-source", "resampled", "--primary-deg", "15"]
+
+
+@pytest.fixture(scope="session")
+def small_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``roadmap3d phantom --out DIR`` with :data:`SMALL_EXPORT` (3DRA series, XA fluoro/exposure, truth)."""
+    from app import cli
+
+    out = tmp_path_factory.mktemp("network-export") / "phantom"
+    with pytest.raises(SystemExit) as info:
+        cli.main(["phantom", "--out", str(out), *SMALL_EXPORT])
+    assert info.value.code == 0
+    return out
+
 
 @pytest.fixture(scope="session")
 def orthanc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OrthancServer]:

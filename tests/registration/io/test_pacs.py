@@ -14,12 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app import cli
 from registration.io import dicom
 from registration.io.pacs import Pacs, PacsError, PacsSettings, find_series
 from tests.orthanc import OrthancServer
-
-SMALL = ["--voxels", "48", "--pixels", "96", "--volume-source", "resampled"]
 
 
 # --------------------------------------------------------------------------------------
@@ -72,13 +69,9 @@ def test_resolve_from_environment_and_config(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------------------
 # Against Orthanc
 # --------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("pacs-export") / "phantom"
-    with pytest.raises(SystemExit) as info:
-        cli.main(["phantom", "--out", str(out), "--primary-deg", "15", *SMALL])
-    assert info.value.code == 0
-    return out
+@pytest.fixture()
+def export(small_export: Path) -> Path:
+    return small_export
 
 
 @pytest.fixture()
