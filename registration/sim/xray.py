@@ -57,10 +57,25 @@ def _hu_for_mu(mu_per_mm: float) -> float:
     return (mu_per_mm / MU_WATER_PER_MM - 1.0) * 1000.0
 
 
-def device_phantom(phantom: HeadPhantom) -> HeadPhantom:
+def _truncate_polyline(points: np.ndarray, length_mm: float) -> np.ndarray:
+    """The first ``length_mm`` of a polyline (at least its first segment's start)."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(seg)])
+    if length_mm >= along[-1]:
+        return points
+    k = int(np.searchsorted(along, length_mm, side="right"))  # points[:k] lie within length_mm
+    frac = (length_mm - along[k - 1]) / max(seg[k - 1], 1e-12)
+    end = points[k - 1] + frac * (points[k] - points[k - 1])
+    return np.vstack([points[:k], end[None, :]])
+
+
+def device_phantom(phantom: HeadPhantom, *, wire_length_mm: float | None = None) -> HeadPhantom:
     """A guide catheter up the left internal carotid and a guidewire on to the aneurysm.
 
-    Returned as a phantom of its own (air elsewhere) whose line integrals add to the anatomy's.
+    ``wire_length_mm``: how far the guidewire has been advanced along its path (from the
+    neck; None: all the way, ending short of the aneurysm), e.g. to show it advancing over a
+    fluoroscopy run. Returned as a phantom of its own (air elsewhere) whose line integrals add
+    to the anatomy's.
     """
     ica, _ = phantom.path("ica_l")
     m1, _ = phantom.path("m1_l")
@@ -74,7 +89,17 @@ def device_phantom(phantom: HeadPhantom) -> HeadPhantom:
     wire = np.vstack([ica, m1[1:-1]])
     seg = np.linalg.norm(np.diff(wire, axis=0), axis=1)
     from_end = np.concatenate([np.cumsum(seg[::-1])[::-1], [0.0]])
+    if wire_length_mm is not None:
+        if not math.isfinite(wire_length_mm) or wire_length_mm <= 2 * GUIDEWIRE_RADIUS_MM:
+            raise ValueError(f"wire_length_mm must be a positive length, got {wire_length_mm}")
+        wire = _truncate_polyline(wire, float(wire_length_mm))
+        seg = np.linalg.norm(np.diff(wire, axis=0), axis=1)
+        from_end = np.concatenate([np.cumsum(seg[::-1])[::-1], [0.0]])
     tip = int(np.argmax(from_end <= GUIDEWIRE_TIP_MM))
+    tip = min(tip, len(wire) - 2)  # the tip keeps at least one segment
+    if tip == 0:  # a wire shorter than its tip: all tip
+        b.tube(wire, GUIDEWIRE_RADIUS_MM, _hu_for_mu(GUIDEWIRE_TIP_MU_PER_MM), "wire_tip", "device")
+        return b.build(seed=phantom.seed, contrast=False, facial=False, params={"device": "catheter+guidewire"})
     b.tube(wire[: tip + 1], GUIDEWIRE_RADIUS_MM, _hu_for_mu(GUIDEWIRE_MU_PER_MM), "wire", "device")
     b.tube(wire[tip:], GUIDEWIRE_RADIUS_MM, _hu_for_mu(GUIDEWIRE_TIP_MU_PER_MM), "wire_tip", "device")
     return b.build(seed=phantom.seed, contrast=False, facial=False, params={"device": "catheter+guidewire"})
@@ -94,6 +119,7 @@ def simulate_xray(
     blur_px: float = DETECTOR_BLUR_PX,
     supersample: int = SUPERSAMPLE,
     photons_per_pixel: float | None = None,
+    devices: HeadPhantom | None = None,
 ) -> XRayImage:
     """Simulate a fluoroscopy or exposure image of the phantom (the honest image model).
 
@@ -118,6 +144,9 @@ def simulate_xray(
         Sub-pixel rays per pixel along each axis.
     photons_per_pixel
         Override the dose of ``kind`` (photons per pixel behind the head).
+    devices
+        Interventional devices as a phantom of their own (e.g. :func:`device_phantom` with the
+        guidewire partly advanced); used instead of the default devices when ``catheter``.
 
     Returns
     -------
@@ -155,7 +184,8 @@ def simulate_xray(
     source = geometry.source_mm
     integral = phantom.line_integrals(source, targets, motion)
     if catheter:
-        integral += device_phantom(phantom).line_integrals(source, targets, motion)
+        dev = devices if devices is not None else device_phantom(phantom)
+        integral += dev.line_integrals(source, targets, motion)
     transmission = np.exp(-integral).reshape(supersample * supersample, len(rr)).mean(axis=0)
 
     # automatic exposure control: I0 such that the central field receives `photons`

@@ -1,0 +1,225 @@
+"""How much to trust a motion estimate, and whether to apply it (CONVENTIONS §7).
+
+A wrong correction is worse than none: every estimate (a frame of a tracked run, a single
+registration, one plane or two) gets a ``confidence`` in [0, 1] and a decision, ``applied`` or
+``withheld``; a withheld estimate leaves the roadmap at the last applied pose and says why.
+
+The confidence is a logistic function of what the engine knows about the estimate
+(:class:`Evidence`), each term named and documented in :class:`ConfidenceRule`:
+
+``deficit``
+    How far the measure at the estimate stays below the level it reached on the run so far
+    (tracking only: the gradient difference of the last applied pose on its own frames), in
+    units of that level's frame-to-frame noise. A right estimate recovers the level; a wrong
+    local optimum, a frame of something else, a frame the volume cannot explain does not.
+``margin``
+    The measure's margin over poses perturbed by ``PERTURB_MM`` / ``PERTURB_DEG`` along each
+    parameter (the estimate's peak is sharp and its own), relative to the measure.
+``agreement``
+    The fraction of the capture runs that ended within 1 mm / 1 degree of the best one.
+``edges``
+    The fraction of the compared field whose X-ray gradient stands out of the noise.
+``plane_disagreement_mm``
+    Biplane: how far the per-plane single-view estimates disagree (in-plane parts).
+
+The rule's coefficients were calibrated on the studies (see ``docs/validation``); records
+report ``confidence`` and ``applied`` beside their residuals, and the summaries the applied
+precision (applied estimates that are right: < 1 mm and < 3°) and recall (right estimates that
+were applied).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+#: Perturbation of the margin test: translation (mm) and rotation (deg) along each parameter.
+PERTURB_MM = 1.0
+PERTURB_DEG = 1.0
+#: A capture run "agrees" with the best when within this translation (mm) and rotation (deg).
+AGREE_MM = 1.0
+AGREE_DEG = 1.0
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """What the engine measured about one estimate (None: not known for this estimate)."""
+
+    deficit: float | None = None
+    margin: float | None = None
+    agreement: float | None = None
+    edges: float | None = None
+    plane_disagreement_mm: float | None = None
+    #: A hard reason to withhold whatever the score (e.g. "no usable pixel", "stopped").
+    veto: str | None = None
+
+    def to_dict(self) -> dict:
+        return {k: (None if v is None else (v if isinstance(v, str) else float(v))) for k, v in asdict(self).items()}
+
+
+@dataclass(frozen=True)
+class ConfidenceRule:
+    """confidence = sigmoid(bias + sum of the terms below); applied when >= ``threshold``.
+
+    Each term contributes only when its evidence is known. Defaults: calibrated on the
+    tracking study and the quick phantom and clinical studies (docs/validation/tracking).
+    """
+
+    bias: float = 3.0
+    #: per noise unit of deficit beyond ``deficit_free`` (tracking).
+    deficit_weight: float = 0.6
+    deficit_free: float = 2.0
+    #: per unit of relative margin below ``margin_good`` (a flat or shared peak).
+    margin_weight: float = 3000.0
+    margin_good: float = 0.002
+    #: per missing fraction of agreeing capture runs.
+    agreement_weight: float = 6.0
+    agreement_free: float = 0.25
+    #: per missing fraction of edges below ``edges_good``.
+    edges_weight: float = 12.0
+    edges_good: float = 0.3
+    #: per mm of disagreement between the planes beyond ``planes_free_mm``.
+    planes_weight: float = 2.0
+    planes_free_mm: float = 1.0
+    threshold: float = 0.5
+
+    def terms(self, e: Evidence) -> dict[str, float]:
+        out: dict[str, float] = {}
+        if e.deficit is not None:
+            out["deficit"] = -self.deficit_weight * max(0.0, e.deficit - self.deficit_free)
+        if e.margin is not None:
+            out["margin"] = -self.margin_weight * max(0.0, self.margin_good - e.margin)
+        if e.agreement is not None:
+            out["agreement"] = -self.agreement_weight * max(0.0, (1.0 - e.agreement) - self.agreement_free)
+        if e.edges is not None:
+            out["edges"] = -self.edges_weight * max(0.0, self.edges_good - e.edges)
+        if e.plane_disagreement_mm is not None:
+            out["planes"] = -self.planes_weight * max(0.0, e.plane_disagreement_mm - self.planes_free_mm)
+        return out
+
+    def score(self, e: Evidence) -> float:
+        return self.bias + sum(self.terms(e).values())
+
+    def assess(self, e: Evidence) -> Assessment:
+        terms = self.terms(e)
+        z = self.bias + sum(terms.values())
+        conf = 1.0 / (1.0 + math.exp(-max(-50.0, min(50.0, z))))
+        if e.veto:
+            return Assessment(conf, False, e.veto, e)
+        if conf >= self.threshold:
+            return Assessment(conf, True, "", e)
+        worst = min(terms, key=terms.get) if terms else "score"  # type: ignore[arg-type]
+        return Assessment(conf, False, _REASONS.get(worst, "low confidence"), e)
+
+
+_REASONS = {
+    "deficit": "the measure did not recover its level at the estimate",
+    "margin": "the measure's peak at the estimate is flat",
+    "agreement": "the capture runs disagree",
+    "edges": "too few edges in the field",
+    "planes": "the planes disagree",
+}
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """A confidence in [0, 1], the decision and, when withheld, why."""
+
+    confidence: float
+    applied: bool
+    reason: str
+    evidence: Evidence = field(default_factory=Evidence)
+
+    def to_dict(self) -> dict:
+        return {
+            "confidence": self.confidence,
+            "applied": self.applied,
+            "reason": self.reason,
+            "evidence": self.evidence.to_dict(),
+        }
+
+
+DEFAULT_RULE = ConfidenceRule()
+
+
+def edge_fraction(image: ArrayLike, mask: ArrayLike, *, noise_sigmas: float = 3.0) -> float:
+    """Fraction of the field's pixels whose gradient magnitude exceeds ``noise_sigmas`` times the
+    noise of the gradient (estimated robustly from the field's gradients: their median absolute
+    deviation, which the few edges do not move)."""
+    from scipy import ndimage
+
+    img = np.asarray(image, dtype=np.float64)
+    m = np.asarray(mask, dtype=bool)
+    inner = ndimage.binary_erosion(m, iterations=2)
+    if inner.sum() < 16:
+        return 0.0
+    gx = ndimage.sobel(img, axis=1)
+    gy = ndimage.sobel(img, axis=0)
+    mag = np.hypot(gx, gy)[inner]
+    # Gradient of pure noise: Rayleigh-like, its median sits near 1.18 sigma; edges sit far out.
+    noise = float(np.median(np.abs(np.concatenate([gx[inner], gy[inner]]))) / 0.6745)
+    if noise <= 0:
+        return float(np.mean(mag > 0))
+    return float(np.mean(mag > noise_sigmas * noise))
+
+
+def capture_agreement(motions: list[NDArray[np.float64]], best: NDArray[np.float64], iso_mm: ArrayLike) -> float:
+    """Fraction of ``motions`` within AGREE_MM / AGREE_DEG of ``best`` (at the iso-center)."""
+    from registration.core.geometry import apply, invert_rigid, rotation_angle_deg
+
+    if not motions:
+        return 1.0
+    iso = np.asarray(iso_mm, dtype=np.float64)
+    ok = 0
+    for m in motions:
+        err = m @ invert_rigid(best)
+        if np.linalg.norm(apply(err, iso) - iso) < AGREE_MM and rotation_angle_deg(err) < AGREE_DEG:
+            ok += 1
+    return ok / len(motions)
+
+
+# --------------------------------------------------------------------------------------
+# Calibration and its report
+# --------------------------------------------------------------------------------------
+def precision_recall(applied: ArrayLike, right: ArrayLike) -> tuple[float | None, float | None]:
+    """Applied precision (applied estimates that are right) and recall (right ones applied)."""
+    a = np.asarray(applied, dtype=bool)
+    r = np.asarray(right, dtype=bool)
+    precision = float((a & r).sum() / a.sum()) if a.any() else None
+    recall = float((a & r).sum() / r.sum()) if r.any() else None
+    return precision, recall
+
+
+def roc_curve(confidence: ArrayLike, right: ArrayLike) -> dict:
+    """False and true positive rates of 'apply when confidence >= c' over every threshold c,
+    with the area under the curve; and the precision and recall at each threshold."""
+    c = np.asarray(confidence, dtype=np.float64)
+    r = np.asarray(right, dtype=bool)
+    thresholds = np.concatenate([[np.inf], np.unique(c)[::-1], [-np.inf]])
+    fpr, tpr, prec = [], [], []
+    n_pos, n_neg = max(int(r.sum()), 1), max(int((~r).sum()), 1)
+    for t in thresholds:
+        a = c >= t
+        tpr.append(float((a & r).sum() / n_pos))
+        fpr.append(float((a & ~r).sum() / n_neg))
+        prec.append(float((a & r).sum() / a.sum()) if a.any() else 1.0)
+    f, t = np.asarray(fpr), np.asarray(tpr)
+    auc = float(np.sum(np.diff(f) * (t[1:] + t[:-1]) / 2.0))  # the trapezoid rule
+    return {
+        "thresholds": [float(x) for x in thresholds],
+        "fpr": fpr,
+        "tpr": tpr,
+        "precision": prec,
+        "auc": auc,
+        "positives": int(r.sum()),
+        "negatives": int((~r).sum()),
+    }
+
+
+def with_threshold(rule: ConfidenceRule, threshold: float) -> ConfidenceRule:
+    if not 0.0 <= threshold <= 1.0:
+        raise ValueError(f"threshold must lie in [0, 1], got {threshold}")
+    return replace(rule, threshold=float(threshold))
