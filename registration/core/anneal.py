@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import optimize
 
 Array = NDArray[np.float64]
 
@@ -184,3 +185,90 @@ def anneal(
         # Restart each stage from the best point seen: keeps the walk near the basin.
         x, fx = best_x.copy(), best_f
     return AnnealResult(best_x, best_f, nit, nfev, True, message, trace)
+
+
+# --------------------------------------------------------------------------------------
+# The local polish
+# --------------------------------------------------------------------------------------
+#: Powell's tolerance on the parameters (same unit as x: mm or degrees) and on the cost.
+POLISH_XTOL = 0.02
+POLISH_FTOL = 1e-6
+
+
+@dataclass(frozen=True)
+class PolishState:
+    """What the polish's callback sees after each cost evaluation."""
+
+    nfev: int
+    x: Array
+    fun: float
+    best_x: Array
+    best_fun: float
+
+
+def polish(
+    cost: Callable[[Array], float],
+    x0: ArrayLike,
+    bounds: ArrayLike,
+    *,
+    step: ArrayLike,
+    max_evaluations: int,
+    callback: Callable[[PolishState], bool | None] | None = None,
+) -> AnnealResult:
+    """A short local refinement of ``x0`` by Powell's method inside ``bounds``.
+
+    ``step`` is the initial search direction length per parameter (Powell's ``direc`` is its
+    diagonal); the run spends at most ``max_evaluations`` cost evaluations after evaluating
+    ``x0`` (its evaluation budget). Points are clipped to the bounds before ``cost`` sees
+    them. The callback sees every evaluation and may stop the run by returning True: from
+    then on ``cost`` is no longer called and Powell sees a flat function, so it ends at once.
+    The result is the best point evaluated (``x0`` if nothing improved on it).
+    """
+    b = np.asarray(bounds, dtype=np.float64)
+    x_start = np.asarray(x0, dtype=np.float64).copy()
+    direc = np.diag(np.asarray(step, dtype=np.float64))
+    if b.shape != (x_start.size, 2) or direc.shape != (x_start.size, x_start.size):
+        raise ValueError(f"bounds and step must match the {x_start.size} parameters")
+    if int(max_evaluations) != max_evaluations or max_evaluations < 1:
+        raise ValueError(f"max_evaluations must be a positive integer, got {max_evaluations}")
+    run = _BudgetedCost(cost, x_start, b, max_evaluations, callback)
+    optimize.minimize(
+        run,
+        x_start,
+        method="Powell",
+        bounds=b,
+        options={"maxfev": int(max_evaluations), "xtol": POLISH_XTOL, "ftol": POLISH_FTOL, "direc": direc},
+    )
+    message = "stopped by the callback" if run.stopped else "polish completed"
+    return AnnealResult(run.best_x, run.best_fun, run.spent, run.spent + 1, True, message)
+
+
+class _BudgetedCost:
+    """``cost`` as Powell sees it: clipped to the bounds, counted, best point kept, and flat
+    (the best value, nothing evaluated) once the budget is spent or the callback said stop."""
+
+    def __init__(
+        self,
+        cost: Callable[[Array], float],
+        x0: Array,
+        bounds: Array,
+        budget: int,
+        callback: Callable[[PolishState], bool | None] | None,
+    ) -> None:
+        self.cost, self.bounds, self.budget, self.callback = cost, bounds, int(budget), callback
+        self.best_x, self.best_fun = x0.copy(), float(cost(x0))
+        self.spent = 0
+        self.stopped = False
+
+    def __call__(self, x: Array) -> float:
+        if self.stopped or self.spent >= self.budget:
+            return self.best_fun
+        x_in = np.clip(x, self.bounds[:, 0], self.bounds[:, 1])
+        f = float(self.cost(x_in))
+        self.spent += 1
+        if f < self.best_fun:
+            self.best_x, self.best_fun = x_in, f
+        if self.callback is not None:
+            state = PolishState(self.spent + 1, np.asarray(x, dtype=np.float64), f, self.best_x, self.best_fun)
+            self.stopped = bool(self.callback(state))
+        return f

@@ -9,7 +9,7 @@ The renderer works from the geometry's general projection matrix ``P = K [I | -S
 the nominal angles, so shifted and tilted (calibrated) geometries are exact: the source is the
 null space of ``P`` and the ray through pixel (col, row) runs along ``inv(K) @ (col, row, 1)``.
 With motion, ``P_eff = P @ M``: the source and rays are moved by ``inv(M)`` into the volume's
-world frame, then mapped to voxel indices with ``volume.world_to_index``.
+world frame, then mapped to voxel indices with ``volume.index_from_world``.
 
 :class:`DRRRenderer` (numba, parallel over image rows) uses Joseph's method: every ray steps
 one slice at a time along its dominant index axis and interpolates bilinearly within the slice,
@@ -406,7 +406,7 @@ class _Level:
         self.mu_t = np.ascontiguousarray(padded.transpose(0, 2, 1)).reshape(-1)
         nk, nj, ni = volume.shape
         self.shape_ijk = np.array([ni, nj, nk], dtype=np.int64)
-        self.index_from_world = np.ascontiguousarray(volume.world_to_index)
+        self.index_from_world = np.ascontiguousarray(volume.index_from_world)
         self.index_to_world3 = np.ascontiguousarray(volume.index_to_world[:3, :3])
         # box of voxels that can contribute: non-zero attenuation, padded by one voxel
         nz = np.nonzero(mu > 0)
@@ -561,7 +561,7 @@ def render_reference(
         raise ValueError(f"step_mm must be positive and finite, got {step_mm}")
     mu = hu_to_mu_per_mm(volume.data)
     nk, nj, ni = volume.shape
-    source, a_mat = _rays_in_index_space(volume.world_to_index, geometry, motion)
+    source, a_mat = _rays_in_index_space(volume.index_from_world, geometry, motion)
     rr, cc = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
     pix = np.stack([cc.ravel(), rr.ravel(), np.ones(cc.size)]).astype(np.float64)  # (3, N)
     dirs = a_mat @ pix  # index-space directions, (3, N)

@@ -1,11 +1,16 @@
-"""The image-based registration pipeline (the paper's Fig. 2).
+"""The image-based registration pipeline (the paper's Fig. 2), for one or more views.
 
 The machine-based pose (``initial_motion``, identity when the patient has not moved) is
-refined by comparing DRRs of the volume with the X-ray image under gradient difference,
-optimised by simulated annealing over five parameters in the view frame of the X-ray image:
-in-plane translations (tx, ty) and rotations (rx, ry, rz) about the iso-center; tz is kept.
-The search runs coarse to fine over image/volume pyramids, and ends with a short local
-polish (Powell) at the finest level.
+refined by comparing DRRs of the volume with the X-ray images under gradient difference,
+optimised by simulated annealing over offsets in the view frame of the first view
+(:mod:`registration.core.search`). One view: the paper's five parameters (tx, ty, rx, ry, rz;
+tz is kept, a view cannot see motion along its beam). Two views of the same moment (biplane,
+CONVENTIONS.md §6): all six, in plane A's view frame, the measure being the mean of the
+views' gradient differences (:mod:`registration.core.problem`).
+
+The search runs coarse to fine: each :class:`Level` is prepared once
+(:class:`~registration.core.problem.LevelProblem`) and annealed by one or several capture
+runs side by side; a short local polish (:func:`~registration.core.anneal.polish`) ends it.
 """
 
 from __future__ import annotations
@@ -14,26 +19,38 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import optimize
 
-from registration.core.anneal import AnnealResult, AnnealState, Schedule, anneal
+from registration.core.anneal import AnnealResult, AnnealState, PolishState, Schedule, anneal, polish
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import CArm, check_rigid, offsets_to_matrix
+from registration.core.geometry import CArm, check_rigid
 from registration.core.images import XRayImage
 from registration.core.metrics import Residual, residuals
-from registration.core.similarity import GradientDifference
+from registration.core.problem import LevelProblem, support_mask
+from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
 
 Array = NDArray[np.float64]
 
-#: Names of the five optimised parameters, in order (mm, mm, deg, deg, deg).
-PARAMETERS = ("tx", "ty", "rx", "ry", "rz")
+#: Names of the five parameters of a single-view registration (mm, mm, deg, deg, deg).
+PARAMETERS = FIVE_PARAMETERS
+
+__all__ = [
+    "FIVE_PARAMETERS",
+    "PARAMETERS",
+    "SIX_PARAMETERS",
+    "Level",
+    "Progress",
+    "RegistrationOptions",
+    "RegistrationResult",
+    "register",
+    "support_mask",
+]
 
 
 @dataclass(frozen=True)
@@ -59,6 +76,7 @@ def _default_levels() -> tuple[Level, ...]:
     # views (12/12 with two runs vs 11/12 with one) and on the quick studies (four runs vs two:
     # clinical 38/40 vs 35/40 on translation, 40/40 vs 38/40 on rotation; phantom 22 cm volume
     # failures 4 -> 2), for 970 instead of 560 DRRs, the extra ones the cheapest.
+    # Steps are given for (tx, ty, rx, ry, rz); a six-parameter search steps tz as tx.
     return (
         Level(64, 2, Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per_stage=14, cooling=0.75), restarts=4),
         Level(128, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
@@ -80,11 +98,16 @@ class RegistrationOptions:
     polish_evaluations: int = 60
     polish_image_px: int = 128
     polish_volume_level: int = 1
+    #: Powell's initial step for translations (mm) and rotations (deg).
+    polish_step_mm: float = 0.5
+    polish_step_deg: float = 0.3
     #: Compare only pixels whose rays pass at least this far inside the volume's support
     #: (its box and the reconstructable cylinder), judged at the current estimate at the
     #: start of each level: the support's outline is an edge the X-ray image does not
     #: have. One margin per level, then the polish's; None compares the whole field.
     support_margin_mm: tuple[float, ...] | None = (15.0, 6.0, 4.0)
+    #: Optimise tz too (six parameters). None: only when there are two or more views.
+    optimize_tz: bool | None = None
 
     def __post_init__(self) -> None:
         if not self.levels:
@@ -103,6 +126,20 @@ class RegistrationOptions:
                 raise ValueError("support_margin_mm needs one margin per level plus one for the polish")
             if any(not math.isfinite(m) or m < 0 for m in self.support_margin_mm):
                 raise ValueError(f"support margins must be >= 0 mm, got {self.support_margin_mm}")
+        if not self.polish_step_mm > 0 or not self.polish_step_deg > 0:
+            raise ValueError("polish_step_mm and polish_step_deg must be positive")
+
+    def margin_mm(self, stage: int) -> float | None:
+        """The support margin of level ``stage`` (``len(levels)``: the polish)."""
+        return None if self.support_margin_mm is None else self.support_margin_mm[stage]
+
+    def optimizes_tz(self, n_views: int) -> bool:
+        return n_views > 1 if self.optimize_tz is None else bool(self.optimize_tz)
+
+    @property
+    def pyramid_levels(self) -> int:
+        """Volume pyramid levels the search uses (finest 0 to the coarsest level named)."""
+        return max([lv.volume_level for lv in self.levels] + [self.polish_volume_level]) + 1
 
 
 @dataclass(frozen=True)
@@ -122,7 +159,13 @@ class Progress:
 
 @dataclass
 class RegistrationResult:
-    """The outcome of one registration (CONVENTIONS.md §4)."""
+    """The outcome of one registration (CONVENTIONS.md §4, §6).
+
+    ``geometry`` is the first view's (plane A's): ``offsets`` and the residual's in-plane and
+    out-of-plane parts are in its view frame; ``views`` lists every view's geometry.
+    Fields added later must have defaults and appear in :meth:`to_dict` only when set, so
+    the JSON of a single-view registration stays what it is.
+    """
 
     patient_motion: Array
     similarity: float
@@ -134,6 +177,8 @@ class RegistrationResult:
     geometry: CArm
     volume_label: str
     residual: Residual | None = None
+    parameters: tuple[str, ...] = FIVE_PARAMETERS
+    views: tuple[CArm, ...] = ()
 
     @property
     def success(self) -> bool | None:
@@ -147,66 +192,186 @@ class RegistrationResult:
             "drr_count": self.drr_count,
             "seconds": self.seconds,
             "stopped": self.stopped,
-            "offsets": dict(zip(PARAMETERS, np.asarray(self.offsets).tolist(), strict=True)),
+            "offsets": dict(zip(self.parameters, np.asarray(self.offsets).tolist(), strict=True)),
             "geometry": self.geometry.to_dict(),
             "volume_label": self.volume_label,
         }
+        if len(self.views) > 1:
+            out["views"] = [g.to_dict() for g in self.views]
         if self.residual is not None:
             out["residual"] = self.residual.to_dict()
             out["success"] = self.residual.success
         return out
 
 
-class _Stop(Exception):
-    pass
+# --------------------------------------------------------------------------------------
+# Inputs, checked once here: nothing inside checks them again
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Inputs:
+    """The checked inputs of one registration."""
+
+    volume: Volume
+    views: tuple[XRayImage, ...]
+    initial_motion: Array
+    truth: Array | None
+    renderer: DRRRenderer
 
 
-def support_mask(volume: Volume, geometry: CArm, motion: ArrayLike, margin_mm: float) -> NDArray[np.bool_]:
-    """Pixels whose rays pass through the volume's support shrunk by ``margin_mm``.
+def check_inputs(
+    volume: Volume,
+    views: XRayImage | Sequence[XRayImage],
+    initial_motion: ArrayLike | None,
+    truth: ArrayLike | None,
+    renderer: DRRRenderer | None,
+    options: RegistrationOptions,
+) -> Inputs:
+    """Validate what the caller gave (ValueError saying what is wrong) and prepare the renderer."""
+    if not isinstance(volume, Volume):
+        raise ValueError(f"volume must be a Volume, got {type(volume).__name__}")
+    views = (views,) if isinstance(views, XRayImage) else tuple(views)
+    if not views:
+        raise ValueError("at least one X-ray view is needed")
+    for n, view in enumerate(views):
+        if not isinstance(view, XRayImage):
+            raise ValueError(f"view {n} must be an XRayImage, got {type(view).__name__}")
+    m_init = np.eye(4) if initial_motion is None else check_rigid(initial_motion, name="initial motion")
+    truth_m = None if truth is None else check_rigid(truth, name="true motion")
+    if renderer is None:
+        renderer = DRRRenderer(volume, levels=options.pyramid_levels)
+    elif renderer.volume is not volume:
+        raise ValueError("renderer was prepared for another volume")
+    return Inputs(volume, views, m_init, truth_m, renderer)
 
-    The support is the volume's box intersected with the cylinder (axis along the volume's
-    k axis) inscribed in it: a cone-beam 3DRA reconstructs only that cylinder, and a CT box
-    contains it. Rays that graze the support's outline see its truncation edge, which the
-    X-ray image does not have; ``motion`` places the volume as in the DRR.
+
+# --------------------------------------------------------------------------------------
+# Progress, stop and accounting shared by the capture runs
+# --------------------------------------------------------------------------------------
+class _Monitor:
+    """Counts DRRs, keeps the similarity trace, calls the callback and holds the stop flag.
+
+    Capture runs report from several threads; what the callback sees as "best" and
+    "temperature" spans the current level's runs (so it never zigzags between them).
     """
-    m = check_rigid(motion, name="motion")
-    rows, cols = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
-    targets = geometry.pixel_to_world(cols, rows).reshape(-1, 3)
-    to_index = volume.world_to_index @ np.linalg.inv(m)
-    src = to_index[:3, :3] @ geometry.source_mm + to_index[:3, 3]
-    dirs = targets @ to_index[:3, :3].T + to_index[:3, 3] - src
-    spacing = volume.spacing_mm
-    # Work in index units scaled to mm along each axis (the 3DRA grids are orthogonal).
-    src_mm, dirs_mm = src * spacing, dirs * spacing
-    n = np.array(volume.shape[::-1], dtype=np.float64)  # (ni, nj, nk)
-    lo, hi = np.full(3, margin_mm) - 0.5 * spacing, (n - 0.5) * spacing - margin_mm
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (lo - src_mm) / dirs_mm, (hi - src_mm) / dirs_mm
-    near = np.nanmax(np.where(np.isfinite(t1), np.minimum(t1, t2), -np.inf), axis=1)
-    far = np.nanmin(np.where(np.isfinite(t1), np.maximum(t1, t2), np.inf), axis=1)
-    # Rays parallel to a slab must start inside it.
-    parallel = dirs_mm == 0
-    outside = parallel & ((src_mm < lo) | (src_mm > hi))
-    far[np.any(outside, axis=1)] = -np.inf
-    # The inscribed cylinder about the k axis.
-    center = (n[:2] - 1) / 2.0 * spacing[:2]
-    radius = min(n[0] * spacing[0], n[1] * spacing[1]) / 2.0 - margin_mm
-    p, d = src_mm[:2] - center, dirs_mm[:, :2]
-    a = np.sum(d * d, axis=1)
-    b = 2.0 * d @ p
-    c = p @ p - radius * radius
-    disc = b * b - 4 * a * c
-    hit = (disc > 0) & (a > 0) & (radius > 0)
-    root = np.sqrt(np.where(hit, disc, 0.0))
-    safe_a = np.where(a > 0, a, 1.0)
-    near = np.where(hit, np.maximum(near, (-b - root) / (2 * safe_a)), near)
-    far = np.where(hit, np.minimum(far, (-b + root) / (2 * safe_a)), -np.inf)
-    return (far > near).reshape(geometry.rows, geometry.cols)
+
+    def __init__(self, space: SearchSpace, callback: Callable[[Progress], bool | None] | None, start_s: float):
+        self.space, self.callback, self.start_s = space, callback, start_s
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+        self.drr_count = 0
+        self.iteration = 0
+        self.trace: list[float] = []
+        self._level = -1
+        self._best: tuple[float, Array] | None = None
+        self._temperatures: dict[int, float] = {}
+
+    @property
+    def stopped(self) -> bool:
+        return self.stop.is_set()
+
+    def charge(self, drrs: int) -> bool:
+        """Count ``drrs`` DRRs about to be rendered; False (render nothing) once stopped."""
+        with self.lock:
+            if self.stop.is_set():
+                return False
+            self.drr_count += drrs
+            return True
+
+    def report(
+        self, level: int, temperature: float, x: Array, f: float, best_x: Array, best_f: float, chain: int
+    ) -> bool:
+        """One iteration of one run; True when the registration is to stop."""
+        with self.lock:
+            if self._level != level:
+                self._level, self._best, self._temperatures = level, None, {}
+            if self._best is None or best_f < self._best[0]:
+                self._best = (best_f, best_x)
+            self._temperatures[chain] = temperature
+            best_f, best_x = self._best
+            self.iteration += 1
+            self.trace.append(-best_f)
+            if self.stop.is_set():
+                return True
+            if self.callback is None:
+                return False
+            progress = Progress(
+                iteration=self.iteration,
+                level=level,
+                temperature=max(self._temperatures.values()),
+                current_motion=self.space.motion(x),
+                best_motion=self.space.motion(best_x),
+                current_similarity=-f,
+                best_similarity=-best_f,
+                drr_count=self.drr_count,
+                elapsed_s=time.perf_counter() - self.start_s,
+            )
+            if self.callback(progress):
+                self.stop.set()
+            return self.stop.is_set()
+
+
+def _cost(problem: LevelProblem, space: SearchSpace, monitor: _Monitor, parallel: bool | None) -> Callable:
+    """cost(x) = -similarity of the DRRs at the motion of x (inf once stopped)."""
+    evaluator = problem.evaluator(parallel=parallel)
+
+    def cost(x: Array) -> float:
+        if not monitor.charge(evaluator.drrs_per_evaluation):
+            return math.inf  # another capture run was stopped: render nothing more
+        return -evaluator.similarity(space.motion(x))
+
+    return cost
+
+
+# --------------------------------------------------------------------------------------
+# The stages
+# --------------------------------------------------------------------------------------
+def _anneal_level(
+    problem: LevelProblem,
+    space: SearchSpace,
+    level: Level,
+    stage: int,
+    x_start: Array,
+    rng: np.random.Generator,
+    monitor: _Monitor,
+    threads: int | None,
+) -> AnnealResult:
+    """The level's capture runs from ``x_start``; the best of them."""
+    bounds = space.bounds
+    schedule = replace(level.schedule, step=tuple(space.per_parameter(level.schedule.step)))
+
+    def run(chain: int, chain_rng: np.random.Generator, parallel: bool | None) -> AnnealResult:
+        def on_iteration(s: AnnealState) -> bool:
+            return monitor.report(stage, s.temperature, s.x, s.fun, s.best_x, s.best_fun, chain)
+
+        cost = _cost(problem, space, monitor, parallel)
+        return anneal(cost, x_start, bounds, rng=chain_rng, schedule=schedule, callback=on_iteration)
+
+    if level.restarts == 1:
+        return run(0, rng, None)
+    # Independent runs, each with its own random stream (same seed, same result whatever
+    # the threads), side by side on the cores with single-threaded DRRs.
+    workers = max(1, min(level.restarts, threads or os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(lambda c: run(c[0], c[1], False), enumerate(rng.spawn(level.restarts))))
+    return min(results, key=lambda r: r.fun)
+
+
+def _polish(problem: LevelProblem, space: SearchSpace, stage: int, x_start: Array, options: RegistrationOptions,
+            monitor: _Monitor) -> AnnealResult:  # fmt: skip
+    """Powell from the annealed estimate, within the evaluation budget."""
+
+    def on_evaluation(s: PolishState) -> bool:
+        return monitor.report(stage, 0.0, s.x, s.fun, s.best_x, s.best_fun, 0)
+
+    step = np.where(space.is_translation(), options.polish_step_mm, options.polish_step_deg)
+    cost = _cost(problem, space, monitor, None)
+    return polish(cost, x_start, space.bounds, step=step, max_evaluations=options.polish_evaluations,
+                  callback=on_evaluation)  # fmt: skip
 
 
 def register(
     volume: Volume,
-    xray: XRayImage,
+    views: XRayImage | Sequence[XRayImage],
     *,
     initial_motion: ArrayLike | None = None,
     options: RegistrationOptions | None = None,
@@ -216,14 +381,16 @@ def register(
     vessel_points_mm: ArrayLike | None = None,
     renderer: DRRRenderer | None = None,
 ) -> RegistrationResult:
-    """Estimate the patient motion that aligns ``volume`` with ``xray``.
+    """Estimate the patient motion that aligns ``volume`` with the X-ray view(s).
 
     Parameters
     ----------
     volume:
-        The 3DRA (HU). Its label is repeated in the result.
-    xray:
-        The X-ray image (attenuation line integrals), its field mask and geometry.
+        The 3DRA or CT (HU). Its label is repeated in the result.
+    views:
+        One :class:`XRayImage` (image in attenuation line integrals, field mask, geometry),
+        or several taken at the same moment (biplane: plane A first; offsets are in its
+        view frame).
     initial_motion:
         The machine-based pose as a 4x4 patient motion (identity by default).
     options:
@@ -241,186 +408,53 @@ def register(
     """
     start = time.perf_counter()
     options = options or RegistrationOptions()
-    geometry = xray.geometry
-    m_init = np.eye(4) if initial_motion is None else check_rigid(initial_motion, name="initial motion")
-    truth_m = None if truth is None else check_rigid(truth, name="true motion")
-    n_levels = max([lv.volume_level for lv in options.levels] + [options.polish_volume_level]) + 1
-    if renderer is None:
-        renderer = DRRRenderer(volume, levels=n_levels)
-    elif renderer.volume is not volume:
-        raise ValueError("renderer was prepared for another volume")
+    inputs = check_inputs(volume, views, initial_motion, truth, renderer, options)
+    space = SearchSpace.for_views(
+        inputs.views[0].geometry,
+        inputs.initial_motion,
+        optimize_tz=options.optimizes_tz(len(inputs.views)),
+        bound_mm=options.bound_mm,
+        bound_deg=options.bound_deg,
+    )
+    monitor = _Monitor(space, callback, start)
     rng = np.random.default_rng(seed)
-    tz0 = 0.0
+    x, f = space.start(), math.inf
 
-    def motion_of(x: Array) -> Array:
-        return offsets_to_matrix([x[0], x[1], tz0, x[2], x[3], x[4]], geometry) @ m_init
+    def prepare(image_px: int, volume_level: int, stage: int) -> LevelProblem:
+        return LevelProblem.prepare(inputs.renderer, inputs.views, image_px=image_px, volume_level=volume_level,
+                                    motion=space.motion(x), margin_mm=options.margin_mm(stage))  # fmt: skip
 
-    bounds = np.array([[-options.bound_mm, options.bound_mm]] * 2 + [[-options.bound_deg, options.bound_deg]] * 3)
-    x_best = np.zeros(5)
-    f_best = math.inf
-    trace: list[float] = []
-    drr_count = 0
-    stopped = False
-    iteration = 0
-
-    lock = threading.Lock()  # capture runs may report from several threads
-    stop_event = threading.Event()
-
-    # What the callback sees as "best" and "temperature" spans the level's capture runs.
-    shown: dict = {"level": -1, "f": math.inf, "x": None, "temperatures": {}}
-
-    def report(
-        level: int, temperature: float, x_cur: Array, f_cur: float, x_b: Array, f_b: float, chain: int = 0
-    ) -> bool:
-        nonlocal iteration
-        with lock:
-            if shown["level"] != level:
-                shown.update(level=level, f=math.inf, x=None, temperatures={})
-            if f_b < shown["f"] or shown["x"] is None:
-                shown["f"], shown["x"] = f_b, x_b
-            shown["temperatures"][chain] = temperature
-            f_b, x_b = shown["f"], shown["x"]
-            temperature = max(shown["temperatures"].values())
-            iteration += 1
-            trace.append(-f_b)
-            if stop_event.is_set():
-                return True
-            if callback is None:
-                return False
-            stop = bool(
-                callback(
-                    Progress(
-                        iteration=iteration,
-                        level=level,
-                        temperature=temperature,
-                        current_motion=motion_of(x_cur),
-                        best_motion=motion_of(x_b),
-                        current_similarity=-f_cur,
-                        best_similarity=-f_b,
-                        drr_count=drr_count,
-                        elapsed_s=time.perf_counter() - start,
-                    )
-                )
-            )
-            if stop:
-                stop_event.set()
-            return stop
-
-    def make_cost(
-        image_px: int, volume_level: int, margin_mm: float | None, parallel: bool | None = None
-    ) -> Callable[[Array], float]:
-        vl = min(volume_level, renderer.n_levels - 1)
-        # Pixels about as fine as ``image_px`` across the image, or as the volume level's
-        # voxels seen at the iso-center, whichever is finer: a volume much smaller than the
-        # image still gets enough pixels (the support mask keeps their number small).
-        factor_image = max(1, round(geometry.cols / image_px))
-        voxel_px = renderer.level_volume(vl).spacing_mm.max() * geometry.magnification / max(geometry.pixel_mm)
-        factor = min(factor_image, 2 ** max(0, math.floor(math.log2(max(voxel_px, 1.0)))))
-        while factor > 1 and (geometry.rows % factor or geometry.cols % factor):
-            factor -= 1
-        level_image = xray.downsample(factor) if factor > 1 else xray
-        level_geom = level_image.geometry
-        mask = level_image.mask
-        if margin_mm is not None:
-            inside = mask & support_mask(volume, level_geom, motion_of(x_best), margin_mm)
-            # Keep the whole field when the support would leave too little to compare.
-            if inside.sum() >= 0.25 * mask.sum():
-                mask = inside
-        measure = GradientDifference(level_image.image, mask)
-
-        def cost(x: Array) -> float:
-            nonlocal drr_count
-            with lock:
-                if stop_event.is_set():  # another capture run was stopped: render nothing more
-                    return math.inf
-                drr_count += 1
-            drr = renderer.render(level_geom, motion_of(x), level=vl, mask=mask, parallel=parallel)
-            return -measure(drr)
-
-        return cost
-
-    for li, level in enumerate(options.levels):
-        margin = None if options.support_margin_mm is None else options.support_margin_mm[li]
-
-        def on_iter(state: AnnealState, li: int = li, chain: int = 0) -> bool:
-            return report(li, state.temperature, state.x, state.fun, state.best_x, state.best_fun, chain)
-
-        if level.restarts == 1:
-            cost = make_cost(level.image_px, level.volume_level, margin)
-            results = [anneal(cost, x_best, bounds, rng=rng, schedule=level.schedule, callback=on_iter)]
-        else:
-            # Independent runs, each with its own random stream (same seed, same result
-            # whatever the threads), side by side on the cores with single-threaded DRRs.
-            def chain(
-                numbered: tuple[int, np.random.Generator],
-                level_: Level = level,
-                x_start: Array = x_best,
-                margin: float | None = margin,
-            ) -> AnnealResult:
-                number, chain_rng = numbered
-                cost = make_cost(level_.image_px, level_.volume_level, margin, parallel=False)
-                return anneal(
-                    cost,
-                    x_start,
-                    bounds,
-                    rng=chain_rng,
-                    schedule=level_.schedule,
-                    callback=lambda state: on_iter(state, chain=number),
-                )
-
-            workers = max(1, min(level.restarts, options.threads or os.cpu_count() or 1))
-            with ThreadPoolExecutor(max_workers=workers) as pool:
-                results = list(pool.map(chain, enumerate(rng.spawn(level.restarts))))
-        best = min(results, key=lambda r: r.fun)
-        x_best, f_best = best.x, best.fun
-        if any(r.message == "stopped by the callback" for r in results) or stop_event.is_set():
-            stopped = True
+    for stage, level in enumerate(options.levels):
+        problem = prepare(level.image_px, level.volume_level, stage)
+        best = _anneal_level(problem, space, level, stage, x, rng, monitor, options.threads)
+        x, f = best.x, best.fun
+        if monitor.stopped:
             break
+    if options.polish and not monitor.stopped:
+        stage = len(options.levels)
+        best = _polish(prepare(options.polish_image_px, options.polish_volume_level, stage), space, stage, x, options,
+                       monitor)  # fmt: skip
+        x, f = best.x, best.fun
+    return _result(inputs, space, x, f, monitor, vessel_points_mm, time.perf_counter() - start)
 
-    if options.polish and not stopped:
-        margin = None if options.support_margin_mm is None else options.support_margin_mm[-1]
-        cost = make_cost(options.polish_image_px, options.polish_volume_level, margin)
-        f_start = cost(x_best)
-        state = {"x": x_best.copy(), "f": f_start}
 
-        def polish_cost(x: Array) -> float:
-            f = cost(np.clip(x, bounds[:, 0], bounds[:, 1]))
-            if f < state["f"]:
-                state["x"], state["f"] = np.clip(x, bounds[:, 0], bounds[:, 1]), f
-            if report(len(options.levels), 0.0, x, f, state["x"], state["f"]):
-                raise _Stop
-            return f
-
-        try:
-            optimize.minimize(
-                polish_cost,
-                x_best,
-                method="Powell",
-                bounds=bounds,
-                options={
-                    "maxfev": options.polish_evaluations,
-                    "xtol": 0.02,
-                    "ftol": 1e-6,
-                    "direc": np.diag([0.5, 0.5, 0.3, 0.3, 0.3]),
-                },
-            )
-        except _Stop:
-            stopped = True
-        x_best, f_best = state["x"], state["f"]
-
-    m_est = motion_of(x_best)
+def _result(inputs: Inputs, space: SearchSpace, x: Array, f: float, monitor: _Monitor,
+            vessel_points_mm: ArrayLike | None, seconds: float) -> RegistrationResult:  # fmt: skip
+    m_est = space.motion(x)
     res = None
-    if truth_m is not None:
-        res = residuals(m_est, truth_m, geometry, vessel_points_mm)
+    if inputs.truth is not None:
+        res = residuals(m_est, inputs.truth, space.frame, vessel_points_mm, optimizes_tz=space.optimizes_tz)
     return RegistrationResult(
         patient_motion=m_est,
-        similarity=-f_best,
-        similarity_trace=trace,
-        drr_count=drr_count,
-        seconds=time.perf_counter() - start,
-        stopped=stopped,
-        offsets=x_best,
-        geometry=geometry,
-        volume_label=volume.label,
+        similarity=-f,
+        similarity_trace=monitor.trace,
+        drr_count=monitor.drr_count,
+        seconds=seconds,
+        stopped=monitor.stopped,
+        offsets=x,
+        geometry=space.frame,
+        volume_label=inputs.volume.label,
         residual=res,
+        parameters=space.names,
+        views=tuple(v.geometry for v in inputs.views),
     )

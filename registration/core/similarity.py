@@ -12,6 +12,7 @@ optimizer calls hundreds of times per registration against one X-ray image.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numba
@@ -238,6 +239,18 @@ class GradientDifference:
         self._dv = np.empty(self.n_pixels)
         self._dh = np.empty(self.n_pixels)
         self.last_scale = float("nan")
+
+    def with_scratch(self) -> GradientDifference:
+        """The same prepared measure with its own scratch buffers, for another thread.
+
+        The X-ray gradients and pixel lists are shared (read-only); only the DRR gradient
+        buffers and ``last_scale`` are the copy's own.
+        """
+        other = copy.copy(self)
+        other._dv = np.empty(self.n_pixels)
+        other._dh = np.empty(self.n_pixels)
+        other.last_scale = float("nan")
+        return other
 
     def __call__(self, drr: ArrayLike) -> float:
         d = np.asarray(drr)

@@ -90,8 +90,14 @@ class Volume:
         return np.linalg.norm(self.index_to_world[:3, :3], axis=0)
 
     @property
-    def world_to_index(self) -> Array:
+    def index_from_world(self) -> Array:
+        """World millimetres to voxel indices (i, j, k): the inverse of ``index_to_world``."""
         return np.linalg.inv(self.index_to_world)
+
+    @property
+    def world_to_index(self) -> Array:
+        """Old name of :attr:`index_from_world` (kept for callers outside the core)."""
+        return self.index_from_world
 
     @property
     def center_mm(self) -> Array:
@@ -139,7 +145,8 @@ class Volume:
     def sample(self, points_mm: ArrayLike, *, order: int = 1, cval: float = -1000.0) -> NDArray[np.float32]:
         """Interpolate HU at world points (..., 3); outside the volume gives ``cval``."""
         pts = np.asarray(points_mm, dtype=np.float64)
-        idx = pts @ self.world_to_index[:3, :3].T + self.world_to_index[:3, 3]
+        index_from_world = self.index_from_world
+        idx = pts @ index_from_world[:3, :3].T + index_from_world[:3, 3]
         coords = idx[..., ::-1].reshape(-1, 3).T  # (k, j, i)
         out = ndimage.map_coordinates(self.data, coords, order=order, mode="constant", cval=cval)
         return out.reshape(pts.shape[:-1]).astype(np.float32)

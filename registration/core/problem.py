@@ -1,0 +1,183 @@
+"""One level of a registration, prepared once and shared by its capture runs.
+
+A :class:`LevelProblem` holds, for every view (an :class:`XRayImage`: image, field mask and
+geometry), the image at the level's resolution, the pixels that may be compared (the field
+mask, less the rays that graze the volume's support) and the prepared gradient difference;
+plus the pyramid level of the volume the DRRs come from. All of it is read-only: each thread
+that evaluates the cost takes an :class:`Evaluator`, which owns only scratch buffers.
+
+The measure of several views is the mean of their gradient differences. Each view's value is
+already normalised by its number of compared pixels (it lies in (0, 2], see
+:class:`GradientDifference`), so a view counts the same whatever its size, format or pixel
+count: a large lateral image does not outweigh a small frontal one, and neither view's
+measure can dominate by its scale. With one view the measure is that view's gradient difference.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import CArm
+from registration.core.images import XRayImage
+from registration.core.similarity import GradientDifference
+from registration.core.volume import Volume
+
+Array = NDArray[np.float64]
+
+#: A support mask is used only if it keeps at least this share of the field's pixels.
+MIN_SUPPORT_SHARE = 0.25
+
+
+def support_mask(volume: Volume, geometry: CArm, motion: ArrayLike, margin_mm: float) -> NDArray[np.bool_]:
+    """Pixels whose rays pass through the volume's support shrunk by ``margin_mm``.
+
+    The support is the volume's box intersected with the cylinder (axis along the volume's
+    k axis) inscribed in it: a cone-beam 3DRA reconstructs only that cylinder, and a CT box
+    contains it. Rays that graze the support's outline see its truncation edge, which the
+    X-ray image does not have; ``motion`` (a rigid 4x4) places the volume as in the DRR.
+    """
+    rows, cols = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
+    targets = geometry.pixel_to_world(cols, rows).reshape(-1, 3)
+    index_from_world = volume.index_from_world @ np.linalg.inv(np.asarray(motion, dtype=np.float64))
+    src = index_from_world[:3, :3] @ geometry.source_mm + index_from_world[:3, 3]
+    dirs = targets @ index_from_world[:3, :3].T + index_from_world[:3, 3] - src
+    spacing = volume.spacing_mm
+    # Work in index units scaled to mm along each axis (the 3DRA grids are orthogonal).
+    src_mm, dirs_mm = src * spacing, dirs * spacing
+    n = np.array(volume.shape[::-1], dtype=np.float64)  # (ni, nj, nk)
+    near, far = _box_interval(src_mm, dirs_mm, np.full(3, margin_mm) - 0.5 * spacing, (n - 0.5) * spacing - margin_mm)
+    # The inscribed cylinder about the k axis.
+    center = (n[:2] - 1) / 2.0 * spacing[:2]
+    radius = min(n[0] * spacing[0], n[1] * spacing[1]) / 2.0 - margin_mm
+    p, d = src_mm[:2] - center, dirs_mm[:, :2]
+    a = np.sum(d * d, axis=1)
+    b = 2.0 * d @ p
+    c = p @ p - radius * radius
+    disc = b * b - 4 * a * c
+    hit = (disc > 0) & (a > 0) & (radius > 0)
+    root = np.sqrt(np.where(hit, disc, 0.0))
+    safe_a = np.where(a > 0, a, 1.0)
+    near = np.where(hit, np.maximum(near, (-b - root) / (2 * safe_a)), near)
+    far = np.where(hit, np.minimum(far, (-b + root) / (2 * safe_a)), -np.inf)
+    return (far > near).reshape(geometry.rows, geometry.cols)
+
+
+def _box_interval(src: Array, dirs: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
+    """Ray parameters (near, far) where rays ``src + t dirs`` cross the box [lo, hi]."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - src) / dirs, (hi - src) / dirs
+    near = np.nanmax(np.where(np.isfinite(t1), np.minimum(t1, t2), -np.inf), axis=1)
+    far = np.nanmin(np.where(np.isfinite(t1), np.maximum(t1, t2), np.inf), axis=1)
+    # Rays parallel to a slab must start inside it.
+    outside = (dirs == 0) & ((src < lo) | (src > hi))
+    far[np.any(outside, axis=1)] = -np.inf
+    return near, far
+
+
+def level_factor(geometry: CArm, image_px: int, voxel_mm: float) -> int:
+    """Block size that brings ``geometry``'s image to about ``image_px`` pixels across.
+
+    Pixels stay as fine as the volume level's voxels (``voxel_mm``) seen at the iso-center
+    when those are finer: a volume much smaller than the image still gets enough pixels
+    (the support mask keeps their number small). The factor divides rows and cols.
+    """
+    factor_image = max(1, round(geometry.cols / image_px))
+    voxel_px = voxel_mm * geometry.magnification / max(geometry.pixel_mm)
+    factor = min(factor_image, 2 ** max(0, math.floor(math.log2(max(voxel_px, 1.0)))))
+    while factor > 1 and (geometry.rows % factor or geometry.cols % factor):
+        factor -= 1
+    return factor
+
+
+@dataclass(frozen=True)
+class PreparedView:
+    """One view at one level: its geometry, the compared pixels and the prepared measure."""
+
+    geometry: CArm
+    mask: NDArray[np.bool_]
+    measure: GradientDifference
+
+
+@dataclass(frozen=True)
+class LevelProblem:
+    """The cost of one level, prepared once: ``-mean_v GD_v(DRR_v(x))`` over the views."""
+
+    renderer: DRRRenderer
+    volume_level: int
+    views: tuple[PreparedView, ...]
+
+    @classmethod
+    def prepare(
+        cls,
+        renderer: DRRRenderer,
+        views: tuple[XRayImage, ...],
+        *,
+        image_px: int,
+        volume_level: int,
+        motion: Array,
+        margin_mm: float | None,
+    ) -> LevelProblem:
+        """Downsample each view, mask it to the support seen at ``motion``, set up GD."""
+        level = renderer_level(renderer, volume_level)
+        voxel_mm = float(renderer.level_volume(level).spacing_mm.max())
+        prepared = []
+        for view in views:
+            factor = level_factor(view.geometry, image_px, voxel_mm)
+            image = view.downsample(factor) if factor > 1 else view
+            mask = image.mask
+            if margin_mm is not None:
+                inside = mask & support_mask(renderer.volume, image.geometry, motion, margin_mm)
+                # Keep the whole field when the support would leave too little to compare.
+                if inside.sum() >= MIN_SUPPORT_SHARE * mask.sum():
+                    mask = inside
+            prepared.append(PreparedView(image.geometry, mask, GradientDifference(image.image, mask)))
+        return cls(renderer, level, tuple(prepared))
+
+    def evaluator(self, *, parallel: bool | None = None) -> Evaluator:
+        """A cost function of the motion for one thread (its own scratch buffers)."""
+        return Evaluator(self, parallel)
+
+
+def renderer_level(renderer: DRRRenderer, volume_level: int) -> int:
+    """The pyramid level the DRRs of a search level come from (the coarsest there is if the
+    volume has fewer levels). The one place that picks the per-level volume."""
+    return min(volume_level, renderer.n_levels - 1)
+
+
+class Evaluator:
+    """``evaluator(motion) -> cost`` for one thread: renders each view's DRR into its own
+    buffer and scores it with its own copy of the measure's scratch space."""
+
+    def __init__(self, problem: LevelProblem, parallel: bool | None) -> None:
+        self.problem = problem
+        self.parallel = parallel
+        self._measures = [v.measure.with_scratch() for v in problem.views]
+        self._buffers = [np.empty((v.geometry.rows, v.geometry.cols), np.float32) for v in problem.views]
+
+    @property
+    def drrs_per_evaluation(self) -> int:
+        return len(self._measures)
+
+    def similarity(self, motion: Array) -> float:
+        """Mean gradient difference over the views (higher is more similar)."""
+        p = self.problem
+        total = 0.0
+        for view, measure, out in zip(p.views, self._measures, self._buffers, strict=True):
+            drr = p.renderer.render(
+                view.geometry, motion, level=p.volume_level, mask=view.mask, parallel=self.parallel, out=out
+            )
+            total += measure(drr)
+        return total / len(self._measures)
+
+    def per_view(self, motion: Array) -> list[float]:
+        """Each view's gradient difference at ``motion`` (the parts of :meth:`similarity`)."""
+        p = self.problem
+        return [
+            measure(p.renderer.render(view.geometry, motion, level=p.volume_level, mask=view.mask, out=out))
+            for view, measure, out in zip(p.views, self._measures, self._buffers, strict=True)
+        ]
