@@ -50,6 +50,7 @@ from registration.io.dicom._common import (
     UploadError,
     lookup,
     make_uid,
+    pixel_decoder,
     read_dataset,
     tag_name,
 )
@@ -95,6 +96,7 @@ __all__ = [
     "json_dumps",
     "lookup",
     "make_uid",
+    "pixel_decoder",
     "read_dataset",
     "read_npz",
     "read_registration",

@@ -252,16 +252,58 @@ def _transfer_syntax(ds: Dataset) -> UID | None:
     return UID(str(ts)) if ts else None
 
 
+#: The decoding plugin preferred for compressed pixel data: pylibjpeg with its libjpeg (JPEG
+#: baseline/extended/lossless, JPEG-LS), openjpeg (JPEG 2000) and rle plugins; see the README.
+PREFERRED_DECODER = "pylibjpeg"
+#: The pylibjpeg plugin (a Python distribution) that decodes each family of transfer syntaxes.
+_PYLIBJPEG_PLUGINS = {"JPEG 2000": "pylibjpeg-openjpeg", "RLE": "pylibjpeg-rle"}
+
+
+def pixel_decoder(ds: Dataset) -> tuple[str, str]:
+    """The pydicom decoding plugin that reads ``ds``'s pixel data and a description for users.
+
+    ``("", "native (uncompressed)")`` for uncompressed data; ``("", "none installed ...")``
+    when no plugin can decode the transfer syntax.
+    """
+    ts = _transfer_syntax(ds)
+    if ts is None or not ts.is_compressed:
+        return "", "native (uncompressed)"
+    try:
+        from pydicom.pixels import get_decoder
+
+        decoder = get_decoder(ts)
+    except (NotImplementedError, ValueError):
+        return "", f"none: pydicom has no decoder for {ts.name}"
+    plugins = tuple(decoder.available_plugins)
+    if not plugins:
+        return "", f"none installed for {ts.name} (pip install pylibjpeg pylibjpeg-libjpeg pylibjpeg-openjpeg)"
+    plugin = PREFERRED_DECODER if PREFERRED_DECODER in plugins else plugins[0]
+    if plugin != "pylibjpeg":
+        return plugin, plugin
+    from importlib.metadata import PackageNotFoundError, version
+
+    family = next((k for k in _PYLIBJPEG_PLUGINS if ts.name.startswith(k)), "")
+    package = _PYLIBJPEG_PLUGINS.get(family, "pylibjpeg-libjpeg")
+    try:
+        return plugin, f"pylibjpeg {version('pylibjpeg')} with {package} {version(package)}"
+    except PackageNotFoundError:
+        return plugin, "pylibjpeg"
+
+
 def _pixels(path: Path, ds: Dataset, index: int | None = None) -> NDArray[Any]:
-    """Decoded stored values (all frames, or frame ``index``), as pydicom gives them."""
+    """Decoded stored values (all frames, or frame ``index``), as pydicom gives them.
+
+    Compressed data is decoded by :func:`pixel_decoder`'s plugin (pylibjpeg when installed).
+    """
+    plugin, _ = pixel_decoder(ds)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            arr = pydicom.pixels.pixel_array(ds, index=index) if index is not None else ds.pixel_array
+            arr = pydicom.pixels.pixel_array(ds, index=index, decoding_plugin=plugin)
     except Exception as exc:
         ts = _transfer_syntax(ds)
         what = f"transfer syntax {ts.name} ({ts})" if ts is not None else "an unknown transfer syntax"
-        if ts is not None and ts.is_compressed:
+        if ts is not None and ts.is_compressed and not plugin:
             hint = "; compressed pixel data needs a decoder (pip install pylibjpeg pylibjpeg-libjpeg)"
         else:
             hint = ""

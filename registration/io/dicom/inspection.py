@@ -16,13 +16,16 @@ from pydicom.uid import (
 
 from registration.core.volume import Volume
 from registration.io.dicom._common import (
+    DicomError,
     _frames,
     _is_xray,
     _sop_class,
     _text,
     _transfer_syntax,
+    pixel_decoder,
     read_dataset,
 )
+from registration.io.dicom.runs import frame_times
 from registration.io.dicom.volumes import read_volume
 from registration.io.dicom.xray import read_xray, read_xray_angles
 
@@ -71,6 +74,7 @@ def inspect(path: str | os.PathLike[str]) -> dict[str, Any]:
                 out["modality"] = _text(ds, "Modality")
                 ts = _transfer_syntax(ds)
                 out["transfer_syntax"] = ts.name if ts is not None else ""
+                out["decoder"] = pixel_decoder(ds)[1]
                 out["header"] = {k: _text(ds, k) for k in HEADER_TAGS if _text(ds, k)}
                 if _is_xray(ds):
                     out.update(_inspect_xray(path, ds))
@@ -95,6 +99,7 @@ def _inspect_volume(volume: Volume) -> dict[str, Any]:
         "index_to_world": np.round(volume.index_to_world, 6).tolist(),
         "center_mm": [round(float(c), 3) for c in volume.center_mm],
         "value_range_hu": [round(v, 1) for v in _range(volume.data)],
+        **({"decoder": volume.meta["decoder"]} if volume.meta.get("decoder") else {}),
     }
 
 
@@ -116,4 +121,9 @@ def _inspect_xray(path: Path, header: Dataset) -> dict[str, Any]:
     if frames > 1:
         angles = read_xray_angles(path)
         out["angles_deg"] = [[round(a, 3), round(b, 3)] for a, b in angles[:12]] + (["..."] if frames > 12 else [])
+        try:
+            times, source = frame_times(path, header, frames)
+            out["frame_times"] = f"{times[-1]:.3f} s over {frames} frames, from {source}"
+        except DicomError as exc:
+            out["frame_times"] = f"not stated ({exc})"
     return out

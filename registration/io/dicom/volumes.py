@@ -59,6 +59,7 @@ from registration.io.dicom._common import (
     _sop_class,
     _text,
     make_uid,
+    pixel_decoder,
     read_dataset,
     tag_name,
 )
@@ -300,6 +301,7 @@ def _volume_meta(path: Path, ds: Dataset, kind: str) -> dict:
         "series_uid": _text(ds, "SeriesInstanceUID"),
         "frame_of_reference_uid": _text(ds, "FrameOfReferenceUID"),
         "series_description": _text(ds, "SeriesDescription"),
+        "decoder": pixel_decoder(ds)[1],
         **_reference_meta(ds),
     }
 

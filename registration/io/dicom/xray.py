@@ -78,6 +78,7 @@ from registration.io.dicom._common import (
     _text,
     lookup,
     make_uid,
+    pixel_decoder,
     read_dataset,
     tag_name,
 )
@@ -479,6 +480,7 @@ def _xray_frame(
         "frame": frame,
         "frames": frames,
         "mask_from": mask_source,
+        "decoder": pixel_decoder(ds)[1],
         **_image_references(ds),
         **geo_info,
         **intensity,
