@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1
+from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy
 
 ImageKind = Literal["fluoro", "exposure"]
 
@@ -32,6 +32,7 @@ Study = (
     | Annotated[PhantomStudy, tyro.conf.subcommand("phantom")]
     | Annotated[ClinicalStudy, tyro.conf.subcommand("clinical")]
     | Annotated[CalibrationStudy, tyro.conf.subcommand("calibration")]
+    | Annotated[TrackingStudy, tyro.conf.subcommand("tracking")]
 )
 
 
@@ -49,6 +50,10 @@ def validate(study: Study) -> int:
         from app.study_commands import run_clinical_study
 
         return run_clinical_study(study)
+    if isinstance(study, TrackingStudy):
+        from app.study_commands import run_tracking_study
+
+        return run_tracking_study(study)
     from app.study_commands import run_calibration_study
 
     return run_calibration_study(study)
@@ -175,9 +180,7 @@ def phantom(
     )
 
 
-def mesh(
-    volume: Path, out: Path, vessel_hu: float | None = None, bone_hu: float | None = None, step: int = 1
-) -> int:
+def mesh(volume: Path, out: Path, vessel_hu: float | None = None, bone_hu: float | None = None, step: int = 1) -> int:
     """Write the vessel and bone surfaces of a volume (STL, PLY or GLB by the file extension).
 
     Args:
@@ -270,6 +273,76 @@ def app(
     )
 
 
+# --------------------------------------------------------------------------------------
+# fluoroscopy runs
+# --------------------------------------------------------------------------------------
+def track(
+    volume: Path,
+    run: Path,
+    run_b: Path | None = None,
+    out: Path | None = None,
+    truth: Path | None = None,
+    isocenter: str | None = None,
+    seed: int = 0,
+    every_frame: bool = False,
+) -> int:
+    """Follow patient motion over a fluoroscopy run at its frame times (CONVENTIONS §7).
+
+    Args:
+        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
+        run: Multi-frame XA/RF run with its frame times (plane A for a biplane pair).
+        run_b: Plane B's run of a biplane pair (same frame times).
+        out: Write the per-frame list (frame, t_s, patient_motion, status, latency_ms, confidence) here.
+        truth: run_truth.json with each frame's true patient_motion (adds errors, precision, recall).
+        isocenter: Iso-center "x,y,z" in mm (default the world origin).
+        seed: Seed of the full captures.
+        every_frame: Process every frame (a replay) instead of skipping the frames that arrive while busy.
+    """
+    from app.track_commands import run_track
+
+    return run_track(
+        volume=volume, run=run, run_b=run_b, out=out, truth=truth, isocenter=isocenter, seed=seed,
+        every_frame=every_frame,
+    )  # fmt: skip
+
+
+def phantom_run(
+    out: Path,
+    seconds: float = 20.0,
+    pixels: int = 128,
+    image_format: float = 27.0,
+    primary_deg: float = 0.0,
+    secondary_deg: float = 0.0,
+    biplane: bool = False,
+    sudden_moves: int = 2,
+    seed: int = 0,
+    voxels: int = 128,
+    volume_source: Literal["fdk", "resampled"] = "fdk",
+) -> int:
+    """Export a simulated fluoroscopy run of the phantom (15 frames/s) with per-frame truth and its 3DRA.
+
+    Args:
+        out: Output folder (created; must be empty or absent).
+        seconds: Length of the run.
+        pixels: Frame size (square); 128 px frames take ~0.2 s each to simulate.
+        image_format: Image format in cm (also the 3DRA's volume format).
+        primary_deg: LAO(+)/RAO(-) angle of plane A.
+        secondary_deg: CRAN(+)/CAUD(-) angle of plane A.
+        biplane: Also write plane B (lateral, primary + 90 deg) at the same moments.
+        sudden_moves: Sudden moves (up to 25 mm / 10 deg within 0.5 s) besides drift and breathing.
+        seed: Seed of the patient's script and the frames' noise.
+        voxels: 3DRA grid size along each axis.
+        volume_source: 3DRA series: FDK of a simulated rotational run, or the resampled phantom.
+    """
+    from app.track_commands import run_phantom_run_export
+
+    return run_phantom_run_export(
+        out=out, seconds=seconds, pixels=pixels, image_format=image_format, primary_deg=primary_deg,
+        secondary_deg=secondary_deg, biplane=biplane, sudden_moves=sudden_moves, seed=seed, voxels=voxels,
+        volume_source=volume_source,
+    )  # fmt: skip
+
+
 COMMANDS = {
     "demo": demo,
     "app": app,
@@ -280,6 +353,8 @@ COMMANDS = {
     "phantom": phantom,
     "mesh": mesh,
     "listen": listen,
+    "track": track,
+    "phantom-run": phantom_run,
 }
 
 

@@ -58,3 +58,17 @@ class CalibrationStudy:
     seed: int = 0
     samples: int = 50
     """Number of random C-arm angles to test."""
+
+
+@dataclass
+class TrackingStudy:
+    """Live motion compensation over simulated fluoroscopy runs (still, drift, sudden moves)."""
+
+    out: Path = Path("validation-tracking")
+    """Output folder (results.json, plots, report.md/html)."""
+    quick: bool = False
+    """One 20 s run at 128 px (minutes the first time, then the run is cached)."""
+    json: bool = False
+    """Print the summary as one JSON object."""
+    seed: int = 0
+    """Seed of the patient's script, the frames' noise and the captures."""

@@ -14,7 +14,7 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1
+from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy
 from registration import __version__
 from registration.sim.calibration import ERROR_REGION_RADIUS_MM, calibration_study
 from registration.studies import bench, runs
@@ -58,7 +58,6 @@ def run_table1(args: Table1) -> int:
             f"{summary['prepare_seconds_total']:.2f} s in all."
         )
     return 0
-
 
 
 def _stderr(message: str) -> None:
@@ -111,7 +110,6 @@ def _print_summary(summary: dict, as_json: bool, out: Path) -> None:
     print(f"\nwritten: {out / 'results.jsonl'}, {out / 'report.md'}, {out / 'report.html'} and the plots")
 
 
-
 def run_calibration_study(args: CalibrationStudy) -> int:
     """``roadmap3d validate calibration``: print a table, or one JSON object with ``--json``."""
     result = calibration_study(samples=args.samples, seed=args.seed)
@@ -134,7 +132,6 @@ def run_calibration_study(args: CalibrationStudy) -> int:
         f"(target < 0.2 mm; without calibration median {result['uncorrected_median_mm']:.2f} mm)"
     )
     return 0
-
 
 
 def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
@@ -167,3 +164,40 @@ def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
 
 def _json_dumps(obj: dict) -> str:
     return json_module.dumps(obj, default=float)
+
+
+def run_tracking_study(args: TrackingStudy) -> int:
+    """``roadmap3d validate tracking``: simulated runs tracked at their frame times; report in ``args.out``."""
+    from registration.studies.tracking import TrackingConfig, write_tracking_report
+    from registration.studies.tracking import run_tracking_study as study_run
+
+    config = TrackingConfig.quick_config(args.seed) if args.quick else TrackingConfig.full_config(args.seed)
+    study = study_run(config, log=_stderr)
+    write_tracking_report(study, Path(args.out))
+    s = study["summary"]
+    if args.json:
+        print(json.dumps(s))
+        return 0
+
+    def pct(v: float | None) -> str:
+        return "-" if v is None else f"{100 * v:.1f} %"
+
+    def num(v: float | None, unit: str, digits: int = 2) -> str:
+        return "-" if v is None else f"{v:.{digits}f} {unit}"
+
+    print(f"tracking: {s['frames']} frames in {s['runs']} run(s): {s['processed']} processed, {s['skipped']} skipped")
+    print(
+        f"latency per frame: median {num(s['ms_per_frame_median'], 'ms', 1)}, p95 {num(s['ms_per_frame_p95'], 'ms', 1)}"
+        f" (targets 66 / 150 ms); full capture median {num(s['capture_ms_median'], 'ms', 0)} (target 1000 ms)"
+    )
+    print(
+        f"applied {s['applied']}, withheld {s['withheld']}, unchanged {s['unchanged']}; "
+        f"tracking error of applied frames median {num(s['tracking_error_mm_median'], 'mm')} (target 0.5 mm), "
+        f"worst {num(s['max_error_applied_mm'], 'mm')}"
+    )
+    print(
+        f"applied precision {pct(s['applied_precision'])} (target 99 %), "
+        f"recall {pct(s['applied_recall'])} (target 90 %)"
+    )
+    print(f"\nwritten: {Path(args.out) / 'results.json'}, {Path(args.out) / 'report.md'}, report.html and the plots")
+    return 0

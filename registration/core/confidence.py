@@ -74,7 +74,7 @@ class ConfidenceRule:
     deficit_free: float = 2.0
     #: per unit of relative margin below ``margin_good`` (a flat or shared peak).
     margin_weight: float = 3000.0
-    margin_good: float = 0.002
+    margin_good: float = 0.0004
     #: per missing fraction of agreeing capture runs.
     agreement_weight: float = 6.0
     agreement_free: float = 0.25

@@ -78,6 +78,8 @@ class TrackingOptions:
     #: A refinement whose measure stays more than this many noise units below the level
     #: (and more than ``detect_relative``) did not find the patient: full capture.
     recover_sigmas: float = 6.0
+    #: After a full capture the level is expected back to within this fraction of itself.
+    capture_tolerance: float = 0.004
     #: Newton iterations of the refinement, its probe steps and its smallest step.
     refine_iterations: int = 3
     refine_step_mm: float = 0.5
@@ -387,7 +389,11 @@ class Tracker:
                 self.level = max(self.level, f_est)
                 scale = self._scale()
         deficit = (self.level - f_est) / scale
-        if (self.level - f_est) / max(abs(self.level), 1e-12) <= o.detect_relative:
+        if path == "capture":
+            # After a large move the compared anatomy changed (other pixels inside the support,
+            # other overlaps): the level holds only to ``capture_tolerance`` of itself.
+            deficit = (self.level - f_est) / max(o.capture_tolerance * abs(self.level), scale)
+        elif (self.level - f_est) / max(abs(self.level), 1e-12) <= o.detect_relative:
             deficit = min(deficit, o.rule.deficit_free)  # within the level's own drift
         evidence = Evidence(
             deficit=float(deficit),

@@ -1,0 +1,241 @@
+"""The tracking commands: ``roadmap3d track`` and ``roadmap3d phantom-run``.
+
+``track`` follows the patient over a fluoroscopy run (one multi-frame XA/RF, or two for a
+biplane pair) at the run's frame times and writes the per-frame list of CONVENTIONS §7
+(frame, t_s, patient_motion, status) with the latency, confidence and reason of each frame.
+``phantom-run`` writes a simulated run of the phantom (with its per-frame truth) to try it on.
+Bad input raises ``ValueError`` (a DicomError names the file and the tag): ``error: ...``, exit 2.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from registration.io import dicom
+
+#: Files written by ``roadmap3d phantom-run``.
+RUN_FILE = "fluoro_run.dcm"
+RUN_B_FILE = "fluoro_run_b.dcm"
+RUN_TRUTH = "run_truth.json"
+RUN_VOLUME_DIR = "volume"
+
+
+def _say(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def _err(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def read_run_truth(path: Path, frames: int) -> np.ndarray:
+    """(frames, 4, 4) true motions from a ``run_truth.json`` (as ``phantom-run`` writes it)."""
+    import json
+
+    try:
+        doc = json.loads(Path(path).read_text())
+        motions = np.asarray([f["patient_motion"] for f in doc["frames"]], dtype=np.float64)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a run truth file (frames[].patient_motion): {exc}") from None
+    if motions.shape != (frames, 4, 4) or not np.all(np.isfinite(motions)):
+        raise ValueError(f"{path}: holds {motions.shape[0] if motions.ndim else 0} 4x4 motions for {frames} frames")
+    return motions
+
+
+def run_track(
+    *,
+    volume: Path,
+    run: Path,
+    run_b: Path | None = None,
+    out: Path | None = None,
+    truth: Path | None = None,
+    isocenter: str | None = None,
+    seed: int = 0,
+    every_frame: bool = False,
+) -> int:
+    """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON."""
+    from app.commands import parse_isocenter
+    from registration.core.metrics import residuals
+    from registration.core.tracking import track_run
+
+    if out is not None and Path(out).is_dir():
+        raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
+    iso = parse_isocenter(isocenter)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vol = dicom.read_volume(volume)
+        runs = [dicom.read_xray_run(run, isocenter_mm=iso)]
+        if run_b is not None:
+            runs.append(dicom.read_xray_run(run_b, isocenter_mm=iso))
+    for w in caught:
+        _err(f"warning: {w.message}")
+    if len(runs) == 2:
+        if len(runs[0]) != len(runs[1]):
+            raise ValueError(f"{run} has {len(runs[0])} frames but {run_b} has {len(runs[1])}: not one biplane run")
+        if not np.allclose(runs[0].times_s, runs[1].times_s, atol=1e-3):
+            raise ValueError(f"{run} and {run_b}: frame times differ (not taken at the same moments)")
+    times = runs[0].times_s
+    m_true = read_run_truth(truth, len(times)) if truth is not None else None
+    _say(f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels")
+    g = runs[0].geometries[0]
+    span = float(times[-1] - times[0]) if len(times) > 1 else 0.0
+    _say(
+        f"run:    {run}: {len(times)} frames over {span:.1f} s (times from {runs[0].times_from}), "
+        f"{g.cols}x{g.rows} px" + (f"; plane B {run_b}" if run_b else "")
+    )
+    # decode every frame first: in the clinic frames arrive decoded; decoding is not the engine's latency
+    frames = [r.frames() for r in runs]
+    started = time.perf_counter()
+    shown = {"n": 0}
+
+    def on_frame(est: Any) -> None:
+        shown["n"] += 1
+        if est.status != "unchanged" or shown["n"] % 30 == 0:
+            conf = "" if est.confidence is None else f" confidence {est.confidence:.2f}"
+            why = f" ({est.reason})" if est.reason else ""
+            _err(
+                f"  frame {est.frame:4d} t={est.t_s:6.2f} s {est.status:<9} {est.path:<7} "
+                f"{est.latency_ms:7.1f} ms{conf}{why}"
+            )
+
+    result = track_run(vol, frames, times, seed=seed, realtime=not every_frame, on_frame=on_frame)
+    wall = time.perf_counter() - started
+    summary = result.summary()
+    document = result.to_dict()
+    document["volume"] = {"path": str(volume), "label": vol.label}
+    document["runs"] = [str(run)] + ([str(run_b)] if run_b else [])
+    document["conventions"] = (
+        "shared/CONVENTIONS.md §7: per frame (frame, t_s, patient_motion, status); patient_motion is the pose the "
+        "roadmap shows after the frame (the last applied estimate)"
+    )
+    if m_true is not None:
+        geom = runs[0].geometries[0]
+        biplane = len(runs) == 2
+        errors, right, applied = [], [], []
+        for f, rec in zip(result.frames, document["frames"], strict=True):
+            r = residuals(f.patient_motion, m_true[f.frame], geom)
+            rec["shown_error_mm"] = r.translation_mm if biplane else r.inplane_mm
+            rec["shown_rotation_deg"] = r.rotation_deg
+            if f.estimate is not None:
+                e = residuals(f.estimate, m_true[f.frame], geom)
+                err = e.translation_mm if biplane else e.inplane_mm
+                rec["estimate_error_mm"] = err
+                right.append(err < 1.0 and e.rotation_deg < 3.0)
+                applied.append(f.status == "applied")
+                if f.status == "applied":
+                    errors.append(err)
+        from registration.core.confidence import precision_recall
+
+        p, rc = precision_recall(applied, right)
+        summary.update(
+            tracking_error_mm_median=float(np.median(errors)) if errors else None,
+            max_error_applied_mm=float(np.max(errors)) if errors else None,
+            applied_precision=p,
+            applied_recall=rc,
+        )
+        document["summary"] = summary
+    _say(
+        f"{summary['frames']} frames: {summary['processed']} processed, {summary['skipped']} skipped "
+        f"(arrived while busy); {summary['applied']} applied, {summary['withheld']} withheld, "
+        f"{summary['unchanged']} unchanged; {summary['captures']} full captures"
+    )
+    med, p95 = summary["ms_per_frame_median"], summary["ms_per_frame_p95"]
+    _say(f"latency: median {med:.1f} ms, p95 {p95:.1f} ms per frame; {wall:.1f} s in all")
+    if m_true is not None and summary.get("tracking_error_mm_median") is not None:
+        prec = summary["applied_precision"]
+        rec_ = summary["applied_recall"]
+        _say(
+            f"vs truth: applied estimates median {summary['tracking_error_mm_median']:.2f} mm, "
+            f"max {summary['max_error_applied_mm']:.2f} mm; precision "
+            f"{'-' if prec is None else f'{100 * prec:.1f} %'}, recall {'-' if rec_ is None else f'{100 * rec_:.1f} %'}"
+        )
+    if out is not None:
+        dicom.write_text_atomic(out, dicom.json_dumps(document))
+        _say(f"wrote {out}")
+    return 0
+
+
+def run_phantom_run_export(
+    *,
+    out: Path,
+    seconds: float = 20.0,
+    pixels: int = 128,
+    image_format: float = 27.0,
+    primary_deg: float = 0.0,
+    secondary_deg: float = 0.0,
+    biplane: bool = False,
+    sudden_moves: int = 2,
+    seed: int = 0,
+    voxels: int = 128,
+    volume_source: str = "fdk",
+) -> int:
+    """Write a simulated fluoroscopy run of the phantom (multi-frame XA with its frame times),
+    its per-frame truth, and the 3DRA series to track it with."""
+    from app.commands import _phantom_3dra
+    from registration.core.geometry import CArm
+    from registration.sim.fluoro import RunScript, simulate_biplane_run
+    from registration.sim.phantom import make_head_phantom
+
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"{out}: exists and is not an empty folder; refusing to overwrite")
+    if pixels < 32 or pixels > 1024:
+        raise ValueError(f"--pixels must lie in 32..1024, got {pixels}")
+    script = RunScript(duration_s=seconds, seed=seed, sudden_moves=sudden_moves)
+    geometries = [CArm.for_format(image_format, pixels=pixels, primary_deg=primary_deg, secondary_deg=secondary_deg)]
+    if biplane:
+        geometries.append(CArm.for_format(image_format, pixels=pixels, primary_deg=primary_deg + 90.0))
+    start = time.perf_counter()
+    anatomy = make_head_phantom(seed=0, contrast=False)
+
+    def progress(done: int, total: int) -> None:
+        if done % 25 == 0 or done == total:
+            _err(f"  frame {done}/{total} ({time.perf_counter() - start:.0f} s)")
+
+    _err(f"simulating {script.frames} frames x {len(geometries)} plane(s) of {pixels} px (cached after the first time)")
+    runs = simulate_biplane_run(anatomy, geometries, script, progress=progress)
+    volume, description, made = _phantom_3dra(
+        make_head_phantom(seed=0, contrast=True), source=volume_source, seed=0, contrast=True,
+        volume_format=image_format, voxels=voxels,
+    )  # fmt: skip
+    truth = {
+        "frames": [
+            {"frame": n, "t_s": float(t), "patient_motion": runs[0].truth[n].tolist(), "phase": runs[0].phases[n]}
+            for n, t in enumerate(runs[0].times_s)
+        ],
+        "script": script.to_dict(),
+        "geometry": geometries[0].to_dict(),
+        "volume_label": volume.label,
+        **made,
+        "images": "the analytic phantom moved by patient_motion (honest image model), not the 3DRA",
+        "conventions": "shared/CONVENTIONS.md §4, §7: anatomy the volume shows at X is at M @ X in frame n",
+    }
+    uid_seed = f"roadmap3d phantom run {seed} {seconds} {pixels} {image_format} {biplane}"
+    study_uid = str(dicom.make_uid(uid_seed, "study"))
+    with dicom.atomic_folder(out) as tmp:
+        dicom.write_series(volume, tmp / RUN_VOLUME_DIR, description=description, study_uid=study_uid,
+                           uid_seed=uid_seed)  # fmt: skip
+        names = [RUN_FILE, RUN_B_FILE]
+        for p, r in enumerate(runs):
+            dicom.write_xray_run(
+                list(r), tmp / names[p], times_s=r.times_s, plane=r.plane if biplane else None,
+                study_uid=study_uid, uid_seed=f"{uid_seed} plane {p}",
+                description=f"roadmap3d fluoro run{' ' + r.plane if biplane else ''}",
+            )  # fmt: skip
+        dicom.write_text_atomic(tmp / RUN_TRUTH, dicom.json_dumps(truth))
+    _say(f"wrote {out}/ in {time.perf_counter() - start:.1f} s: {RUN_VOLUME_DIR}/ ({volume.label}), {RUN_FILE}"
+         + (f", {RUN_B_FILE}" if biplane else "") + f", {RUN_TRUTH}")  # fmt: skip
+    b = f" --run-b {out / RUN_B_FILE}" if biplane else ""
+    _say(
+        f"try: roadmap3d track --volume {out / RUN_VOLUME_DIR} --run {out / RUN_FILE}{b} --truth {out / RUN_TRUTH} "
+        f"--out track.json"
+    )
+    return 0
