@@ -123,16 +123,18 @@ def register(
     )
 
 
-def info(path: Path, /, json: bool = False) -> int:
-    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values).
+def info(path: Path, /, json: bool = False, sid_mm: float | None = None, sod_mm: float | None = None) -> int:
+    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values, decoder).
 
     Args:
         path: DICOM file, DICOM series folder or .npz volume.
         json: Print the report as one JSON object.
+        sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
+        sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
     """
     from app.commands import run_info
 
-    return run_info(path, as_json=json)
+    return run_info(path, as_json=json, sid_mm=sid_mm, sod_mm=sod_mm)
 
 
 def phantom(

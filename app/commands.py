@@ -280,9 +280,9 @@ def _print_info(report: dict[str, Any]) -> None:
         _say(f"{'warning':>18}: {message}")
 
 
-def run_info(path: Path, *, as_json: bool = False) -> int:
+def run_info(path: Path, *, as_json: bool = False, sid_mm: float | None = None, sod_mm: float | None = None) -> int:
     """Print what the project reads from ``path``; exit code 2 when it is not accepted."""
-    report = dicom.inspect(path)
+    report = dicom.inspect(path, sid_mm=sid_mm, sod_mm=sod_mm)
     if as_json:
         _say(json.dumps(report, indent=2))
     else:

@@ -275,3 +275,16 @@ def test_vessel_surfaces_follow_the_phantom_arteries(exported: Path) -> None:
     # a true vessel surface lies within 6 mm of a centerline. Facial bone and sinus walls are
     # gone; a small partial-volume bone speck may remain (seen: the dens tip, ~2 % of vertices).
     assert np.mean(distance < 6.0) > 0.95, np.percentile(distance, [50, 99, 100])
+
+
+def test_info_and_register_name_the_distance_flags(tmp_path: Path, capsys) -> None:
+    from tests.registration.io.test_dicom import ramp, xa_file
+
+    path = xa_file(tmp_path / "nosid.dcm", ramp((16, 16)), sid=None)
+    code, _, err = run(["info", str(path)], capsys)
+    assert code == 2 and "DistanceSourceToDetector (0018,1110)" in err and "--sid-mm" in err
+    code, out, err = run(["info", str(path), "--sid-mm", "1150", "--json"], capsys)
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["geometry"]["sid_mm"] == 1150.0 and report["sid_from"] == "sid_mm"
+    assert report["sod_from"] == "DistanceSourceToPatient" and report["decoder"] == "native (uncompressed)"

@@ -55,8 +55,13 @@ HEADER_TAGS = (
 )
 
 
-def inspect(path: str | os.PathLike[str]) -> dict[str, Any]:
+def inspect(
+    path: str | os.PathLike[str], *, sid_mm: float | None = None, sod_mm: float | None = None
+) -> dict[str, Any]:
     """What the project reads from ``path``: kind, geometry, shape, spacing, value range.
+
+    ``sid_mm`` / ``sod_mm`` supply the distances of X-ray images that lack them (as for
+    :func:`registration.io.dicom.read_xray`).
 
     Never raises for bad input: the result says ``accepted: False`` and gives the ``problem``;
     for a DICOM file the ``header`` entry lists the tags the readers look at.
@@ -77,7 +82,7 @@ def inspect(path: str | os.PathLike[str]) -> dict[str, Any]:
                 out["decoder"] = pixel_decoder(ds)[1]
                 out["header"] = {k: _text(ds, k) for k in HEADER_TAGS if _text(ds, k)}
                 if _is_xray(ds):
-                    out.update(_inspect_xray(path, ds))
+                    out.update(_inspect_xray(path, ds, sid_mm=sid_mm, sod_mm=sod_mm))
                 else:
                     out.update(_inspect_volume(read_volume(path)))
             out["accepted"] = True
@@ -103,9 +108,15 @@ def _inspect_volume(volume: Volume) -> dict[str, Any]:
     }
 
 
-def _inspect_xray(path: Path, header: Dataset) -> dict[str, Any]:
+#: Where an X-ray image's geometry came from, shown by ``info``.
+_GEOMETRY_SOURCES = ("sid_from", "sod_from", "field_rotation", "field_of_view_origin")
+
+
+def _inspect_xray(
+    path: Path, header: Dataset, *, sid_mm: float | None = None, sod_mm: float | None = None
+) -> dict[str, Any]:
     frames = _frames(path, header)
-    image = read_xray(path, frame=0)
+    image = read_xray(path, frame=0, sid_mm=sid_mm, sod_mm=sod_mm)
     sign = image.meta.get("pixel_intensity_relationship_sign")
     out: dict[str, Any] = {
         "kind": "xray",
@@ -117,6 +128,8 @@ def _inspect_xray(path: Path, header: Dataset) -> dict[str, Any]:
         "mask_from": image.meta.get("mask_from"),
         "intensity": f"{image.meta.get('pixel_intensity_relationship')}, sign {sign:+d}",
         "attenuation_range": [round(v, 4) for v in _range(image.image[image.mask])],
+        "decoder": image.meta.get("decoder", ""),
+        **{k: image.meta[k] for k in _GEOMETRY_SOURCES if k in image.meta},
     }
     if frames > 1:
         angles = read_xray_angles(path)

@@ -160,13 +160,13 @@ def read_xray_run(
     iso = _check_isocenter(isocenter_mm)
     ds, frames, rows, cols = _open_xray(path)
     times, times_from = frame_times(path, ds, frames, frame_time_ms=frame_time_ms)
-    out_rows, out_cols = _field_rotation_shape(path, ds, rows, cols)
     geometries: list[CArm] = []
     info: dict[str, Any] = {}
     with warnings.catch_warnings():
         # The same warnings (PixelSpacing fallback, ...) would repeat once per frame: say them once.
         warnings.simplefilter("once")
         for n in range(frames):
+            out_rows, out_cols = _field_rotation_shape(path, ds, rows, cols, n)
             geometry, info = _geometry(path, ds, n, frames, out_rows, out_cols, iso, sid_mm=sid_mm, sod_mm=sod_mm)
             geometries.append(geometry)
     planes = tuple(frame_plane(path, ds, n) for n in range(frames))

@@ -39,6 +39,7 @@ import math
 import os
 import warnings
 from collections.abc import Sequence
+from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -185,6 +186,8 @@ def _geometry(
             "spacing at the detector",
             stacklevel=3,
         )
+    if _field_of_view(path, ds, frame)[0] in (90, 270):
+        spacing = [spacing[1], spacing[0]]  # the spacing of the stored rows is that of physical columns
     try:
         geometry = CArm(
             primary_deg=primary,
@@ -202,12 +205,17 @@ def _geometry(
             f"inconsistent geometry ({tag_name('DistanceSourceToDetector')}, "
             f"{tag_name('DistanceSourceToPatient')}, {tag_name(spacing_tag)}, positioner angles): {exc}",
         ) from None
-    return geometry, {
+    info = {
         "angles_from": angle_source,
         "pixel_spacing_from": spacing_tag,
         "sid_from": sid_from,
         "sod_from": sod_from,
     }
+    shift, note = _field_of_view_shift(path, ds, frame, geometry)
+    if note:
+        geometry = replace(geometry, detector_shift_mm=shift)
+        info["field_of_view_origin"] = note
+    return geometry, info
 
 
 def _intensity_to_attenuation(
@@ -300,10 +308,16 @@ def _border_mask(stored: NDArray[Any]) -> NDArray[np.bool_] | None:
     return ~outside
 
 
-def _field_of_view(path: Path, ds: Dataset) -> tuple[int, bool]:
-    """FieldOfViewRotation (degrees, a multiple of 90) and FieldOfViewHorizontalFlip."""
-    rotation_value = ds.get("FieldOfViewRotation")
-    flip = _text(ds, "FieldOfViewHorizontalFlip").upper() == "YES"
+def _field_of_view(path: Path, ds: Dataset, frame: int | None = None) -> tuple[int, bool]:
+    """FieldOfViewRotation (degrees clockwise, 0/90/180/270) and FieldOfViewHorizontalFlip.
+
+    Read from the frame's Field of View functional group (enhanced XA/RF) or the top level.
+    """
+    rotation_value = lookup(ds, "FieldOfViewRotation", frame)
+    flip_text = str(lookup(ds, "FieldOfViewHorizontalFlip", frame) or "").strip().upper()
+    if flip_text not in ("", "YES", "NO"):
+        raise DicomError(path, f"{tag_name('FieldOfViewHorizontalFlip')} is {flip_text[:16]!r}: YES or NO expected")
+    flip = flip_text == "YES"
     try:
         rotation = int(float(rotation_value)) % 360 if rotation_value not in (None, "") else 0
     except (TypeError, ValueError, OverflowError):  # OverflowError: inf
@@ -313,22 +327,88 @@ def _field_of_view(path: Path, ds: Dataset) -> tuple[int, bool]:
     return rotation, flip
 
 
-def _field_rotation_shape(path: Path, ds: Dataset, rows: int, cols: int) -> tuple[int, int]:
+def _field_rotation_shape(path: Path, ds: Dataset, rows: int, cols: int, frame: int | None = None) -> tuple[int, int]:
     """(rows, cols) of the image once the field-of-view rotation is undone."""
-    rotation, _ = _field_of_view(path, ds)
+    rotation, _ = _field_of_view(path, ds, frame)
     return (cols, rows) if rotation in (90, 270) else (rows, cols)
 
 
-def _field_rotation(path: Path, ds: Dataset, image: NDArray[Any]) -> tuple[NDArray[Any], str | None]:
-    rotation, flip = _field_of_view(path, ds)
-    if rotation == 0 and not flip:
-        return image, None
+def _undo_field_of_view(image: NDArray[Any], rotation: int, flip: bool) -> NDArray[Any]:
+    """Physical detector axes from the stored ones: stored = flip(rotate_clockwise(physical)).
+
+    DICOM: the field of view is rotated clockwise (as displayed: row 0 on top) relative to the
+    physical detector, then flipped horizontally; undone in the reverse order.
+    """
     if flip:
         image = image[..., ::-1]
-    image = np.rot90(image, k=rotation // 90, axes=(-2, -1))
+    return np.ascontiguousarray(np.rot90(image, k=rotation // 90, axes=(-2, -1)))
+
+
+def _field_rotation(
+    path: Path, ds: Dataset, image: NDArray[Any], frame: int | None = None
+) -> tuple[NDArray[Any], str | None]:
+    rotation, flip = _field_of_view(path, ds, frame)
+    if rotation == 0 and not flip:
+        return image, None
     note = f"undid FieldOfViewRotation {rotation} deg" + (" and horizontal flip" if flip else "")
     warnings.warn(f"{path}: {note} to restore the CONVENTIONS §3 image axes", stacklevel=3)
-    return np.ascontiguousarray(image), note
+    return _undo_field_of_view(image, rotation, flip), note
+
+
+def _field_of_view_shift(
+    path: Path, ds: Dataset, frame: int | None, geometry: CArm
+) -> tuple[tuple[float, float, float], str | None]:
+    """World shift of the image center from the central ray, from FieldOfViewOrigin.
+
+    FieldOfViewOrigin (0018,7030) is the offset (row, column, in detector elements) of the
+    field of view's top-left corner, before rotation and flipping, from the physical
+    detector's; with DetectorElementSpacing, the field's size (FieldOfViewDimensionsInFloat or
+    FieldOfViewDimensions, mm) and the active area (DetectorActiveOrigin, DetectorActiveDimensions,
+    mm) it places the field's center relative to the active area's center, where the central
+    ray meets the detector (CONVENTIONS §3). The shift, along u (columns) and v (rows) of the
+    physical detector, becomes the geometry's ``detector_shift_mm``. Without the other tags the
+    origin cannot be placed: it is ignored with a warning.
+    """
+    origin = _floats(path, ds, "FieldOfViewOrigin", 2, frame, required=False)
+    if origin is None:
+        return (0.0, 0.0, 0.0), None
+    spacing = _floats(path, ds, "DetectorElementSpacing", 2, frame, required=False)
+    size = _floats(path, ds, "FieldOfViewDimensionsInFloat", None, frame, required=False) or _floats(
+        path, ds, "FieldOfViewDimensions", None, frame, required=False
+    )
+    active = _floats(path, ds, "DetectorActiveDimensions", None, frame, required=False)
+    if spacing is None or size is None or active is None:
+        missing = [
+            tag_name(k)
+            for k, v in (
+                ("DetectorElementSpacing", spacing),
+                ("FieldOfViewDimensions", size),
+                ("DetectorActiveDimensions", active),
+            )
+            if v is None
+        ]
+        warnings.warn(
+            f"{path}: {tag_name('FieldOfViewOrigin')} ignored (needs {', '.join(missing)}); the image center "
+            "is taken as the central ray",
+            stacklevel=4,
+        )
+        return (0.0, 0.0, 0.0), None
+    active_origin = _floats(path, ds, "DetectorActiveOrigin", 2, frame, required=False) or [0.0, 0.0]
+    if any(v <= 0 for v in (*spacing, *size, *active)):
+        raise DicomError(path, "detector or field-of-view dimensions must be positive")
+    size2 = size if len(size) == 2 else [size[0], size[0]]  # ROUND: one diameter
+    active2 = active if len(active) == 2 else [active[0], active[0]]
+    offset_row = origin[0] * spacing[0] + size2[0] / 2.0 - (active_origin[0] + active2[0] / 2.0)
+    offset_col = origin[1] * spacing[1] + size2[1] / 2.0 - (active_origin[1] + active2[1] / 2.0)
+    if max(abs(offset_row), abs(offset_col)) > max(active2):
+        raise DicomError(
+            path,
+            f"{tag_name('FieldOfViewOrigin')} {origin} puts the field {offset_row:.0f}, {offset_col:.0f} mm "
+            "from the detector center, outside the detector",
+        )
+    shift = offset_col * geometry.u + offset_row * geometry.v
+    note = f"field of view {offset_row:+.2f} mm (rows), {offset_col:+.2f} mm (columns) from the central ray"
+    return (float(shift[0]), float(shift[1]), float(shift[2])), note
 
 
 def _xray_kind(ds: Dataset, kind: str | None) -> tuple[str, str]:
@@ -446,10 +526,12 @@ def _xray_frame(
         stored = stored[0]
     if stored.shape != (rows, cols):
         raise DicomError(path, f"{tag_name('PixelData')} decodes to shape {stored.shape}, expected {rows}x{cols}")
-    stored, rotation_note = _field_rotation(path, ds, stored)
+    shutter = _shutter_mask(path, ds, rows, cols)  # in stored pixel positions
+    stored, rotation_note = _field_rotation(path, ds, stored, frame)
+    if rotation_note and shutter is not None:
+        shutter = _undo_field_of_view(shutter, *_field_of_view(path, ds, frame))
     rows, cols = stored.shape
     geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, iso, sid_mm=sid_mm, sod_mm=sod_mm)
-    shutter = None if rotation_note else _shutter_mask(path, ds, rows, cols)
     border = _border_mask(stored)
     if shutter is None and border is None:
         warnings.warn(
