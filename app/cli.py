@@ -15,7 +15,14 @@ from typing import Annotated, Literal
 
 import tyro
 
-from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy
+from app.options import (
+    CalibrationStudy,
+    ClinicalStudy,
+    PhantomStudy,
+    RotationalRunStudy,
+    Table1,
+    TrackingStudy,
+)
 
 ImageKind = Literal["fluoro", "exposure"]
 
@@ -33,6 +40,7 @@ Study = (
     | Annotated[ClinicalStudy, tyro.conf.subcommand("clinical")]
     | Annotated[CalibrationStudy, tyro.conf.subcommand("calibration")]
     | Annotated[TrackingStudy, tyro.conf.subcommand("tracking")]
+    | Annotated[RotationalRunStudy, tyro.conf.subcommand("rotational-run")]
 )
 
 
@@ -54,6 +62,10 @@ def validate(study: Study) -> int:
         from app.study_commands import run_tracking_study
 
         return run_tracking_study(study)
+    if isinstance(study, RotationalRunStudy):
+        from app.rotational_commands import run_rotational_validation
+
+        return run_rotational_validation(study)
     from app.study_commands import run_calibration_study
 
     return run_calibration_study(study)

@@ -398,6 +398,15 @@ def run_phantom_export(
         )
         dicom.write_xray(fluoro, tmp / PHANTOM_FLUORO, study_uid=study_uid, uid_seed=uid_seed)
         dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed)
+        if volume_source == "fdk":  # the run the 3DRA was reconstructed from (validate rotational-run)
+            from app.rotational_commands import export_phantom_run
+
+            truth["files"].update(
+                export_phantom_run(
+                    tmp, volume, seed=seed, contrast=contrast, volume_format=volume_format, study_uid=study_uid,
+                    uid_seed=uid_seed,
+                )
+            )  # fmt: skip
         dicom.write_text_atomic(tmp / PHANTOM_TRUTH, dicom.json_dumps(truth))
     _say(f"wrote {out}/ in {time.perf_counter() - start:.1f} s:")
     _say(
@@ -406,6 +415,8 @@ def run_phantom_export(
     )
     _say(f"  {PHANTOM_FLUORO}    XA fluoroscopy, {pixels}x{pixels} px, {image_format:g} cm format")
     _say(f"  {PHANTOM_EXPOSURE}  XA exposure")
+    if "rotational_run_file" in truth["files"]:
+        _say("  rotational_run.dcm  the 3DRA's rotational run (multi-frame XA, per-frame angles) + its calibration")
     _say(f"  {PHANTOM_TRUTH}      patient motion {offset_name}: {_format_offsets(motion, geometry)}")
     _say(
         f"try: roadmap3d register --volume {out / PHANTOM_VOLUME_DIR} --image {out / PHANTOM_FLUORO} "

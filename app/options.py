@@ -72,3 +72,28 @@ class TrackingStudy:
     """Print the summary as one JSON object."""
     seed: int = 0
     """Seed of the patient's script, the frames' noise and the captures."""
+
+
+@dataclass
+class RotationalRunStudy:
+    """The paper's retrospective validation: random frames of a rotational run registered to its own 3DRA."""
+
+    volume: str | None = None
+    """3DRA reconstructed from the run: DICOM folder/file (with --pacs: its series UID, default the study's CT)."""
+    run: str | None = None
+    """The rotational run: a multi-frame XA/RF file (with --pacs: its Series Instance UID, default the longest run)."""
+    pacs: str | None = None
+    """DICOMweb base URL of a PACS (credentials: ROADMAP3D_PACS_USERNAME/_PASSWORD or the config file)."""
+    study: str | None = None
+    """Study Instance UID on the PACS holding the 3DRA and its run."""
+    ca_bundle: Path | None = None
+    """CA certificates (PEM) to verify an https:// PACS against."""
+    calibration: Path | None = None
+    """C-arm calibration table JSON (per-angle deviations) that refines each frame's geometry."""
+    cases: int = 20
+    """Number of random registrations."""
+    out: Path = Path("validation-rotational-run")
+    """Output folder (results.jsonl, report.md/html, histograms)."""
+    json: bool = False
+    """Print the summary as one JSON object."""
+    seed: int = 0

@@ -357,6 +357,18 @@ class Pacs:
         ]
         return sorted((s for s in out if s.series_uid), key=lambda s: (s.number is None, s.number or 0, s.series_uid))
 
+    def frames(self, study_uid: str, series_uid: str) -> int:
+        """The largest NumberOfFrames of the series' instances (1 for single-frame images)."""
+        items = self._call(
+            f"listing the instances of series {series_uid}",
+            self._client.search_for_instances,
+            study_instance_uid=study_uid,
+            series_instance_uid=series_uid,
+            fields=["NumberOfFrames"],
+            get_remaining=True,
+        )
+        return max([_int(i, "NumberOfFrames") or 1 for i in items] or [0])
+
     # ----- WADO-RS -------------------------------------------------------------------
     def retrieve_series(self, study_uid: str, series_uid: str, folder: str | os.PathLike[str] | None = None) -> Path:
         """Write the series' instances into ``folder`` (default: a new private temporary folder)

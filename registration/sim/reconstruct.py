@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -483,6 +483,82 @@ def reconstruct_run(run: RotationalRun, *, volume_format_cm: float, voxels: int 
     )
 
 
+def _3dra_params(
+    phantom_seed: int,
+    *,
+    volume_format_cm: float,
+    contrast: bool,
+    pixels: int,
+    projections: int,
+    arc_deg: float,
+    kind: str,
+    seed: int,
+) -> dict:
+    from registration.sim.phantom import PHANTOM_MODEL_VERSION
+
+    return {
+        "phantom_seed": int(phantom_seed),
+        "volume_format_cm": float(volume_format_cm),
+        "contrast": bool(contrast),
+        "pixels": int(pixels),
+        "projections": int(projections),
+        "arc_deg": float(arc_deg),
+        "kind": kind,
+        "seed": int(seed),
+        "bending_seed": default_bending().seed,
+        "phantom_model": PHANTOM_MODEL_VERSION,
+    }
+
+
+def rotational_run_3dra(
+    phantom_seed: int,
+    *,
+    volume_format_cm: float,
+    contrast: bool = True,
+    pixels: int = 256,
+    projections: int = 120,
+    arc_deg: float = 200.0,
+    kind: str = "exposure",
+    seed: int = 0,
+    cache: bool = True,
+) -> RotationalRun:
+    """The rotational run that :func:`reconstruct_3dra` reconstructs (same parameters, same
+    images), cached under the user's cache directory; the geometries are recomputed (cheap:
+    the calibration run is cached too)."""
+    from registration.io.cache import cached_arrays
+
+    params = _3dra_params(
+        phantom_seed, volume_format_cm=volume_format_cm, contrast=contrast, pixels=pixels,
+        projections=projections, arc_deg=arc_deg, kind=kind, seed=seed,
+    )  # fmt: skip
+
+    def run_with(imager: Imager | None = None) -> RotationalRun:
+        from registration.sim.phantom import make_head_phantom
+
+        return rotational_run(
+            make_head_phantom(seed=phantom_seed, contrast=contrast),
+            image_format_cm=volume_format_cm,
+            projections=projections,
+            arc_deg=arc_deg,
+            kind=kind,
+            pixels=pixels,
+            seed=seed,
+            imager=imager,
+        )
+
+    def build() -> dict[str, np.ndarray]:
+        run = run_with()
+        return {"images": run.images, "masks": run.masks}
+
+    arrays = cached_arrays("3dra-run", params, build, enabled=cache)
+
+    def blank(ph: object, geom: CArm, index: int) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return np.zeros((geom.rows, geom.cols), np.float32), np.ones((geom.rows, geom.cols), bool)
+
+    geometries = run_with(blank)
+    return replace(geometries, images=arrays["images"], masks=arrays["masks"].astype(bool))
+
+
 def reconstruct_3dra(
     phantom_seed: int,
     *,
@@ -502,38 +578,19 @@ def reconstruct_3dra(
     ``pixels`` defaults to 256: rotational runs use a 2x2-binned detector mode, whose pixel
     (at the iso-center) matches the 256^3 voxel; each simulated pixel still integrates 2x2
     sub-pixel rays. The first call simulates the whole run with the honest image model
-    (minutes); later calls load the cached volume.
+    (minutes; the run is cached too, :func:`rotational_run_3dra`); later calls load the cached volume.
     """
     from registration.io.cache import cached_arrays
-    from registration.sim.phantom import PHANTOM_MODEL_VERSION
 
-    params = {
-        "phantom_seed": int(phantom_seed),
-        "volume_format_cm": float(volume_format_cm),
-        "contrast": bool(contrast),
-        "voxels": int(voxels),
-        "pixels": int(pixels),
-        "projections": int(projections),
-        "arc_deg": float(arc_deg),
-        "kind": kind,
-        "seed": int(seed),
-        "bending_seed": default_bending().seed,
-        "phantom_model": PHANTOM_MODEL_VERSION,
-    }
+    run_params = dict(
+        volume_format_cm=volume_format_cm, contrast=contrast, pixels=pixels, projections=projections,
+        arc_deg=arc_deg, kind=kind, seed=seed,
+    )  # fmt: skip
+    params = _3dra_params(phantom_seed, **run_params)  # type: ignore[arg-type]
+    params["voxels"] = int(voxels)
 
     def build() -> dict[str, np.ndarray]:
-        from registration.sim.phantom import make_head_phantom
-
-        phantom = make_head_phantom(seed=phantom_seed, contrast=contrast)
-        run = rotational_run(
-            phantom,
-            image_format_cm=volume_format_cm,
-            projections=projections,
-            arc_deg=arc_deg,
-            kind=kind,
-            pixels=pixels,
-            seed=seed,
-        )
+        run = rotational_run_3dra(phantom_seed, cache=cache, **run_params)  # type: ignore[arg-type]
         vol = reconstruct_run(run, volume_format_cm=volume_format_cm, voxels=voxels)
         return {"data": vol.data, "index_to_world": vol.index_to_world}
 

@@ -13,6 +13,7 @@ import html
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -617,19 +618,33 @@ def phantom_report_md(records: Sequence[dict], summary: dict, images: dict[str, 
     return "\n".join(lines) + "\n"
 
 
-def clinical_report_md(records: Sequence[dict], summary: dict, images: dict[str, str]) -> str:
+CLINICAL_METHOD = (
+    "Each virtual patient (a phantom variant) has its own simulated rotational run (images formed with the",
+    "true, bent C-arm geometry) and its FDK reconstruction (from the calibrated geometry). A random frame of",
+    "the run is registered to the reconstruction from a pose offset by a random translation (length uniform",
+    "in [0, 25] mm, random direction) and rotation (uniform in [0, 10]° about a random axis through the",
+    "iso-center); the truth is the calibrated geometry of that frame. Translation success: in-plane residual",
+    "< 1 mm; rotation success: < 3°.",
+)
+
+
+def clinical_report_md(
+    records: Sequence[dict],
+    summary: dict,
+    images: dict[str, str],
+    *,
+    title: str = "Rotational-run ('clinical') study: Fig. 7 (Homan et al. III.B) reproduced",
+    method: Sequence[str] = CLINICAL_METHOD,
+) -> str:
+    """The report (``method``: the paragraph saying what was registered; the rotational-run
+    validation of an archived run passes its own)."""
     p = PAPER_CLINICAL
     lines = [
-        "# Rotational-run ('clinical') study: Fig. 7 (Homan et al. III.B) reproduced",
+        f"# {title}",
         "",
         *_provenance(summary),
         "",
-        "Each virtual patient (a phantom variant) has its own simulated rotational run (images formed with the",
-        "true, bent C-arm geometry) and its FDK reconstruction (from the calibrated geometry). A random frame of",
-        "the run is registered to the reconstruction from a pose offset by a random translation (length uniform",
-        "in [0, 25] mm, random direction) and rotation (uniform in [0, 10]° about a random axis through the",
-        "iso-center); the truth is the calibrated geometry of that frame. Translation success: in-plane residual",
-        "< 1 mm; rotation success: < 3°.",
+        *method,
         "",
         "## Success rates beside the paper",
         "",
@@ -825,7 +840,14 @@ def write_phantom_report(records: Sequence[dict], summary: dict, out: Path) -> d
     return images
 
 
-def write_clinical_report(records: Sequence[dict], summary: dict, out: Path) -> dict[str, str]:
+def write_clinical_report(
+    records: Sequence[dict],
+    summary: dict,
+    out: Path,
+    *,
+    title: str | None = None,
+    method: Sequence[str] | None = None,
+) -> dict[str, str]:
     import json
 
     out = Path(out)
@@ -833,7 +855,12 @@ def write_clinical_report(records: Sequence[dict], summary: dict, out: Path) -> 
     if records:
         clinical_histograms(records, out / "fig7_histograms.png")
         images["hist"] = "fig7_histograms.png"
-    _write(out, clinical_report_md(records, summary, images), "roadmap3d clinical study")
+    extra: dict[str, Any] = {}
+    if title is not None:
+        extra["title"] = title
+    if method is not None:
+        extra["method"] = method
+    _write(out, clinical_report_md(records, summary, images, **extra), f"roadmap3d {title or 'clinical study'}")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return images
 
