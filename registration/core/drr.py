@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import types
+from collections.abc import Sequence
 
 import numba
 import numpy as np
@@ -409,7 +410,9 @@ class _Level:
         self.index_from_world = np.ascontiguousarray(volume.index_from_world)
         self.index_to_world3 = np.ascontiguousarray(volume.index_to_world[:3, :3])
         # box of voxels that can contribute: non-zero attenuation, padded by one voxel
-        nz = np.nonzero(mu > 0)
+        positive = mu > 0
+        # the extent along each axis (k, j, i) of the voxels with attenuation
+        nz = [np.flatnonzero(positive.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
         if nz[0].size == 0:
             self.lo = np.zeros(3)
             self.hi = -np.ones(3)  # empty box: every ray misses
@@ -430,7 +433,10 @@ class DRRRenderer:
         (:func:`registration.core.volume.hu_to_mu_per_mm`, air -> 0).
     levels
         Pyramid levels: level 0 is the full volume, level L is downsampled by 2**L
-        (fewer levels if the volume gets too small; see ``n_levels``).
+        (fewer levels if the volume gets too small; see ``n_levels``). Or the levels
+        themselves, a sequence of volumes on grids chosen elsewhere (for example the cropped,
+        isotropic grids of :mod:`registration.core.prepare`), ``None`` for a level that was not
+        prepared (rendering it raises); ``volume`` then stays the volume they were made from.
     step_voxels
         Sampling step along each ray's dominant index axis, in voxels. 1.0 (default) uses
         Joseph's method (one bilinear sample per slice, the fastest); other values use a
@@ -442,17 +448,28 @@ class DRRRenderer:
         Number of DRRs rendered so far (every :meth:`render` call adds one).
     """
 
-    def __init__(self, volume: Volume, *, levels: int = 3, step_voxels: float = 1.0) -> None:
+    def __init__(
+        self, volume: Volume, *, levels: int | Sequence[Volume | None] = 3, step_voxels: float = 1.0
+    ) -> None:
         if not isinstance(volume, Volume):
             raise ValueError(f"volume must be a registration.core.volume.Volume, got {type(volume).__name__}")
-        if int(levels) != levels or levels < 1:
-            raise ValueError(f"levels must be a positive integer, got {levels}")
+        if isinstance(levels, Sequence):
+            given = list(levels)
+            if not given or all(v is None for v in given):
+                raise ValueError("levels must hold at least one volume")
+            if any(v is not None and not isinstance(v, Volume) for v in given):
+                raise ValueError("levels must be volumes (or None for a level that was not prepared)")
+            pyramid: list[Volume | None] = given
+        elif isinstance(levels, bool) or int(levels) != levels or levels < 1:
+            raise ValueError(f"levels must be a positive integer or a sequence of volumes, got {levels}")
+        else:
+            pyramid = list(volume.pyramid(int(levels)))
         step_voxels = float(step_voxels)
         if not math.isfinite(step_voxels) or not 0.01 <= step_voxels <= 4.0:
             raise ValueError(f"step_voxels must lie in [0.01, 4], got {step_voxels}")
         self.volume = volume
         self.step_voxels = step_voxels
-        self._levels = [_Level(v) for v in volume.pyramid(int(levels))]
+        self._levels: list[_Level | None] = [None if v is None else _Level(v) for v in pyramid]
         self.count = 0
         self._no_mask = np.zeros((1, 1), dtype=np.uint8)
 
@@ -462,12 +479,19 @@ class DRRRenderer:
 
     def level_volume(self, level: int) -> Volume:
         """The (HU) volume of pyramid ``level``."""
-        return self._levels[self._check_level(level)].volume
+        return self._level(level).volume
 
-    def _check_level(self, level: int) -> int:
+    def has_level(self, level: int) -> bool:
+        """Whether ``level`` exists and was prepared."""
+        return 0 <= level < len(self._levels) and self._levels[level] is not None
+
+    def _level(self, level: int) -> _Level:
         if isinstance(level, bool) or int(level) != level or not 0 <= level < len(self._levels):
             raise ValueError(f"level must be an integer in [0, {len(self._levels) - 1}], got {level}")
-        return int(level)
+        lev = self._levels[int(level)]
+        if lev is None:
+            raise ValueError(f"level {level} of this renderer was not prepared")
+        return lev
 
     def render(
         self,
@@ -490,7 +514,7 @@ class DRRRenderer:
         ``mask`` (bool, rows x cols): pixels where it is False are not rendered and set to 0.
         ``out``: a C-contiguous float32 (rows, cols) buffer to fill and return (no allocation).
         """
-        lev = self._levels[self._check_level(level)]
+        lev = self._level(level)
         source, a_mat = _rays_in_index_space(lev.index_from_world, geometry, motion)
         shape = (geometry.rows, geometry.cols)
         if out is None:

@@ -12,6 +12,7 @@ that the 3DRA does not contain can be added.
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -49,6 +50,18 @@ GUIDEWIRE_RADIUS_MM = 0.18
 GUIDEWIRE_MU_PER_MM = 1.0
 GUIDEWIRE_TIP_MU_PER_MM = 7.0
 GUIDEWIRE_TIP_MM = 30.0
+
+class Attenuator(Protocol):
+    """Anything whose attenuation line integrals an image can be formed from."""
+
+    key: dict
+
+    def line_integrals(
+        self, sources_mm: ArrayLike, targets_mm: ArrayLike, motion: ArrayLike | None = None
+    ) -> np.ndarray:
+        """Integral of attenuation (1/mm) along each segment, through the anatomy moved by ``motion``."""
+        ...
+
 
 # --------------------------------------------------------------------------------------
 # Devices
@@ -109,7 +122,7 @@ def device_phantom(phantom: HeadPhantom, *, wire_length_mm: float | None = None)
 # Image formation
 # --------------------------------------------------------------------------------------
 def simulate_xray(
-    phantom: HeadPhantom,
+    phantom: HeadPhantom | Attenuator,
     geometry: CArm,
     *,
     motion: ArrayLike | None = None,
@@ -126,7 +139,8 @@ def simulate_xray(
     Parameters
     ----------
     phantom
-        The analytic head.
+        The analytic head, or any :class:`Attenuator` (e.g. the line integrals through a
+        user's volume, :class:`registration.sim.volume_xray.VolumeAttenuator`).
     geometry
         The view; may be a true (bent, calibrated) geometry: rays run from
         ``geometry.source_mm`` to ``geometry.pixel_to_world(col, row)``.
@@ -135,7 +149,8 @@ def simulate_xray(
     kind
         "fluoro" (low dose, ``FLUORO_PHOTONS_PER_PIXEL``) or "exposure" (``EXPOSURE_...``).
     catheter
-        Add a guide catheter and guidewire (:func:`device_phantom`), absent from any 3DRA.
+        Add a guide catheter and guidewire (:func:`device_phantom`), absent from any 3DRA
+        (along the phantom's vessels; for another anatomy pass ``devices``).
     seed
         Seed of the quantum and electronic noise.
     blur_px
@@ -146,7 +161,8 @@ def simulate_xray(
         Override the dose of ``kind`` (photons per pixel behind the head).
     devices
         Interventional devices as a phantom of their own (e.g. :func:`device_phantom` with the
-        guidewire partly advanced); used instead of the default devices when ``catheter``.
+        guidewire partly advanced, or :func:`registration.sim.volume_xray.catheter_devices`
+        for a volume's anatomy); used instead of the default devices when ``catheter``.
 
     Returns
     -------
@@ -154,8 +170,10 @@ def simulate_xray(
         Attenuation line integrals ``-log(I / I0)`` (float32), zero outside the circular field,
         with the field mask.
     """
-    if not isinstance(phantom, HeadPhantom):
-        raise ValueError(f"phantom must be a HeadPhantom, got {type(phantom).__name__}")
+    if not callable(getattr(phantom, "line_integrals", None)):
+        raise ValueError(f"phantom must be a HeadPhantom or an Attenuator, got {type(phantom).__name__}")
+    if catheter and devices is None and not isinstance(phantom, HeadPhantom):
+        raise ValueError("catheter=True follows the phantom's vessels; pass devices= for another anatomy")
     if not isinstance(geometry, CArm):
         raise ValueError(f"geometry must be a CArm, got {type(geometry).__name__}")
     if kind not in PHOTONS_PER_PIXEL:
@@ -215,6 +233,6 @@ def simulate_xray(
         "supersample": supersample,
         "motion": None if motion is None else motion.tolist(),
         "phantom": phantom.key,
-        "source": "analytic phantom line integrals (honest simulation)",
+        "source": getattr(phantom, "source_label", "analytic phantom line integrals (honest simulation)"),
     }
     return XRayImage(image, field_mask, geometry, kind, meta)

@@ -1,0 +1,446 @@
+"""The volume a registration needs, not the one it was given.
+
+A scanner's CT holds far more than the X-ray field sees (a 511 mm field of view, the neck,
+shoulders and couch) on a grid the scanner chose (1 x 1 x 3 mm, 0.5 x 0.5 x 2.5 mm, ...). A
+registration only ever renders the part of the volume that rays through the collimated field
+can reach while the search moves the anatomy within its bounds, and only at the resolutions
+of its pyramid. :func:`prepare_volume` makes that volume once:
+
+1. **Crop** (:func:`needed_box`): keep the voxels that hold tissue (above ``TISSUE_HU``; the
+   noisy air of a CT around the head is dropped, its attenuation is ~0) and that some ray
+   through a view's field can reach under any motion of the search (:class:`Reach`: a
+   translation and a rotation about the iso-center, every voxel displaced by at most
+   ``translation_mm + 2 sin(rotation / 2) |X - c|``). The crop never changes a DRR inside
+   the field for motions within the reach; it only removes what no such ray meets.
+2. **Resample per pyramid level to isotropic grids chosen in millimetres**
+   (:func:`level_spacing_mm`): level ``L`` has voxels of ``D / (256 / 2**L)`` mm, where ``D``
+   is the diameter at the iso-center of what the image can show of the anatomy (the field's
+   diameter there, or the anatomy's extent across the beam when that is smaller). So level 2,
+   the capture level, has voxels as large as the pixels of a 64-pixel image of the field at
+   the iso-center (2.85 mm for a 27 cm format), level 1, the polish level, those of a 128-pixel
+   image (1.42 mm): DRR samples as fine as the image pixels they are compared with, whatever
+   grid the scanner used (a 1 mm CT and a 0.5 x 2.5 mm CT get the same levels). When a
+   level's spacing lies within ``SNAP_TOLERANCE`` of a power-of-two multiple of an isotropic
+   volume's own spacing (a 3DRA whose format is the image format), that grid is used and made
+   by block averages, exactly the volume's own pyramid.
+3. **Cache** (:func:`prepare_volume`): the prepared levels and their renderer are kept per
+   volume (by identity), per view and per reach, and reused by later registrations whose
+   views and searches they cover.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import CArm, check_rigid, rotation_angle_deg
+from registration.core.volume import Volume
+
+Array = NDArray[np.float64]
+
+#: Voxels above this HU are tissue (skin, fat at -100, soft tissue, bone); a CT's air lies at
+#: -1000 +- noise and contributes ~0 attenuation: the crop drops what lies outside the tissue.
+TISSUE_HU = -500.0
+#: Image pixels across the field at pyramid level 0 (level L: 256 / 2**L).
+LEVEL0_PIXELS = 256
+#: A level's spacing this close (relative) to a power-of-two multiple of an isotropic volume's
+#: own spacing uses that grid (block averages of the volume, no resampling).
+SNAP_TOLERANCE = 0.1
+#: Grid step (mm) at which the crop tests voxels for reach (each tested block counts whole).
+CROP_PROBE_MM = 4.0
+#: Cached preparations kept in memory (each holds a few million voxels).
+CACHE_ENTRIES = 4
+#: Levels prepared by default: the capture and refine level (2) and the polish level (1).
+DEFAULT_LEVELS = (1, 2)
+
+
+@dataclass(frozen=True)
+class Reach:
+    """How far the search may move anatomy from where the volume shows it.
+
+    Every point X moves by at most ``translation_mm + 2 sin(rotation_deg / 2) |X - c|`` with
+    c the iso-center: a rigid motion within the reach is a rotation of at most
+    ``rotation_deg`` about c followed by a translation of at most ``translation_mm``.
+    """
+
+    translation_mm: float
+    rotation_deg: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.translation_mm) and self.translation_mm >= 0):
+            raise ValueError(f"reach translation must be finite and >= 0 mm, got {self.translation_mm}")
+        if not (math.isfinite(self.rotation_deg) and 0 <= self.rotation_deg <= 180):
+            raise ValueError(f"reach rotation must lie in [0, 180] degrees, got {self.rotation_deg}")
+
+    @classmethod
+    def of_search(
+        cls,
+        bound_mm: float,
+        bound_deg: float,
+        *,
+        initial_motion: ArrayLike | None = None,
+        isocenter_mm: ArrayLike = (0.0, 0.0, 0.0),
+        translations: int = 3,
+    ) -> Reach:
+        """The reach of a search of +-``bound_mm`` on ``translations`` view-frame axes and
+        +-``bound_deg`` on three rotation angles about the iso-center, around ``initial_motion``."""
+        t_search = bound_mm * math.sqrt(translations)
+        # three Euler angles of at most b each compose to a rotation of at most ~ sqrt(3) b
+        theta_search = min(180.0, bound_deg * math.sqrt(3.0) * 1.05)
+        t_init, theta_init = 0.0, 0.0
+        if initial_motion is not None:
+            m = check_rigid(initial_motion, name="initial motion")
+            c = np.asarray(isocenter_mm, dtype=np.float64)
+            t_init = float(np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c))
+            theta_init = rotation_angle_deg(m)
+        lever = 2.0 * math.sin(math.radians(theta_search) / 2.0) * t_init  # the search rotates the moved iso-center
+        return cls(t_search + t_init + lever, min(180.0, theta_search + theta_init))
+
+    def covers(self, other: Reach) -> bool:
+        return self.translation_mm >= other.translation_mm - 1e-9 and self.rotation_deg >= other.rotation_deg - 1e-9
+
+    def displacement_mm(self, distance_mm: ArrayLike) -> NDArray[np.float64]:
+        """The largest displacement of points at ``distance_mm`` from the iso-center."""
+        lever = 2.0 * math.sin(math.radians(self.rotation_deg) / 2.0)
+        return self.translation_mm + lever * np.asarray(distance_mm, dtype=np.float64)
+
+
+def _axes_and_spacing(volume: Volume) -> tuple[Array, Array]:
+    lin = volume.index_to_world[:3, :3]
+    spacing = np.linalg.norm(lin, axis=0)
+    return lin / spacing, spacing
+
+
+def field_extent_mm(geometry: CArm) -> float:
+    """Diameter of the collimated field at the iso-center (mm)."""
+    return geometry.field_diameter_mm / geometry.magnification
+
+
+def level_spacing_mm(extent_mm: float, level: int) -> float:
+    """Voxel size (mm) of pyramid ``level`` for an image showing ``extent_mm`` at the iso-center:
+    the pixel of a ``256 / 2**level``-pixel image of it."""
+    if not math.isfinite(extent_mm) or extent_mm <= 0:
+        raise ValueError(f"extent must be positive, got {extent_mm} mm")
+    if isinstance(level, bool) or int(level) != level or level < 0:
+        raise ValueError(f"level must be an integer >= 0, got {level}")
+    return float(extent_mm) * 2**level / LEVEL0_PIXELS
+
+
+def _reach_mask(points: Array, geometries: Sequence[CArm], reach: Reach, margin_mm: float) -> NDArray[np.bool_]:
+    """Points (N, 3) that a ray through some view's field meets under a motion within ``reach``."""
+    needed = np.zeros(len(points), dtype=bool)
+    for g in geometries:
+        iso = np.asarray(g.isocenter_mm)
+        delta = reach.displacement_mm(np.linalg.norm(points - iso, axis=1)) + margin_mm
+        p = g.projection_matrix
+        h = points @ p[:, :3].T + p[:, 3]
+        depth = h[:, 2]  # distance from the source along the detector normal (mm)
+        ahead = depth > delta + 1.0
+        safe = np.where(ahead, depth, 1.0)
+        col, row = h[:, 0] / safe, h[:, 1] / safe
+        x = (col - (g.cols - 1) / 2.0) * g.pixel_mm[1]
+        y = (row - (g.rows - 1) / 2.0) * g.pixel_mm[0]
+        r_det = np.hypot(x, y)
+        focal = g.sid_mm  # source to detector (nominal; calibrated shifts are sub-millimetre)
+        # a displacement delta at depth a moves the projection by at most delta * focal / (a - delta)
+        slack = delta * focal / np.maximum(safe - delta, 1.0) * (1.0 + r_det / focal)
+        needed |= ahead & (r_det - slack <= g.field_diameter_mm / 2.0)
+    return needed
+
+
+def needed_box(
+    volume: Volume,
+    geometries: Sequence[CArm],
+    reach: Reach,
+    *,
+    margin_mm: float = 0.0,
+    tissue_hu: float = TISSUE_HU,
+) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
+    """Index box (lo, hi inclusive, as (i, j, k)) of the tissue some field ray can reach.
+
+    Voxels are tested in blocks of about ``CROP_PROBE_MM``: a block counts when any voxel in
+    it is above ``tissue_hu`` and its center is within reach (the margin adds the block's half
+    diagonal) and the box grows by ``margin_mm`` on every side (the partial-volume edge of the
+    tissue and interpolation). None when no tissue is within reach. (A CT's couch is tissue here: it touches
+    the patient and lies in the beam; the images show it too.)
+    """
+    if not geometries:
+        raise ValueError("at least one view geometry is needed to crop a volume")
+    _, spacing = _axes_and_spacing(volume)
+    nk, nj, ni = volume.shape
+    step = np.maximum(1, np.round(CROP_PROBE_MM / spacing).astype(np.int64))  # (i, j, k)
+    si, sj, sk = (int(x) for x in step)
+    bk, bj, bi = -(-nk // sk), -(-nj // sj), -(-ni // si)
+    tissue = volume.data > tissue_hu
+    padded = np.zeros((bk * sk, bj * sj, bi * si), dtype=bool)
+    padded[:nk, :nj, :ni] = tissue
+    blocks = padded.reshape(bk, sk, bj, sj, bi, si).any(axis=(1, 3, 5))
+    kk, jj, ii = np.nonzero(blocks)
+    if kk.size == 0:
+        return None
+    centers = np.stack([(ii + 0.5) * si - 0.5, (jj + 0.5) * sj - 0.5, (kk + 0.5) * sk - 0.5], axis=1)
+    world = centers @ volume.index_to_world[:3, :3].T + volume.index_to_world[:3, 3]
+    half_diagonal = 0.5 * float(np.linalg.norm(step * spacing))
+    keep = _reach_mask(world, geometries, reach, margin_mm + half_diagonal)
+    if not keep.any():
+        return None
+    ii, jj, kk = ii[keep], jj[keep], kk[keep]
+    pad = np.ceil(margin_mm / spacing).astype(np.int64)  # the tissue's partial-volume edge and interpolation
+    lo = np.array([ii.min() * si, jj.min() * sj, kk.min() * sk], dtype=np.int64) - pad
+    hi = np.array([(ii.max() + 1) * si - 1, (jj.max() + 1) * sj - 1, (kk.max() + 1) * sk - 1], dtype=np.int64) + pad
+    return np.maximum(lo, 0), np.minimum(hi, np.array([ni - 1, nj - 1, nk - 1]))
+
+
+def _crop(volume: Volume, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> Volume:
+    data = volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+    affine = volume.index_to_world.copy()
+    affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
+    return Volume(np.ascontiguousarray(data), affine, label=volume.label, meta=volume.meta)
+
+
+def _snap_factor(spacing: Array, target_mm: float) -> int | None:
+    """The power-of-two block size of an isotropic grid that lands within the tolerance."""
+    if np.ptp(spacing) > 1e-3 * spacing.max():
+        return None
+    ratio = target_mm / float(spacing[0])
+    factor = 2 ** max(0, round(math.log2(ratio))) if ratio > 0 else 1
+    return factor if abs(factor / ratio - 1.0) <= SNAP_TOLERANCE else None
+
+
+def resample_isotropic(
+    volume: Volume, spacing_mm: float, lo: ArrayLike | None = None, hi: ArrayLike | None = None
+) -> Volume:
+    """The volume (or its index box ``lo..hi``) on an isotropic grid of ``spacing_mm``.
+
+    The grid keeps the volume's own axes (their directions, not their spacing) and covers the
+    box; values are trilinear samples of the volume smoothed against aliasing along each
+    axis it coarsens (Gaussian, sigma = (ratio - 1) / 2 source voxels). Outside the volume: air.
+    """
+    spacing_mm = float(spacing_mm)
+    if not math.isfinite(spacing_mm) or spacing_mm <= 0:
+        raise ValueError(f"spacing_mm must be positive, got {spacing_mm}")
+    axes, spacing = _axes_and_spacing(volume)
+    nk, nj, ni = volume.shape
+    lo_i = np.zeros(3, dtype=np.int64) if lo is None else np.asarray(lo, dtype=np.int64)
+    hi_i = np.array([ni - 1, nj - 1, nk - 1], dtype=np.int64) if hi is None else np.asarray(hi, dtype=np.int64)
+    ratio = spacing_mm / spacing
+    sigma = np.maximum(0.0, (ratio - 1.0) / 2.0)  # (i, j, k), in source voxels
+    pad = np.ceil(3 * sigma + 1).astype(np.int64)
+    a = np.maximum(lo_i - pad, 0)
+    b = np.minimum(hi_i + pad, [ni - 1, nj - 1, nk - 1])
+    src = volume.data[a[2] : b[2] + 1, a[1] : b[1] + 1, a[0] : b[0] + 1]
+    if np.any(sigma > 0.05):
+        src = ndimage.gaussian_filter(src, sigma[::-1], mode="nearest", truncate=3.0)
+    extent_mm = (hi_i - lo_i) * spacing
+    n = np.maximum(np.floor(extent_mm / spacing_mm + 1e-6).astype(np.int64) + 1, 2)  # (i, j, k)
+    # center the new grid on the box
+    start_idx = lo_i + ((hi_i - lo_i) * spacing - (n - 1) * spacing_mm) / 2.0 / spacing
+    # trilinear samples; the grids share their axes, so the weights are separable. Outside: air.
+    tables = [_axis_table(start_idx[ax] - a[ax] + np.arange(n[ax]) * ratio[ax], src.shape[2 - ax]) for ax in range(3)]
+    out = np.empty((n[2], n[1], n[0]), dtype=np.float32)
+    _trilinear_grid(np.ascontiguousarray(src, dtype=np.float32), *tables[0], *tables[1], *tables[2], out)
+    affine = np.eye(4)
+    affine[:3, :3] = axes * spacing_mm
+    affine[:3, 3] = volume.index_to_world[:3, :3] @ start_idx + volume.index_to_world[:3, 3]
+    return Volume(out, affine, label=volume.label, meta=volume.meta)
+
+
+def _axis_table(coords: Array, n: int) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.bool_]]:
+    """Lower neighbour, weight of the upper one, and inside-ness of sample ``coords`` on an axis of ``n``."""
+    i0 = np.clip(np.floor(coords).astype(np.int64), 0, max(n - 2, 0))
+    w = np.clip(coords - i0, 0.0, 1.0).astype(np.float32)
+    inside = (coords >= -1e-6) & (coords <= n - 1 + 1e-6)
+    return i0, w, inside
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _trilinear_grid(src, i0, wi, ini, j0, wj, inj, k0, wk, ink, out) -> None:  # noqa: ANN001
+    """out[k, j, i] = trilinear sample of src at (k0[k] + wk[k], j0[j] + wj[j], i0[i] + wi[i])."""
+    nk, nj, ni = out.shape
+    sk, sj, si = src.shape
+    for k in numba.prange(nk):
+        ka = k0[k]
+        kb = min(ka + 1, sk - 1)
+        fk = wk[k]
+        for j in range(nj):
+            ja = j0[j]
+            jb = min(ja + 1, sj - 1)
+            fj = wj[j]
+            for i in range(ni):
+                if not (ink[k] and inj[j] and ini[i]):
+                    out[k, j, i] = -1000.0
+                    continue
+                ia = i0[i]
+                ib = min(ia + 1, si - 1)
+                fi = wi[i]
+                c00 = src[ka, ja, ia] + fi * (src[ka, ja, ib] - src[ka, ja, ia])
+                c01 = src[ka, jb, ia] + fi * (src[ka, jb, ib] - src[ka, jb, ia])
+                c10 = src[kb, ja, ia] + fi * (src[kb, ja, ib] - src[kb, ja, ia])
+                c11 = src[kb, jb, ia] + fi * (src[kb, jb, ib] - src[kb, jb, ia])
+                c0 = c00 + fj * (c01 - c00)
+                c1 = c10 + fj * (c11 - c10)
+                out[k, j, i] = c0 + fk * (c1 - c0)
+
+
+@dataclass
+class PreparedVolume:
+    """A volume cropped and resampled for the views and search it was prepared for.
+
+    ``levels[L]`` is pyramid level L (None when it was not prepared); ``renderer`` renders
+    them and keeps ``volume`` (the original) as its identity.
+    """
+
+    volume: Volume
+    levels: tuple[Volume | None, ...]
+    spacing_mm: tuple[float | None, ...]
+    #: Index box of the original volume that was kept ((i, j, k) low and high, inclusive).
+    box_lo: tuple[int, int, int]
+    box_hi: tuple[int, int, int]
+    reach: Reach
+    geometries: tuple[CArm, ...]
+    seconds: float
+    renderer: DRRRenderer = field(repr=False)
+
+    @property
+    def voxels_per_level(self) -> list[int | None]:
+        return [None if v is None else int(np.prod(v.shape)) for v in self.levels]
+
+    def summary(self) -> dict:
+        """JSON-ready description (spacing, shape and voxels per level, crop, time)."""
+        return {
+            "spacing_mm": list(self.spacing_mm),
+            "shape_per_level": [None if v is None else list(v.shape[::-1]) for v in self.levels],
+            "voxels_per_level": self.voxels_per_level,
+            "source_voxels": int(np.prod(self.volume.shape)),
+            "box_lo": list(self.box_lo),
+            "box_hi": list(self.box_hi),
+            "reach": {"translation_mm": self.reach.translation_mm, "rotation_deg": self.reach.rotation_deg},
+            "prepare_seconds": self.seconds,
+        }
+
+
+def _field_key(geometry: CArm) -> tuple:
+    """What the crop and the spacing depend on: the projection of the whole field (not the
+    number of pixels it is sampled with)."""
+    g = geometry.resized(64, 64)
+    return tuple(np.round(g.projection_matrix.ravel() / np.linalg.norm(g.projection_matrix[2, :3]), 5))
+
+
+def _anatomy_extent_mm(volume: Volume, lo: NDArray[np.int64], hi: NDArray[np.int64], geometry: CArm) -> float:
+    """Largest extent of the box across the beam (mm), projected to the iso-center plane."""
+    idx = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], float)
+    corners = idx @ volume.index_to_world[:3, :3].T + volume.index_to_world[:3, 3]
+    view = corners @ geometry.view_from_world[:3, :3].T + geometry.view_from_world[:3, 3]
+    return float(max(np.ptp(view[:, 0]), np.ptp(view[:, 1])))
+
+
+def _prepare(volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels: tuple[int, ...]) -> PreparedVolume:
+    start = time.perf_counter()
+    _, spacing = _axes_and_spacing(volume)
+    nk, nj, ni = volume.shape
+    full = (np.zeros(3, dtype=np.int64), np.array([ni - 1, nj - 1, nk - 1], dtype=np.int64))
+    # the coarsest level's voxels plus a voxel of the source for interpolation at the crop's faces
+    extent_guess = max(field_extent_mm(g) for g in geometries)
+    margin = 2.0 * level_spacing_mm(extent_guess, max(levels)) + float(spacing.max())
+    lo, hi = needed_box(volume, geometries, reach, margin_mm=margin) or full
+    extent = min(extent_guess, max(_anatomy_extent_mm(volume, lo, hi, g) for g in geometries))
+    targets = {lv: level_spacing_mm(extent, lv) for lv in levels}
+    finest = min(levels)
+    snap = _snap_factor(spacing, targets[finest])
+    built: dict[int, Volume] = {}
+    if snap is not None and all(_snap_factor(spacing, targets[lv]) == snap * 2 ** (lv - finest) for lv in levels):
+        # the volume's own pyramid: crop on block boundaries of the coarsest level, block averages
+        coarsest = snap * 2 ** (max(levels) - finest)
+        lo = (lo // coarsest) * coarsest
+        span = hi - lo + 1
+        span = np.maximum(-(-span // coarsest) * coarsest, 2 * coarsest)
+        hi = np.minimum(lo + span - 1, full[1])
+        base = _crop(volume, lo, hi)
+        for lv in sorted(levels):
+            factor = snap * 2 ** (lv - finest)
+            built[lv] = base.downsample(factor) if factor > 1 else base
+    else:
+        fine = resample_isotropic(volume, targets[finest], lo, hi)
+        built[finest] = fine
+        for lv in sorted(levels):
+            if lv == finest:
+                continue
+            factor = 2 ** (lv - finest)
+            if min(fine.shape) >= 2 * factor:
+                built[lv] = fine.downsample(factor)
+            else:
+                built[lv] = resample_isotropic(volume, targets[lv], lo, hi)
+    pyramid = tuple(built.get(lv) for lv in range(max(levels) + 1))
+    renderer = DRRRenderer(volume, levels=list(pyramid))
+    return PreparedVolume(
+        volume=volume,
+        levels=pyramid,
+        spacing_mm=tuple(None if v is None else float(v.spacing_mm.max()) for v in pyramid),
+        box_lo=tuple(int(x) for x in lo),  # type: ignore[arg-type]
+        box_hi=tuple(int(x) for x in hi),  # type: ignore[arg-type]
+        reach=reach,
+        geometries=geometries,
+        seconds=time.perf_counter() - start,
+        renderer=renderer,
+    )
+
+
+_CACHE: OrderedDict[tuple, tuple[Volume, PreparedVolume]] = OrderedDict()
+_CACHE_LOCK = threading.Lock()
+
+
+def prepare_volume(
+    volume: Volume,
+    geometries: CArm | Sequence[CArm],
+    *,
+    reach: Reach | None = None,
+    levels: Sequence[int] = DEFAULT_LEVELS,
+    cache: bool = True,
+) -> PreparedVolume:
+    """The cropped, resampled pyramid of ``volume`` for ``geometries`` (cached per volume).
+
+    ``reach``: how far the search may move the anatomy (default: the default search of
+    +-30 mm and +-15 degrees, :meth:`Reach.of_search`). ``levels``: the pyramid levels to
+    prepare. A cached preparation of the same volume object for the same fields and levels
+    whose reach covers ``reach`` is returned as it is (its ``seconds`` are those of its making).
+    """
+    if not isinstance(volume, Volume):
+        raise ValueError(f"volume must be a Volume, got {type(volume).__name__}")
+    views = (geometries,) if isinstance(geometries, CArm) else tuple(geometries)
+    if not views or not all(isinstance(g, CArm) for g in views):
+        raise ValueError("geometries must be one or more CArm views")
+    levels_t = tuple(sorted({int(lv) for lv in levels}))
+    if not levels_t or levels_t[0] < 0:
+        raise ValueError(f"levels must be integers >= 0, got {list(levels)}")
+    reach = reach or Reach.of_search(30.0, 15.0)
+    key = (id(volume), tuple(_field_key(g) for g in views), levels_t)
+    if cache:
+        with _CACHE_LOCK:
+            hit = _CACHE.get(key)
+            if hit is not None and hit[0] is volume and hit[1].reach.covers(reach):
+                _CACHE.move_to_end(key)
+                return hit[1]
+    prepared = _prepare(volume, views, reach, levels_t)
+    if cache:
+        with _CACHE_LOCK:
+            _CACHE[key] = (volume, prepared)
+            _CACHE.move_to_end(key)
+            while len(_CACHE) > CACHE_ENTRIES:
+                _CACHE.popitem(last=False)
+    return prepared
+
+
+def clear_cache() -> None:
+    """Forget every cached preparation."""
+    with _CACHE_LOCK:
+        _CACHE.clear()

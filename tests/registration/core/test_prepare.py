@@ -1,0 +1,186 @@
+"""Preparing a volume for registration: crop to the field's reach, isotropic mm grids, cache."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from registration.core import prepare
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import CArm, offsets_to_matrix
+from registration.core.prepare import Reach, level_spacing_mm, prepare_volume, resample_isotropic
+from registration.core.volume import Volume
+
+ISO = np.array([10.0, -6.0, 4.0])
+
+
+def _blob_hu(points: np.ndarray) -> np.ndarray:
+    """A smooth 'head' (ellipsoid with soft edges and inner texture) around ISO, HU."""
+    d = (points - ISO) / np.array([70.0, 85.0, 75.0])
+    r = np.sqrt((d**2).sum(-1))
+    inside = 1.0 / (1.0 + np.exp((r - 1.0) * 120.0))  # a skin edge of ~1 mm
+    texture = 300.0 * np.sin(points[..., 0] / 9.0) * np.cos(points[..., 1] / 11.0) * np.sin(points[..., 2] / 7.0)
+    return (-1000.0 + inside * (1000.0 + 200.0 + texture)).astype(np.float32)
+
+
+def _volume(spacing_xyz: tuple[float, float, float], extent_mm: float = 360.0, couch: bool = True) -> Volume:
+    """The blob on a scanner-like grid: a large field of view, far tissue ('shoulders') below."""
+    sp = np.asarray(spacing_xyz)
+    n = np.round(extent_mm / sp).astype(int)
+    axes = [ISO[a] + (np.arange(n[a]) - (n[a] - 1) / 2.0) * sp[a] for a in range(3)]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    hu = _blob_hu(np.stack([x, y, z], axis=-1))
+    if couch:  # tissue far below the field ('shoulders', a couch): no ray of a small field meets it
+        hu[(z < ISO[2] - 150.0) & (np.abs(x - ISO[0]) < 100.0) & (np.abs(y - ISO[1]) < 100.0)] = 40.0
+    return Volume.from_grid(hu, tuple(sp), center_mm=ISO)
+
+
+def _view(primary: float = 0.0, secondary: float = 0.0, fmt_cm: float = 27.0, pixels: int = 64) -> CArm:
+    view = CArm.for_format(fmt_cm, pixels=pixels, primary_deg=primary, secondary_deg=secondary)
+    return replace(view, isocenter_mm=tuple(ISO))
+
+
+def test_level_spacing_is_the_pixel_at_the_isocenter() -> None:
+    g = _view(fmt_cm=27.0, pixels=384)
+    extent = prepare.field_extent_mm(g)
+    # a 27 cm format covers 270 * SOD / SID = 182.25 mm at the iso-center
+    assert extent == pytest.approx(270.0 * 810.0 / 1200.0)
+    assert level_spacing_mm(extent, 2) == pytest.approx(extent / 64)  # the capture image's pixel
+    assert level_spacing_mm(extent, 1) == pytest.approx(extent / 128)  # the polish image's pixel
+    with pytest.raises(ValueError, match="level"):
+        level_spacing_mm(extent, -1)
+
+
+def test_scanner_grids_get_the_same_levels() -> None:
+    """A 2 x 2 x 4 mm and a 1.5 x 1.5 x 5 mm scan of one anatomy: same grids, same DRRs."""
+    g = _view(20.0, -10.0, fmt_cm=27.0)
+    a = prepare_volume(_volume((2.0, 2.0, 4.0), extent_mm=240.0), g, cache=False)
+    b = prepare_volume(_volume((1.5, 1.5, 5.0), extent_mm=240.0), g, cache=False)
+    assert a.spacing_mm == pytest.approx(b.spacing_mm)
+    for lv in (1, 2):
+        va, vb = a.levels[lv], b.levels[lv]
+        assert np.allclose(va.spacing_mm, va.spacing_mm[0])  # isotropic
+        # the crops agree to a probe block (4 vs 5 mm slices) at each end
+        extent_a, extent_b = np.array(va.shape) * va.spacing_mm[0], np.array(vb.shape) * vb.spacing_mm[0]
+        assert np.all(np.abs(extent_a - extent_b) <= 2 * 5.0 + 2 * va.spacing_mm[0])
+    motion = offsets_to_matrix([3.0, -2.0, 0.0, 2.0, -1.0, 3.0], g)
+    da = a.renderer.render(g, motion, level=2)
+    db = b.renderer.render(g, motion, level=2)
+    mask = g.field_mask()
+    # The same smooth anatomy sampled by two scanners then resampled: the DRRs agree to a few
+    # percent of their range (each scan's own interpolation error, mostly along the thick slices).
+    assert np.abs(da - db)[mask].mean() < 0.03 * np.ptp(da[mask])
+
+
+def test_crop_keeps_every_ray_the_search_can_see() -> None:
+    """DRRs of the cropped volume equal the whole volume's inside the field, for motions within
+    the reach; the crop removes the far tissue."""
+    vol = _volume((2.0, 2.0, 2.0), extent_mm=320.0, couch=True)
+    g = _view(30.0, 0.0, fmt_cm=15.0)  # 101 mm at the iso-center: the "couch" is out of reach
+    reach = Reach.of_search(10.0, 4.0)
+    lo, hi = prepare.needed_box(vol, [g], reach, margin_mm=4.0)
+    cropped = prepare._crop(vol, lo, hi)
+    assert np.prod(cropped.shape) < 0.5 * np.prod(vol.shape)
+    full, cut = DRRRenderer(vol, levels=1), DRRRenderer(cropped, levels=1)
+    rng = np.random.default_rng(1)
+    mask = g.field_mask()
+    for _ in range(4):
+        offsets = np.concatenate([rng.uniform(-1, 1, 3) * 10.0 / np.sqrt(3), rng.uniform(-1, 1, 3) * 4.0 / np.sqrt(3)])
+        m = offsets_to_matrix(offsets, g)
+        # same voxels along every ray that meets tissue: float32 rounding only
+        np.testing.assert_allclose(cut.render(g, m)[mask], full.render(g, m)[mask], rtol=1e-5, atol=1e-4)
+
+
+def test_a_volume_on_the_levels_grid_keeps_its_voxels() -> None:
+    """A 3DRA whose grid already is the level's (its format is the image's) is not resampled:
+    the prepared level holds its own voxels (and its block averages one level up)."""
+    g = _view(fmt_cm=15.0)
+    extent = prepare.field_extent_mm(g)
+    rng = np.random.default_rng(0)
+    data = ndimage.gaussian_filter(rng.normal(0.0, 300.0, (64, 64, 64)), 1.5).astype(np.float32)
+    vol = Volume.from_grid(data, extent / 64, center_mm=ISO)  # tissue everywhere, 64 voxels = the field
+    prep = prepare_volume(vol, g, levels=(2, 3), cache=False)
+    np.testing.assert_array_equal(prep.levels[2].data, vol.data)
+    np.testing.assert_allclose(prep.levels[3].data, vol.downsample(2).data)
+
+
+def test_crop_drops_tissue_out_of_reach_and_what_a_scanner_adds() -> None:
+    """The cost follows the anatomy in the field: a larger field of view with more tissue far
+    away (a couch, shoulders) gives the same prepared levels."""
+    g = _view(0.0, 0.0, fmt_cm=27.0)
+    reach = Reach(10.0, 4.0)
+    small = prepare_volume(_volume((3.0, 3.0, 3.0), extent_mm=240.0, couch=False), g, reach=reach, cache=False)
+    large = prepare_volume(_volume((3.0, 3.0, 3.0), extent_mm=480.0, couch=True), g, reach=reach, cache=False)
+    assert small.voxels_per_level[0] is None and large.voxels_per_level[0] is None  # level 0 is not needed
+    # the same anatomy in the field: the same grids to a probe block (4 mm) at each face
+    for a, b in zip(small.levels[1:], large.levels[1:], strict=True):
+        assert np.all(np.abs(np.array(a.shape) - np.array(b.shape)) * a.spacing_mm[0] <= 2 * 4.0 + a.spacing_mm[0])
+    assert large.summary()["source_voxels"] > 8 * small.summary()["source_voxels"] / 1.5
+
+
+def test_resample_is_exact_for_linear_fields() -> None:
+    """Trilinear resampling reproduces a linear function exactly (smoothing keeps it too),
+    away from the faces where the smoothing sees the edge."""
+    k, j, i = np.meshgrid(np.arange(30), np.arange(40), np.arange(50), indexing="ij")
+    affine = np.diag([1.0, 1.2, 3.0, 1.0])
+    affine[:3, 3] = (-20.0, 5.0, -40.0)
+    vol = Volume((2.0 * i + 3.0 * j - 5.0 * k).astype(np.float32), affine)
+
+    def world_value(p: np.ndarray) -> np.ndarray:
+        idx = (p - affine[:3, 3]) / np.diag(affine)[:3]
+        return 2.0 * idx[..., 0] + 3.0 * idx[..., 1] - 5.0 * idx[..., 2]
+
+    out = resample_isotropic(vol, 2.0)
+    assert np.allclose(out.spacing_mm, 2.0)
+    kk, jj, ii = np.meshgrid(*(np.arange(s) for s in out.shape), indexing="ij")
+    idx = np.stack([ii, jj, kk, np.ones_like(ii)], axis=-1).astype(float)
+    world = (idx @ out.index_to_world.T)[..., :3]
+    inner = (slice(3, -3),) * 3
+    np.testing.assert_allclose(out.data[inner], world_value(world)[inner], atol=1e-3)
+
+
+def test_cache_reuses_and_widens() -> None:
+    prepare.clear_cache()
+    vol = _volume((3.0, 3.0, 3.0), extent_mm=240.0, couch=False)
+    g = _view()
+    first = prepare_volume(vol, g, reach=Reach(10.0, 5.0))
+    assert prepare_volume(vol, g, reach=Reach(8.0, 4.0)) is first  # covered: reused
+    assert prepare_volume(vol, g.resized(32, 32), reach=Reach(8.0, 4.0)) is first  # same field
+    wider = prepare_volume(vol, g, reach=Reach(30.0, 10.0))
+    assert wider is not first and wider.reach.covers(Reach(30.0, 10.0))
+    other = replace(vol)  # an equal but distinct volume object is prepared anew
+    assert prepare_volume(other, g, reach=Reach(8.0, 4.0)) is not first
+    prepare.clear_cache()
+
+
+def test_reach_of_a_search() -> None:
+    r = Reach.of_search(30.0, 15.0, translations=2)
+    assert r.translation_mm == pytest.approx(30.0 * np.sqrt(2))
+    assert 25.9 < r.rotation_deg < 28.0  # three 15-degree angles compose to at most ~26 degrees
+    m = offsets_to_matrix([0.0, 0.0, 10.0, 0.0, 0.0, 0.0], _view())
+    assert Reach.of_search(5.0, 1.0, initial_motion=m, isocenter_mm=ISO).translation_mm > 10.0
+    with pytest.raises(ValueError, match="rotation"):
+        Reach(1.0, 200.0)
+
+
+def test_bad_input() -> None:
+    vol = _volume((3.0, 3.0, 3.0), extent_mm=120.0, couch=False)
+    with pytest.raises(ValueError, match="geometries"):
+        prepare_volume(vol, [])
+    with pytest.raises(ValueError, match="Volume"):
+        prepare_volume(np.zeros((4, 4, 4)), _view())  # type: ignore[arg-type]
+    renderer = prepare_volume(vol, _view(), cache=False).renderer
+    with pytest.raises(ValueError, match="not prepared"):
+        renderer.render(_view(), level=0)
+    with pytest.raises(ValueError, match="at least one volume"):
+        DRRRenderer(vol, levels=[None])
+
+
+def test_air_only_volume_keeps_the_whole_box() -> None:
+    vol = Volume.from_grid(np.full((20, 20, 20), -1000.0, np.float32), 4.0, center_mm=ISO)
+    prep = prepare_volume(vol, _view(), cache=False)
+    assert np.all(prep.renderer.render(_view(), level=2) == 0.0)
+    assert ndimage is not None
