@@ -113,7 +113,7 @@ def register(
         truth: JSON with the true "patient_motion", or a DICOM Spatial Registration: adds residuals and success.
         out: Write the result JSON here.
         out_dicom: Write the result as a DICOM Spatial Registration object (REG) here.
-        isocenter: Iso-center "x,y,z" in mm (default the world origin).
+        isocenter: Iso-center "x,y,z" mm or "volume-center" (default: IsocenterPosition of the volume, else the origin).
         seed: Seed of the annealing.
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).

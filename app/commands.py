@@ -82,18 +82,44 @@ def _progress(message: str, *, after_s: float | None = None, every_s: float | No
         _say(f"  done in {time.perf_counter() - start:.0f} s", stream=sys.stderr)
 
 
-def parse_isocenter(text: str | None) -> tuple[float, float, float]:
-    """``"x,y,z"`` in mm (default: the world origin, CONVENTIONS §1)."""
+#: ``--isocenter`` keyword: the center of the volume's voxel grid.
+VOLUME_CENTER = "volume-center"
+
+
+def parse_isocenter(text: str | None, volume: Volume | None = None) -> tuple[float, float, float]:
+    """``"x,y,z"`` in mm, ``"volume-center"`` (needs ``volume``), or the default of
+    :func:`resolve_isocenter` (the volume's IsocenterPosition, else the world origin, CONVENTIONS §1)."""
+    return resolve_isocenter(text, volume)[0]
+
+
+def resolve_isocenter(text: str | None, volume: Volume | None = None) -> tuple[tuple[float, float, float], str]:
+    """The iso-center (mm, world frame) for ``--isocenter`` and where it came from.
+
+    * ``"x,y,z"``: as given;
+    * ``"volume-center"``: the center of the volume's voxel grid (``Volume.center_mm``);
+    * absent: IsocenterPosition (300A,012C) when the volume's files carry it (read into
+      ``volume.meta["isocenter_mm"]``), else the world origin (CONVENTIONS §1).
+    """
     if text is None or text.strip() == "":
-        return (0.0, 0.0, 0.0)
+        if volume is not None and volume.meta.get("isocenter_mm") is not None:
+            iso = tuple(float(v) for v in volume.meta["isocenter_mm"])
+            return (iso[0], iso[1], iso[2]), str(volume.meta.get("isocenter_from", "the volume's files"))
+        return (0.0, 0.0, 0.0), "the world origin (default)"
+    if text.strip().lower() == VOLUME_CENTER:
+        if volume is None:
+            raise ValueError(f"--isocenter {VOLUME_CENTER} needs the volume (--volume)")
+        center = [float(v) for v in volume.center_mm]
+        return (center[0], center[1], center[2]), "the center of the volume's grid (--isocenter volume-center)"
     parts = text.replace(" ", "").split(",")
     try:
         values = [float(p) for p in parts]
     except ValueError:
-        raise ValueError(f"--isocenter must be three numbers 'x,y,z' in mm, got {text!r}") from None
+        raise ValueError(
+            f"--isocenter must be three numbers 'x,y,z' in mm or '{VOLUME_CENTER}', got {text!r}"
+        ) from None
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"--isocenter must be three finite numbers 'x,y,z' in mm, got {text!r}")
-    return (values[0], values[1], values[2])
+        raise ValueError(f"--isocenter must be three finite numbers 'x,y,z' in mm or '{VOLUME_CENTER}', got {text!r}")
+    return (values[0], values[1], values[2]), "--isocenter"
 
 
 def parse_offset(text: str) -> tuple[str, np.ndarray]:
@@ -181,13 +207,15 @@ def run_register(
 ) -> int:
     """Register a volume file to an X-ray file, print a summary, optionally write the JSON and
     the DICOM Spatial Registration object."""
-    iso = parse_isocenter(isocenter)
+    if isocenter is not None and isocenter.strip().lower() != VOLUME_CENTER:
+        parse_isocenter(isocenter)  # a bad value is refused before any file is read
     for target, flag, kind in ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM")):
         if target is not None and Path(target).is_dir():
             raise ValueError(f"{target}: is a folder; {flag} takes a {kind} file name")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)
+        iso, iso_from = resolve_isocenter(isocenter, vol)
         xray = dicom.read_xray(image, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
     _show_warnings(caught)
     volume_for = str(vol.meta.get("frame_of_reference_uid") or "") or None
@@ -217,6 +245,7 @@ def run_register(
         f"primary {g.primary_deg:+.1f} deg, secondary {g.secondary_deg:+.1f} deg, "
         f"SID {g.sid_mm:.0f} mm, SOD {g.sod_mm:.0f} mm"
     )
+    _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
     result = register(vol, xray, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points)
     _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")

@@ -288,3 +288,41 @@ def test_info_and_register_name_the_distance_flags(tmp_path: Path, capsys) -> No
     report = json.loads(out)
     assert report["geometry"]["sid_mm"] == 1150.0 and report["sid_from"] == "sid_mm"
     assert report["sod_from"] == "DistanceSourceToPatient" and report["decoder"] == "native (uncompressed)"
+
+
+def test_isocenter_explicit_volume_center_or_from_the_files(tmp_path: Path) -> None:
+    import pydicom
+
+    from registration.core.volume import Volume
+
+    # An off-center grid: 6 x 5 x 4 voxels of 0.5 x 0.8 x 2 mm starting at (10, -20, 30).
+    affine = np.diag([0.5, 0.8, 2.0, 1.0])
+    affine[:3, 3] = (10.0, -20.0, 30.0)
+    volume = Volume(np.zeros((4, 5, 6), dtype=np.float32), affine, label="grid")
+    folder = tmp_path / "vol"
+    dicom.write_series(volume, folder, uid_seed="iso test")
+    read = dicom.read_volume(folder)
+    assert cli_io.resolve_isocenter(None, read) == ((0.0, 0.0, 0.0), "the world origin (default)")
+    # The center of the grid: voxel index ((6-1)/2, (5-1)/2, (4-1)/2) through the affine.
+    center, source = cli_io.resolve_isocenter("volume-center", read)
+    np.testing.assert_allclose(center, [10.0 + 2.5 * 0.5, -20.0 + 2.0 * 0.8, 30.0 + 1.5 * 2.0], atol=1e-6)
+    assert "center of the volume" in source
+    assert cli_io.parse_isocenter(" 1,2,3 ", read) == (1.0, 2.0, 3.0)
+    with pytest.raises(ValueError, match="volume-center needs the volume"):
+        cli_io.parse_isocenter("volume-center")
+    with pytest.raises(ValueError, match="'x,y,z' in mm or 'volume-center'"):
+        cli_io.parse_isocenter("volume-centre", read)
+    # IsocenterPosition (300A,012C) in the files (as radiotherapy exports carry it) is the default.
+    for path in folder.iterdir():
+        ds = pydicom.dcmread(path)
+        ds.IsocenterPosition = ["12.5", "-7.25", "40"]
+        ds.save_as(path)
+    iso, source = cli_io.resolve_isocenter(None, dicom.read_volume(folder))
+    assert iso == (12.5, -7.25, 40.0) and "IsocenterPosition (300A,012C)" in source
+    assert cli_io.resolve_isocenter("0,0,0", dicom.read_volume(folder))[0] == (0.0, 0.0, 0.0)  # explicit wins
+    for path in folder.iterdir():
+        ds = pydicom.dcmread(path)
+        ds.IsocenterPosition = ["12.5", "-7.25"]
+        ds.save_as(path)
+    with pytest.raises(dicom.DicomError, match=r"IsocenterPosition \(300A,012C\) must hold 3 numbers"):
+        dicom.read_volume(folder)

@@ -294,6 +294,7 @@ def _volume_label(ds: Dataset, path: Path, kind: str) -> str:
 
 def _volume_meta(path: Path, ds: Dataset, kind: str) -> dict:
     return {
+        **_isocenter_meta(path, ds),
         "source": str(path),
         "format": kind,
         "modality": _text(ds, "Modality"),
@@ -304,6 +305,18 @@ def _volume_meta(path: Path, ds: Dataset, kind: str) -> dict:
         "decoder": pixel_decoder(ds)[1],
         **_reference_meta(ds),
     }
+
+
+def _isocenter_meta(path: Path, ds: Dataset) -> dict:
+    """IsocenterPosition (300A,012C), in patient coordinates (mm), where the files carry it.
+
+    Radiotherapy exports carry it; angiography 3DRA volumes do not (their systems place the
+    iso-center at the patient-coordinate origin, the project's default, CONVENTIONS §1).
+    """
+    iso = _floats(path, ds, "IsocenterPosition", 3, required=False)
+    if iso is None:
+        return {}
+    return {"isocenter_mm": iso, "isocenter_from": f"{tag_name('IsocenterPosition')} of the volume"}
 
 
 def _reference_meta(ds: Dataset) -> dict:
