@@ -47,12 +47,12 @@ from pydicom.valuerep import DT
 from registration.core.geometry import CArm
 from registration.io.dicom._common import DicomError, _floats, _text, lookup, tag_name
 from registration.io.dicom.xray import (
-    PLANES,
     _check_isocenter,
     _field_rotation_shape,
     _geometry,
     _open_xray,
     _xray_frame,
+    frame_plane,
     write_xray,
 )
 
@@ -123,7 +123,7 @@ class XRayRun(Sequence["XRayImage"]):
             sid_mm=self._read["sid_mm"],
             sod_mm=self._read["sod_mm"],
         )
-        image.meta.update(t_s=float(self.times_s[n]), plane=self.planes[n], times_from=self.times_from)
+        image.meta.update(t_s=float(self.times_s[n]), times_from=self.times_from)
         return image
 
     def __iter__(self) -> Iterator[XRayImage]:
@@ -188,17 +188,6 @@ def read_xray_run(
         _ds=ds,
         _read=read,
     )
-
-
-def frame_plane(path: Path, ds: Dataset, frame: int) -> str:
-    """Plane Identification (0018,9457) of ``frame`` ("" when absent), checked against PLANES."""
-    value = lookup(ds, "PlaneIdentification", frame)
-    if value is None:
-        return ""
-    text = str(value).strip().upper()
-    if text not in PLANES:
-        raise DicomError(path, f"{tag_name('PlaneIdentification')} is {str(value)[:20]!r}; expected one of {PLANES}")
-    return text
 
 
 def frame_times(

@@ -487,6 +487,17 @@ def _open_xray(path: Path) -> tuple[Dataset, int, int, int]:
     return ds, frames, rows, cols
 
 
+def frame_plane(path: Path, ds: Dataset, frame: int) -> str:
+    """Plane Identification (0018,9457) of ``frame`` ("" when absent), checked against PLANES."""
+    value = lookup(ds, "PlaneIdentification", frame)
+    if value is None:
+        return ""
+    text = str(value).strip().upper()
+    if text not in PLANES:
+        raise DicomError(path, f"{tag_name('PlaneIdentification')} is {str(value)[:20]!r}; expected one of {PLANES}")
+    return text
+
+
 def _image_references(ds: Dataset) -> dict[str, str]:
     """The UIDs and patient of an X-ray image (for the Spatial Registration object)."""
     return {
@@ -563,6 +574,7 @@ def _xray_frame(
         "frames": frames,
         "mask_from": mask_source,
         "decoder": pixel_decoder(ds)[1],
+        "plane": frame_plane(path, ds, frame),
         **_image_references(ds),
         **geo_info,
         **intensity,

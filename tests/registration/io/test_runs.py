@@ -145,6 +145,7 @@ def test_enhanced_run_times_angles_and_planes_per_frame(tmp_path: Path) -> None:
     assert run.angles_deg == [(-40.0, 0.0), (0.0, 5.0), (40.0, 10.0)]
     assert run.planes == ("PLANE A", "PLANE A", "PLANE B")
     assert run[2].meta["plane"] == "PLANE B"
+    assert dicom.read_xray(path, frame=0).meta["plane"] == "PLANE A"
     assert run.geometries[1].sod_mm == 785.0
     bad = _enhanced_run(tmp_path / "bad.dcm", frames=2, stamps=["20260101120000", "tomorrow"], planes=None)
     with pytest.raises(DicomError, match=r"FrameAcquisitionDateTime \(0018,9074\) of frame 1"):
@@ -184,3 +185,23 @@ def test_write_xray_run_refuses_bad_times(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="plane must be one of"):
         dicom.write_xray_run(frames, tmp_path / "d.dcm", plane="PLANE Z")
     assert not list(tmp_path.iterdir())  # nothing half-written
+
+
+@pytest.mark.filterwarnings("ignore:.*undid FieldOfViewRotation:UserWarning")
+def test_enhanced_field_of_view_per_frame(tmp_path: Path) -> None:
+    # Frame 1 was stored rotated 90 deg clockwise (its Field of View functional group says so),
+    # frame 0 not: each frame is turned back on its own.
+    path = _enhanced_run(tmp_path / "fov.dcm", frames=2, stamps=None, planes=None)
+    ds = pydicom.dcmread(path)
+    fov = Dataset()
+    fov.FieldOfViewRotation = "90"
+    fov.FieldOfViewHorizontalFlip = "NO"
+    ds.PerFrameFunctionalGroupsSequence[1].FieldOfViewSequence = Sequence([fov])
+    ds.save_as(path)
+    stored = ds.pixel_array
+    run = dicom.read_xray_run(path, frame_time_ms=100.0)
+    physical = [stored[0], np.rot90(stored[1])]  # rotated back counter-clockwise
+    expected = [(4095 - 1000 - p.astype(float)) / dicom.LOG_UNITS_PER_ATTENUATION for p in physical]
+    for n in range(2):
+        np.testing.assert_allclose(run[n].image, expected[n], atol=1e-6)
+    assert "field_rotation" in run[1].meta and "field_rotation" not in run[0].meta
