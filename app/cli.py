@@ -102,12 +102,16 @@ def register(
     seed: int = 0,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    pacs: str | None = None,
+    study: str | None = None,
+    ca_bundle: Path | None = None,
+    store: bool = False,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
     Args:
-        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
-        image: XA/RF DICOM file (single or multi-frame).
+        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz (with --pacs: a series UID).
+        image: XA/RF DICOM file, single or multi-frame (with --pacs: a series UID).
         frame: Frame of a multi-frame image (0-based).
         initial_motion: JSON with "patient_motion" (4x4), or a DICOM Spatial Registration, to start from.
         truth: JSON with the true "patient_motion", or a DICOM Spatial Registration: adds residuals and success.
@@ -117,7 +121,35 @@ def register(
         seed: Seed of the annealing.
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
+        pacs: DICOMweb URL of a PACS to load --volume/--image from (credentials: ROADMAP3D_PACS_USERNAME and
+            ROADMAP3D_PACS_PASSWORD, or the config file; never on the command line).
+        study: Study Instance UID on the PACS.
+        ca_bundle: CA certificates (PEM) to verify an https:// PACS against.
+        store: Store the result into the study on the PACS: the Spatial Registration object and the overlay
+            (Secondary Capture).
     """
+    if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
+        from app.net_commands import run_register_pacs
+
+        return run_register_pacs(
+            pacs=pacs,
+            study=study,
+            volume_series=str(volume),
+            image_series=str(image),
+            ca_bundle=ca_bundle,
+            store=store,
+            out_dicom=out_dicom,
+            frame=frame,
+            initial_motion=initial_motion,
+            truth=truth,
+            out=out,
+            isocenter=isocenter,
+            seed=seed,
+            sid_mm=sid_mm,
+            sod_mm=sod_mm,
+        )
+    if study or store or ca_bundle:
+        raise UserError("--study, --store and --ca-bundle need --pacs URL")
     from app.commands import run_register
 
     return run_register(

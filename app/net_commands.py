@@ -126,3 +126,110 @@ def run_listen(
             registrar.close()
         _say(f"stopped; {len(node.received)} instance(s) received")
     return 0
+
+
+# --------------------------------------------------------------------------------------
+# register --pacs
+# --------------------------------------------------------------------------------------
+#: Vessel voxels drawn in the overlay: the mesh module's contrast threshold (HU).
+OVERLAY_VESSEL_HU = 250.0
+#: Bone (HU) and the margin (voxels) around it left out of the vessels.
+OVERLAY_BONE_HU = 700.0
+OVERLAY_BONE_MARGIN_VOXELS = 2
+#: Colour of the overlaid vessels (RGB) and their largest opacity.
+OVERLAY_RGB = (255, 60, 40)
+OVERLAY_ALPHA = 0.8
+
+
+def overlay_rgb(volume: Any, xray: Any, patient_motion: Any) -> Any:
+    """The X-ray image (radiological display: attenuation dark) with the volume's contrast-filled
+    vessels projected at ``patient_motion`` drawn over it in red; rows x cols x 3 uint8."""
+    import numpy as np
+    from scipy.ndimage import binary_dilation
+
+    from registration.core.drr import DRRRenderer
+
+    data = np.asarray(volume.data, dtype=np.float32)
+    # contrast (250..700 HU) away from bone: bone edges pass through the same values
+    bone = binary_dilation(data >= OVERLAY_BONE_HU, iterations=OVERLAY_BONE_MARGIN_VOXELS)
+    keep = (data >= OVERLAY_VESSEL_HU) & (data < OVERLAY_BONE_HU) & ~bone
+    vessels = volume.with_data(np.where(keep, data, -1000.0).astype(np.float32))
+    drr = DRRRenderer(vessels, levels=1).render(xray.geometry, np.asarray(patient_motion, dtype=np.float64))
+    image = np.asarray(xray.image, dtype=np.float64)
+    mask = np.asarray(xray.mask, dtype=bool)
+    inside = image[mask] if mask.any() else image.ravel()
+    low, high = np.percentile(inside, [1.0, 99.0])
+    gray = 1.0 - np.clip((image - low) / max(high - low, 1e-9), 0.0, 1.0)
+    gray[~mask] = 0.0
+    top = float(np.percentile(drr[drr > 0], 99.0)) if np.any(drr > 0) else 1.0
+    alpha = OVERLAY_ALPHA * np.clip(drr / max(top, 1e-9), 0.0, 1.0) * mask
+    rgb = gray[..., None] * (1.0 - alpha[..., None]) + (np.array(OVERLAY_RGB) / 255.0) * alpha[..., None]
+    return np.round(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
+
+
+def run_register_pacs(
+    *,
+    pacs: str | None,
+    study: str | None,
+    volume_series: str,
+    image_series: str,
+    ca_bundle: Path | None,
+    store: bool,
+    out_dicom: Path | None,
+    **register_args: Any,
+) -> int:
+    """``register --pacs``: retrieve the two series, register, optionally store the REG object and
+    the overlay capture back into the study (STOW-RS)."""
+    import shutil
+    import tempfile
+
+    from app.commands import run_register
+    from registration.io.dicom.capture import write_overlay_capture
+    from registration.io.pacs import Pacs, PacsSettings
+
+    if not study:
+        raise ValueError("--pacs needs --study UID (and --volume/--image as Series Instance UIDs of that study)")
+    client = Pacs(PacsSettings.resolve(pacs, ca_bundle=ca_bundle))
+    work = Path(tempfile.mkdtemp(prefix="roadmap3d-register-"))
+    try:
+        known = {s.series_uid: s for s in client.series(study)}
+        for uid, flag in ((volume_series, "--volume"), (image_series, "--image")):
+            if uid not in known:
+                raise ValueError(f"PACS {client.name}: study {study} has no series {uid} ({flag})")
+        _err(f"retrieving {known[volume_series].label()} and {known[image_series].label()} from {client.name}")
+        volume_folder = client.retrieve_series(study, volume_series, work / "volume")
+        image_files = sorted(client.retrieve_series(study, image_series, work / "image").iterdir())
+        if len(image_files) != 1:
+            raise ValueError(
+                f"PACS {client.name}: series {image_series} holds {len(image_files)} images; register takes one "
+                "XA/RF image or run (a series of single images: store them as one run, or pick the series of one)"
+            )
+        registration = work / "registration.dcm"
+        code = run_register(volume=volume_folder, image=image_files[0], out_dicom=registration, **register_args)
+        if code != 0:
+            return code
+        if out_dicom is not None:
+            shutil.copyfile(registration, out_dicom)
+            _say(f"wrote {out_dicom}")
+        if store:
+            reg = dicom.read_registration(registration)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                volume = dicom.read_volume(volume_folder)
+                xray = dicom.read_xray(image_files[0], frame=register_args.get("frame"))
+            motion = reg.volume_motion(str(volume.meta.get("frame_of_reference_uid") or "") or None)
+            capture = write_overlay_capture(
+                work / "overlay.dcm",
+                overlay_rgb(volume, xray, motion),
+                xray=xray,
+                description="roadmap3d overlay (registered 3DRA vessels)",
+                comment=f"registered with roadmap3d; Spatial Registration {reg.sop_instance_uid}",
+            )
+            client.store([registration, capture])
+            _say(
+                f"stored on {client.name}, study {study}: the Spatial Registration object "
+                f"(SOP instance {reg.sop_instance_uid}) and the overlay as a Secondary Capture"
+            )
+        return 0
+    finally:
+        shutil.rmtree(work, ignore_errors=True)

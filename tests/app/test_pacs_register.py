@@ -1,0 +1,90 @@
+"""``roadmap3d register --pacs``: against a real Orthanc, the issue's round trip.
+
+The phantom's export is stored into Orthanc (STOW-RS); the study is listed (QIDO-RS); the 3DRA
+series and the fluoro image are loaded from it (WADO-RS) and registered; the Spatial
+Registration object and the overlay (Secondary Capture) are stored back into the study; the
+REG object read back from Orthanc holds exactly the motion the registration wrote.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+
+from app import cli
+from registration.io import dicom
+from registration.io.pacs import Pacs, PacsSettings
+from tests.orthanc import OrthancServer
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    return int(info.value.code or 0), out, err
+
+
+def test_register_from_pacs_and_store_back(
+    orthanc: OrthancServer, small_export: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
+    orthanc.clear()
+    pacs = Pacs(PacsSettings(orthanc.dicomweb_url, username=orthanc.username, password=orthanc.password))
+    pacs.store(sorted(small_export.rglob("*.dcm")))
+    (study,) = pacs.studies()
+    series = pacs.series(study.study_uid)
+    volume = next(s for s in series if s.role == "volume")
+    fluoro = next(s for s in series if s.role == "xray" and "fluoro" in s.description)
+
+    # credentials only through the environment
+    monkeypatch.setenv("ROADMAP3D_PACS_USERNAME", orthanc.username)
+    monkeypatch.setenv("ROADMAP3D_PACS_PASSWORD", orthanc.password)
+    monkeypatch.setenv("ROADMAP3D_PACS_CONFIG", str(tmp_path / "no-config.json"))
+    result_json = tmp_path / "result.json"
+    argv = ["register", "--pacs", orthanc.dicomweb_url, "--study", study.study_uid, "--volume", volume.series_uid,
+            "--image", fluoro.series_uid, "--truth", str(small_export / "truth.json"), "--out", str(result_json),
+            "--store"]  # fmt: skip
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    assert orthanc.password not in out + err
+    assert "stored on" in out and "Secondary Capture" in out
+
+    # the study now also holds the REG object and the capture
+    after = pacs.series(study.study_uid)
+    assert len(after) == len(series) + 2
+    reg_series = next(s for s in after if s.modality == "REG")
+    capture_series = next(s for s in after if s.modality == "OT")
+    folder = pacs.retrieve_series(study.study_uid, reg_series.series_uid, tmp_path / "reg")
+    (reg_file,) = list(folder.iterdir())
+    reg = dicom.read_registration(reg_file)
+    written = np.asarray(json.loads(result_json.read_text())["patient_motion"])
+    # The REG object stores the matrix as decimal strings (DS, 16 characters): ~1e-10 relative.
+    assert np.allclose(reg.patient_motion, written, atol=1e-6)
+
+    capture_folder = pacs.retrieve_series(study.study_uid, capture_series.series_uid, tmp_path / "sc")
+    (capture_file,) = list(capture_folder.iterdir())
+    sc = pydicom.dcmread(capture_file)
+    xa = pydicom.dcmread(small_export / "xa_fluoro.dcm")
+    assert sc.SOPClassUID == pydicom.uid.SecondaryCaptureImageStorage
+    assert (sc.Rows, sc.Columns, sc.SamplesPerPixel) == (xa.Rows, xa.Columns, 3)
+    assert sc.SourceImageSequence[0].ReferencedSOPInstanceUID == xa.SOPInstanceUID
+    rgb = sc.pixel_array
+    red = (rgb[..., 0].astype(int) - rgb[..., 1]) > 60
+    # the registered vessels are drawn (red) inside the field, nowhere outside it
+    field = dicom.read_xray(small_export / "xa_fluoro.dcm").mask
+    assert red[field].sum() > 20 and red[~field].sum() == 0
+    # an X-ray reader refuses the capture: it cannot be mistaken for an acquisition
+    with pytest.raises(ValueError):
+        dicom.read_xray(capture_file)
+
+
+def test_register_pacs_needs_a_study_and_refuses_url_credentials(capsys) -> None:
+    code, _, err = _run(["register", "--volume", "1.2", "--image", "1.3", "--store"], capsys)
+    assert code == 2 and "need --pacs" in err
+    code, _, err = _run(["register", "--pacs", "https://u:secret@pacs.example.org/dw", "--study", "1.2",
+                         "--volume", "1.2", "--image", "1.3"], capsys)  # fmt: skip
+    assert code == 2 and "credentials in the URL are refused" in err and "secret" not in err
