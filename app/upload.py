@@ -63,10 +63,13 @@ def read_upload(name: str, content: bytes, *, max_bytes: int, config: AppConfig)
     tmp = Path(tempfile.mkdtemp(prefix="roadmap3d-upload-"))  # mode 0700: private to this user
     try:
         folder = tmp / "files"
-        unpack_upload(content, folder, max_bytes=max_bytes)
+        try:
+            unpack_upload(content, folder, max_bytes=max_bytes)
+        except UploadError as exc:  # name the upload: the archive's own messages do not know it
+            raise UploadError(f"{name}: {exc}") from None
         found = classify_upload(folder)
         if found["volume"] is None or found["image"] is None:
-            missing = "a volume" if found["volume"] is None else "an XA/RF image"
+            missing = "volume" if found["volume"] is None else "XA/RF image"
             raise UploadError(f"{name}: found no {missing}; expected {EXPECTED}")
         data = FileData.from_paths(found["volume"], found["image"], frame=None, config=config)
         data.source = f"upload {name}"

@@ -34,3 +34,11 @@ def orthanc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OrthancServer]
     server = start_orthanc(Path(tmp_path_factory.mktemp("orthanc")))
     yield server
     server.stop()
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("fuzz", "fuzzing of the readers (tests/registration/io/test_fuzz.py)")
+    group.addoption(
+        "--fuzz-long", action="store_true", default=False, help="mutate 20,000 files instead of the default 1,000"
+    )
+    group.addoption("--fuzz-seed", action="store", default="0", help="seed of the mutator (default 0)")

@@ -34,7 +34,7 @@ from pydicom.uid import (
 )
 
 from registration.io.dicom._errors import DicomError, UploadError, tag_name  # noqa: F401 - re-exported
-from registration.io.dicom.limits import check_dataset_file, check_values
+from registration.io.dicom.limits import capped_file, check_dataset_file, check_values
 
 #: Stored LOG pixel steps per unit of attenuation line integral (see :mod:`registration.io.dicom.xray`).
 LOG_UNITS_PER_ATTENUATION = 1000.0
@@ -95,9 +95,11 @@ def read_dataset(path: str | os.PathLike[str], *, stop_before_pixels: bool = Fal
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
-                ds = pydicom.dcmread(path, stop_before_pixels=stop_before_pixels)
+                with capped_file(path) as fh:
+                    ds = pydicom.dcmread(fh, stop_before_pixels=stop_before_pixels)
             except InvalidDicomError:
-                ds = pydicom.dcmread(path, stop_before_pixels=stop_before_pixels, force=True)
+                with capped_file(path) as fh:
+                    ds = pydicom.dcmread(fh, stop_before_pixels=stop_before_pixels, force=True)
                 if "SOPClassUID" not in ds or not ("PixelData" in ds or stop_before_pixels):
                     raise DicomError(path, "not a DICOM file (no 'DICM' preamble, no image)") from None
             # pydicom converts values lazily: convert them all now, so a corrupt value fails
@@ -266,7 +268,7 @@ def pixel_decoder(ds: Dataset) -> tuple[str, str]:
     when no plugin can decode the transfer syntax.
     """
     ts = _transfer_syntax(ds)
-    if ts is None or not ts.is_compressed:
+    if ts is None or not ts.is_transfer_syntax or not ts.is_compressed:  # is_compressed raises on other UIDs
         return "", "native (uncompressed)"
     try:
         from pydicom.pixels import get_decoder
@@ -303,7 +305,9 @@ def _pixels(path: Path, ds: Dataset, index: int | None = None) -> NDArray[Any]:
     except Exception as exc:
         ts = _transfer_syntax(ds)
         what = f"transfer syntax {ts.name} ({ts})" if ts is not None else "an unknown transfer syntax"
-        if ts is not None and ts.is_compressed and not plugin:
+        if ts is not None and not ts.is_transfer_syntax:
+            what = f"{tag_name('TransferSyntaxUID')} {str(ts)[:64]!r}, which is not a transfer syntax"
+        if ts is not None and ts.is_transfer_syntax and ts.is_compressed and not plugin:
             hint = "; compressed pixel data needs a decoder (pip install pylibjpeg pylibjpeg-libjpeg)"
         else:
             hint = ""

@@ -29,6 +29,7 @@ before starting it):
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import zipfile
@@ -39,13 +40,13 @@ from pathlib import Path
 import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.encaps import parse_fragments
-from pydicom.filereader import read_file_meta_info
 from pydicom.uid import DeflatedExplicitVRLittleEndian
 
 from registration.io.dicom._errors import DicomError, tag_name
 
 __all__ = [
     "ReadLimits",
+    "capped_file",
     "check_affine",
     "check_dataset_file",
     "check_dataset_pixels",
@@ -377,14 +378,11 @@ def check_dataset_file(path: str | os.PathLike[str], *, limits: ReadLimits | Non
     check_file_size(path, size, limits=limits)
     try:
         with open(path, "rb") as fh:
-            head = fh.read(132)
-            if len(head) < 132 or head[128:132] != b"DICM":
+            head = fh.read(1 << 16)
+            found = _file_meta_syntax(head)
+            if found is None or found[0] != DeflatedExplicitVRLittleEndian:
                 return
-            meta = read_file_meta_info(path)
-            if str(meta.get("TransferSyntaxUID", "")) != DeflatedExplicitVRLittleEndian:
-                return
-            group_length = int(meta.get("FileMetaInformationGroupLength") or 0)
-            fh.seek(132 + 12 + group_length)
+            fh.seek(found[1])
             inflater = zlib.decompressobj(-zlib.MAX_WBITS)
             inflated = 0
             while chunk := fh.read(1 << 16):
@@ -403,6 +401,58 @@ def check_dataset_file(path: str | os.PathLike[str], *, limits: ReadLimits | Non
         raise
     except Exception:  # not readable here: the reader says why
         return
+
+
+#: VRs whose explicit-VR header has a 4-byte length (PS3.5 7.1.2).
+_LONG_VRS = {b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"}
+
+
+def _file_meta_syntax(head: bytes) -> tuple[str, int] | None:
+    """(TransferSyntaxUID, offset of the data set) from a Part 10 file's first bytes, or None.
+
+    Parsed here (group 0002, explicit VR little endian) rather than by pydicom, which would
+    allocate whatever length a corrupt element claims.
+    """
+    if len(head) < 132 or head[128:132] != b"DICM":
+        return None
+    at, syntax = 132, None
+    while at + 8 <= len(head):
+        group, _element = int.from_bytes(head[at : at + 2], "little"), int.from_bytes(head[at + 2 : at + 4], "little")
+        if group != 0x0002:
+            break
+        vr = head[at + 4 : at + 6]
+        if vr in _LONG_VRS:
+            length, start = int.from_bytes(head[at + 8 : at + 12], "little"), at + 12
+        else:
+            length, start = int.from_bytes(head[at + 6 : at + 8], "little"), at + 8
+        if _element == 0x0010:
+            syntax = head[start : start + length].rstrip(b"\x00 ").decode("ascii", "replace")
+        at = start + length
+    return (syntax, at) if syntax is not None else None
+
+
+class _CappedReader(io.BufferedReader):
+    """A file whose ``read(n)`` never asks for more than what is left in it.
+
+    ``read(n)`` allocates ``n`` bytes up front: a corrupt element length of 2 GB in a 2 kB
+    file would allocate 2 GB before finding out the data is not there.
+    """
+
+    def __init__(self, raw: io.RawIOBase, size: int) -> None:
+        super().__init__(raw)
+        self._size = size
+
+    def read(self, n: int | None = -1) -> bytes:
+        if n is not None and n > 0:
+            n = min(n, max(0, self._size - self.tell()))
+            if n == 0:
+                return b""
+        return super().read(n)
+
+
+def capped_file(path: str | os.PathLike[str]) -> _CappedReader:
+    """Open ``path`` for reading through :class:`_CappedReader` (a context manager)."""
+    return _CappedReader(io.FileIO(path, "r"), file_size(path))
 
 
 def file_size(path: str | os.PathLike[str]) -> int:

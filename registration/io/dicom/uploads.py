@@ -36,7 +36,7 @@ def unpack_upload(
     dest_dir: str | os.PathLike[str],
     *,
     max_bytes: int,
-    max_files: int = 10000,
+    max_files: int = 5000,
     max_ratio: float = 200.0,
 ) -> list[Path]:
     """Unpack an uploaded zip into ``dest_dir`` (created private, or empty) and list the files.

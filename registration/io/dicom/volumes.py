@@ -252,7 +252,14 @@ def _enhanced_volume(path: Path, ds: Dataset, *, label: str | None) -> Volume:
         def load() -> NDArray[Any]:
             if "all" not in cache:
                 pixels = _pixels(path, ds)
-                cache["all"] = pixels.reshape(frames, rows, cols) if frames > 1 else pixels[None]
+                if pixels.size != frames * rows * cols:
+                    raise DicomError(
+                        path,
+                        f"{tag_name('PixelData')} decodes to {pixels.size:,} values ({pixels.shape}), but "
+                        f"{tag_name('NumberOfFrames')} x {tag_name('Rows')} x {tag_name('Columns')} is "
+                        f"{frames} x {rows} x {cols}",
+                    )
+                cache["all"] = pixels.reshape(frames, rows, cols)
             return cache["all"][n]
 
         return load

@@ -25,6 +25,7 @@ from registration.io import dicom
 from registration.io.dicom import DicomError
 from registration.io.dicom.limits import ReadLimits, current_limits
 from tests.registration.io.test_dicom import ct_slice, ramp, xa_file
+from tests.registration.io.test_fuzz import deflated_zeros, one_member_zip
 
 pytestmark = [
     pytest.mark.filterwarnings("ignore:.*using the whole image as the field:UserWarning"),
@@ -193,19 +194,17 @@ def _npz(path: Path, data: np.ndarray, affine: np.ndarray | None = None) -> Path
 
 def test_npz_of_compressed_zeros_is_refused_before_inflating(tmp_path: Path) -> None:
     """A ~1 MB .npz inflating to 1.35 GB took 1.35 GB in `info` and 4.7 GB in `register`."""
+    shape = (1280, 512, 512)  # float32: 1.34 GB
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": shape})
+    size = int(np.prod(shape)) * 4
+    payload, crc = deflated_zeros(size, header.getvalue())
     path = tmp_path / "zeros.npz"
-    shape = (700, 700, 700)  # float32: 1.37 GB
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
-        with archive.open("data.npy", "w", force_zip64=True) as member:
-            header = {"descr": "<f4", "fortran_order": False, "shape": shape}
-            np.lib.format.write_array_header_1_0(member, header)
-            zeros = bytes(1 << 20)
-            for _ in range(int(np.prod(shape)) * 4 // len(zeros)):
-                member.write(zeros)
-            member.write(bytes(int(np.prod(shape)) * 4 % len(zeros)))
-        buffer = io.BytesIO()
-        np.save(buffer, np.eye(4))
-        archive.writestr("index_to_world.npy", buffer.getvalue())
+    path.write_bytes(one_member_zip("data.npy", payload, crc, size + len(header.getvalue())))
+    affine = io.BytesIO()
+    np.save(affine, np.eye(4))
+    with zipfile.ZipFile(path, "a") as archive:
+        archive.writestr("index_to_world.npy", affine.getvalue())
     assert path.stat().st_size < 3 * 1024**2
     refused(lambda: dicom.read_volume(path), str(path), "compressed", "ROADMAP3D_MAX_NPZ_RATIO")
 
