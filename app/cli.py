@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 import tyro
 
 from app.options import (
+    BiplaneStudy,
     CalibrationStudy,
     ClinicalStudy,
     PhantomStudy,
@@ -41,6 +42,7 @@ Study = (
     | Annotated[CalibrationStudy, tyro.conf.subcommand("calibration")]
     | Annotated[TrackingStudy, tyro.conf.subcommand("tracking")]
     | Annotated[RotationalRunStudy, tyro.conf.subcommand("rotational-run")]
+    | Annotated[BiplaneStudy, tyro.conf.subcommand("biplane")]
 )
 
 
@@ -66,6 +68,10 @@ def validate(study: Study) -> int:
         from app.rotational_commands import run_rotational_validation
 
         return run_rotational_validation(study)
+    if isinstance(study, BiplaneStudy):
+        from app.study_commands import run_biplane_study
+
+        return run_biplane_study(study)
     from app.study_commands import run_calibration_study
 
     return run_calibration_study(study)

@@ -51,6 +51,27 @@ class ClinicalStudy:
 
 
 @dataclass
+class BiplaneStudy:
+    """Biplane (six parameters) beside single-plane registration at clinical offsets."""
+
+    out: Path = Path("validation-biplane")
+    """Output folder (results.jsonl, histograms, report.md/html); a rerun resumes."""
+    quick: bool = False
+    """One patient, 12 moments, smaller images and volume: a few minutes."""
+    json: bool = False
+    """Print the summary as one JSON object."""
+    seed: int = 0
+    jobs: int | None = None
+    """Parallel processes (default: all cores)."""
+    scheduler: str | None = None
+    """Run on a Dask cluster, e.g. tcp://HOST:PORT."""
+    ct: Path | None = None
+    """A DICOM CT folder to register instead of the phantom's 3DRAs (images formed from the CT itself)."""
+    registrations: int | None = None
+    """Moments per patient (default: 50, quick 12)."""
+
+
+@dataclass
 class CalibrationStudy:
     """Machine-based registration error at random angles against the true (bent) geometry."""
 

@@ -14,7 +14,7 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from app.options import CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy
+from app.options import BiplaneStudy, CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy
 from registration import __version__
 from registration.sim.calibration import ERROR_REGION_RADIUS_MM, calibration_study
 from registration.studies import bench, runs
@@ -100,6 +100,42 @@ def run_clinical_study(args: ClinicalStudy) -> int:
     return 0
 
 
+def run_biplane_study(args: BiplaneStudy) -> int:
+    """``roadmap3d validate biplane``: biplane beside single-plane, written to ``args.out``."""
+    from registration.studies import biplane
+
+    ct = None if args.ct is None else str(Path(args.ct).resolve())
+    if ct is not None and not Path(ct).is_dir():
+        raise ValueError(f"--ct {args.ct}: not a folder of DICOM CT slices")
+    config = biplane.BiplaneConfig.quick_config(args.seed, ct) if args.quick else biplane.BiplaneConfig(
+        seed=args.seed, ct_path=ct
+    )
+    if args.registrations is not None:
+        if args.registrations < 1:
+            raise ValueError(f"--registrations must be >= 1, got {args.registrations}")
+        config = replace(config, registrations_per_patient=args.registrations)
+    tasks = biplane.biplane_tasks(config)
+    log = None if args.json else _stderr
+    records, wall = runs.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
+    summary = biplane.biplane_summary(records, config=asdict(config), wall_seconds=wall)
+    biplane.write_biplane_report(records, summary, Path(args.out))
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    pct = lambda x: "-" if x is None else f"{100 * x:.1f} %"  # noqa: E731
+    print(f"biplane: {summary['runs']} moments, success (3-D) {pct(summary['success_rate'])}; single plane A: "
+          f"{pct(summary['single_plane_success_rate_3d'])} (3-D), {pct(summary['single_plane_success_rate_inplane'])} "
+          "(in-plane)")  # fmt: skip
+    for name, label in (("", "biplane"), ("single_plane_", "single plane")):
+        print(
+            f"  {label:<13} median total {summary[name + 'translation_residual_mm_median']:.3f} mm, out-of-plane "
+            f"{summary[name + 'out_of_plane_residual_mm_median']:.3f} mm, rotation "
+            f"{summary[name + 'rotation_residual_deg_median']:.3f} deg, {summary[name + 'seconds_median']:.2f} s"
+        )
+    print(f"\nwritten: {Path(args.out) / 'results.jsonl'}, {Path(args.out) / 'report.md'} and the histograms")
+    return 0
+
+
 def _print_summary(summary: dict, as_json: bool, out: Path) -> None:
     if as_json:
         print(json.dumps(summary))
@@ -152,6 +188,11 @@ def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
     print(
         f"registration            {reg['seconds_median']:.2f} s median over T1-T4, "
         f"{100 * reg['success_rate']:.0f} % successful"
+    )
+    bi = out["biplane"]
+    print(
+        f"biplane registration    {bi['seconds_median']:.2f} s median over {len(bi['runs'])} moments, "
+        f"{100 * bi['success_rate']:.0f} % successful (3-D criterion)"
     )
     if "reconstruction" in out:
         rec = out["reconstruction"]

@@ -1,7 +1,7 @@
 """``roadmap3d bench``: speed measured as ratios against references in the same run.
 
 DRRs beside the scipy reference renderer, gradient difference, registration over Table I
-(27/27 cm, fluoro), the FDK reconstruction when available, and the peak resident memory.
+(27/27 cm, fluoro), biplane registration, the FDK reconstruction when available, and the peak resident memory.
 """
 
 from __future__ import annotations
@@ -50,6 +50,29 @@ def bench_registration(*, seed: int = 0, repeats: int = 1) -> dict:
     }
 
 
+def bench_biplane(*, seed: int = 0, repeats: int = 4) -> dict:
+    """Biplane registration time: the first moments of the biplane study (27 cm 3DRA, plane A
+    512 px, plane B 384 px, clinical offsets), after a warm-up registration."""
+    from registration.studies.biplane import BiplaneConfig, biplane_tasks, run_biplane_case
+
+    tasks = biplane_tasks(BiplaneConfig(patients=((0, 27.0),), registrations_per_patient=repeats + 1, seed=seed))
+    run_biplane_case(tasks[0].case)  # warm-up: compiles, builds the cached volume and plane B's calibration
+    runs = [run_biplane_case(t.case) for t in tasks[1:]]
+    return {
+        "seconds_median": float(np.median([r["seconds"] for r in runs])),
+        "success_rate": float(np.mean([r["success"] for r in runs])),
+        "runs": [
+            {
+                "seconds": r["seconds"],
+                "drr_count": r["drr_count"],
+                "translation_residual_mm": r["translation_residual_mm"],
+                "outofplane_residual_mm": r["outofplane_residual_mm"],
+                "rotation_residual_deg": r["rotation_residual_deg"],
+                "success": r["success"],
+            }
+            for r in runs
+        ],
+    }
 
 
 def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | None = None) -> dict:
@@ -64,10 +87,13 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
     gd_ms = bench_gradient_difference()
     say("registration over T1-T4 (27/27 cm, fluoro) ...")
     reg = bench_registration(seed=seed)
+    say("biplane registration (27 cm 3DRA, two planes, clinical offsets) ...")
+    biplane = bench_biplane(seed=seed, repeats=2 if quick else 4)
     out: dict = {
         "drr": drr,
         "gradient_difference_ms_median": gd_ms,
         "registration": reg,
+        "biplane": biplane,
     }
     if not quick:
         from registration.sim.reconstruct import bench_reconstruction

@@ -183,7 +183,7 @@ class StudyTask:
     :class:`ClinicalCase`, its id, and fields the record carries along."""
 
     case_id: str
-    case: Case | ClinicalCase
+    case: Case | ClinicalCase | Any
     extra: dict = field(default_factory=dict)
     options: RegistrationOptions | None = None
 
@@ -470,6 +470,8 @@ def execute(task: StudyTask, threads: int | None = None) -> dict:
         options = dataclasses.replace(options or RegistrationOptions(), threads=int(threads))
     if isinstance(task.case, ClinicalCase):
         record = run_clinical_case(task.case, options=options)
+    elif hasattr(task.case, "run"):  # a case that runs itself (the biplane study)
+        record = task.case.run(options=options)
     else:
         record = run_case(task.case, options=options)
     record.update(task.extra)
@@ -491,8 +493,14 @@ def prebuild(tasks: Iterable[StudyTask], log: Callable[[str], None] | None = Non
     done: set = set()
     for task in tasks:
         case = task.case
-        if isinstance(case, ClinicalCase):
-            key: tuple = ("patient", *_patient_params(case).values())
+        if hasattr(case, "prepare"):  # a case that prepares its own volume (the biplane study)
+            key: tuple = case.prepare_key()
+            if key not in done:
+                if log:
+                    log(f"preparing {key}")
+                case.prepare()
+        elif isinstance(case, ClinicalCase):
+            key = ("patient", *_patient_params(case).values())
             if key not in done:
                 if log:
                     log(f"preparing patient {case.patient}: rotational run and FDK ({case.volume_format_cm:g} cm)")
