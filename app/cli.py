@@ -298,6 +298,7 @@ def app(
     allow_share: bool = False,
     max_upload_mb: float = 512.0,
     open_browser: bool = False,
+    pacs: str | None = None,
 ) -> int:
     """Start the web app, optionally on your own DICOM data.
 
@@ -310,9 +311,16 @@ def app(
         allow_share: Let viser's share button open a public tunnel (off: refused).
         max_upload_mb: Largest upload accepted from the browser.
         open_browser: Open the page in the default browser.
+        pacs: DICOMweb URL of a PACS for the PACS tab (credentials: ROADMAP3D_PACS_USERNAME/_PASSWORD or the
+            config file).
     """
     from app.main import run_app
 
+    if pacs is not None:
+        from registration.io.pacs import ENV_URL, PacsSettings
+
+        PacsSettings.resolve(pacs)  # a bad URL or config is an error now, not in the page
+        os.environ[ENV_URL] = pacs  # the PACS tab (app/pacs_panel.py) reads it
     return run_app(
         host=host,
         port=port,

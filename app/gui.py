@@ -22,6 +22,7 @@ import viser
 from app.calibration import CalibrationPanel
 from app.controller import Controller
 from app.layout import Layout
+from app.pacs_panel import PacsPanel
 from app.panels import Panel, PanelContext, PanelFactory, mount
 from app.presenter import Presenter
 from app.scene import Scene
@@ -32,7 +33,7 @@ if TYPE_CHECKING:
 
 #: The optional panels every app mounts, in tab order after the layout's own tabs (left:
 #: Roadmap; right: Patient motion, C-arm, Data, Display). A new panel: one line here.
-PANELS: tuple[PanelFactory, ...] = (CalibrationPanel,)
+PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel)
 
 #: Handles of the layout that are also reachable as ``app.<name>`` (tests, scripts, panels).
 _LAYOUT_HANDLES = frozenset(
