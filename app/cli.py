@@ -345,6 +345,9 @@ def track(
     isocenter: str | None = None,
     seed: int = 0,
     every_frame: bool = False,
+    pacs: str | None = None,
+    study: str | None = None,
+    ca_bundle: Path | None = None,
 ) -> int:
     """Follow patient motion over a fluoroscopy run at its frame times (CONVENTIONS §7).
 
@@ -357,7 +360,19 @@ def track(
         isocenter: Iso-center "x,y,z" in mm (default the world origin).
         seed: Seed of the full captures.
         every_frame: Process every frame (a replay) instead of skipping the frames that arrive while busy.
+        pacs: DICOMweb URL of a PACS: --volume and --run are then Series Instance UIDs of --study.
+        study: Study Instance UID on the PACS.
+        ca_bundle: CA certificates (PEM) to verify an https:// PACS against.
     """
+    if pacs is not None:
+        from app.net_commands import run_track_pacs
+
+        return run_track_pacs(
+            pacs=pacs, study=study, volume_series=str(volume), run_series=str(run), ca_bundle=ca_bundle,
+            run_b=run_b, out=out, truth=truth, isocenter=isocenter, seed=seed, every_frame=every_frame,
+        )  # fmt: skip
+    if study or ca_bundle:
+        raise UserError("--study and --ca-bundle need --pacs URL")
     from app.track_commands import run_track
 
     return run_track(

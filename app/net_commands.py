@@ -167,6 +167,52 @@ def overlay_rgb(volume: Any, xray: Any, patient_motion: Any) -> Any:
     return np.round(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
 
 
+def retrieve_pair(
+    client: Any, study: str | None, volume_series: str, image_series: str, work: Path, *, image_flag: str
+) -> tuple[Path, Path]:
+    """Retrieve a study's volume series and its one-instance X-ray series (image or run) into
+    ``work``; (volume folder, image file). Errors name the PACS, the study and the series."""
+    if not study:
+        raise ValueError(f"--pacs needs --study UID (and --volume/{image_flag} as Series Instance UIDs of that study)")
+    known = {s.series_uid: s for s in client.series(study)}
+    if not known:
+        raise ValueError(f"PACS {client.name}: study {study} not found or empty")
+    for uid, flag in ((volume_series, "--volume"), (image_series, image_flag)):
+        if uid not in known:
+            raise ValueError(f"PACS {client.name}: study {study} has no series {uid} ({flag})")
+    _err(f"retrieving {known[volume_series].label()} and {known[image_series].label()} from {client.name}")
+    volume_folder = client.retrieve_series(study, volume_series, work / "volume")
+    image_files = sorted(client.retrieve_series(study, image_series, work / "image").iterdir())
+    if len(image_files) != 1:
+        raise ValueError(
+            f"PACS {client.name}: series {image_series} holds {len(image_files)} instances; expected one XA/RF "
+            "image or run (a series of single images: pick one, or store them as one run)"
+        )
+    return volume_folder, image_files[0]
+
+
+def run_track_pacs(
+    *, pacs: str | None, study: str | None, volume_series: str, run_series: str, ca_bundle: Path | None,
+    **track_args: Any,
+) -> int:  # fmt: skip
+    """``track --pacs``: retrieve the volume and the run (WADO-RS) into a private folder, track."""
+    import shutil
+    import tempfile
+
+    from app.track_commands import run_track
+    from registration.io.pacs import Pacs, PacsSettings
+
+    if track_args.get("run_b") is not None:
+        raise ValueError("track --pacs takes one run (plane A); a biplane pair from a PACS is not supported yet")
+    client = Pacs(PacsSettings.resolve(pacs, ca_bundle=ca_bundle))
+    work = Path(tempfile.mkdtemp(prefix="roadmap3d-track-"))
+    try:
+        volume_folder, run_file = retrieve_pair(client, study, volume_series, run_series, work, image_flag="--run")
+        return run_track(volume=volume_folder, run=run_file, **track_args)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def run_register_pacs(
     *,
     pacs: str | None,
@@ -187,23 +233,13 @@ def run_register_pacs(
     from registration.io.dicom.capture import write_overlay_capture
     from registration.io.pacs import Pacs, PacsSettings
 
-    if not study:
-        raise ValueError("--pacs needs --study UID (and --volume/--image as Series Instance UIDs of that study)")
     client = Pacs(PacsSettings.resolve(pacs, ca_bundle=ca_bundle))
     work = Path(tempfile.mkdtemp(prefix="roadmap3d-register-"))
     try:
-        known = {s.series_uid: s for s in client.series(study)}
-        for uid, flag in ((volume_series, "--volume"), (image_series, "--image")):
-            if uid not in known:
-                raise ValueError(f"PACS {client.name}: study {study} has no series {uid} ({flag})")
-        _err(f"retrieving {known[volume_series].label()} and {known[image_series].label()} from {client.name}")
-        volume_folder = client.retrieve_series(study, volume_series, work / "volume")
-        image_files = sorted(client.retrieve_series(study, image_series, work / "image").iterdir())
-        if len(image_files) != 1:
-            raise ValueError(
-                f"PACS {client.name}: series {image_series} holds {len(image_files)} images; register takes one "
-                "XA/RF image or run (a series of single images: store them as one run, or pick the series of one)"
-            )
+        volume_folder, image_file = retrieve_pair(
+            client, study, volume_series, image_series, work, image_flag="--image"
+        )
+        image_files = [image_file]
         registration = work / "registration.dcm"
         code = run_register(volume=volume_folder, image=image_files[0], out_dicom=registration, **register_args)
         if code != 0:

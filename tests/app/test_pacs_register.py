@@ -88,3 +88,26 @@ def test_register_pacs_needs_a_study_and_refuses_url_credentials(capsys) -> None
     code, _, err = _run(["register", "--pacs", "https://u:secret@pacs.example.org/dw", "--study", "1.2",
                          "--volume", "1.2", "--image", "1.3"], capsys)  # fmt: skip
     assert code == 2 and "credentials in the URL are refused" in err and "secret" not in err
+
+
+def test_track_from_pacs(orthanc: OrthancServer, small_export: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+    """``track --pacs``: the run comes from the PACS (here the export's fluoro image: a run of one frame)."""
+    orthanc.clear()
+    pacs = Pacs(PacsSettings(orthanc.dicomweb_url, username=orthanc.username, password=orthanc.password))
+    pacs.store(sorted(small_export.rglob("*.dcm")))
+    (study,) = pacs.studies()
+    series = pacs.series(study.study_uid)
+    volume = next(s for s in series if s.role == "volume")
+    fluoro = next(s for s in series if s.role == "xray" and "fluoro" in s.description)
+    monkeypatch.setenv("ROADMAP3D_PACS_USERNAME", orthanc.username)
+    monkeypatch.setenv("ROADMAP3D_PACS_PASSWORD", orthanc.password)
+    out = tmp_path / "track.json"
+    code, _, err = _run(["track", "--pacs", orthanc.dicomweb_url, "--study", study.study_uid, "--volume",
+                         volume.series_uid, "--run", fluoro.series_uid, "--out", str(out)], capsys)  # fmt: skip
+    assert code == 0, err
+    doc = json.loads(out.read_text())
+    frames = doc["frames"] if isinstance(doc, dict) and "frames" in doc else doc
+    assert len(frames) == 1
+    code, _, err = _run(["track", "--pacs", orthanc.dicomweb_url, "--study", study.study_uid, "--volume",
+                         volume.series_uid, "--run", "1.2.3.4"], capsys)  # fmt: skip
+    assert code == 2 and "has no series 1.2.3.4 (--run)" in err
