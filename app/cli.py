@@ -348,6 +348,9 @@ def track(
     pacs: str | None = None,
     study: str | None = None,
     ca_bundle: Path | None = None,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
+    frame_time_ms: float | None = None,
 ) -> int:
     """Follow patient motion over a fluoroscopy run at its frame times (CONVENTIONS §7).
 
@@ -357,12 +360,15 @@ def track(
         run_b: Plane B's run of a biplane pair (same frame times).
         out: Write the per-frame list (frame, t_s, patient_motion, status, latency_ms, confidence) here.
         truth: run_truth.json with each frame's true patient_motion (adds errors, precision, recall).
-        isocenter: Iso-center "x,y,z" in mm (default the world origin).
+        isocenter: Iso-center "x,y,z" mm or "volume-center" (default: IsocenterPosition of the volume, else the origin).
         seed: Seed of the full captures.
         every_frame: Process every frame (a replay) instead of skipping the frames that arrive while busy.
         pacs: DICOMweb URL of a PACS: --volume and --run are then Series Instance UIDs of --study.
         study: Study Instance UID on the PACS.
         ca_bundle: CA certificates (PEM) to verify an https:// PACS against.
+        sid_mm: Source-detector distance for runs without DistanceSourceToDetector (0018,1110).
+        sod_mm: Source-iso-center distance for runs without DistanceSourceToPatient (0018,1111).
+        frame_time_ms: Frame spacing for runs without FrameTimeVector, FrameTime or CineRate.
     """
     if pacs is not None:
         from app.net_commands import run_track_pacs
@@ -377,7 +383,7 @@ def track(
 
     return run_track(
         volume=volume, run=run, run_b=run_b, out=out, truth=truth, isocenter=isocenter, seed=seed,
-        every_frame=every_frame,
+        every_frame=every_frame, sid_mm=sid_mm, sod_mm=sod_mm, frame_time_ms=frame_time_ms,
     )  # fmt: skip
 
 

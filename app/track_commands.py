@@ -60,21 +60,30 @@ def run_track(
     isocenter: str | None = None,
     seed: int = 0,
     every_frame: bool = False,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
+    frame_time_ms: float | None = None,
 ) -> int:
-    """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON."""
+    """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON.
+
+    ``sid_mm``, ``sod_mm`` and ``frame_time_ms`` fill in what a run's files lack
+    (:func:`registration.io.dicom.read_xray_run`)."""
     from app.commands import parse_isocenter
     from registration.core.metrics import residuals
     from registration.core.tracking import track_run
 
     if out is not None and Path(out).is_dir():
         raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
-    iso = parse_isocenter(isocenter)
+    if isocenter is not None and isocenter.strip().lower() != "volume-center":
+        parse_isocenter(isocenter)  # a bad value is refused before any file is read
+    given = {"sid_mm": sid_mm, "sod_mm": sod_mm, "frame_time_ms": frame_time_ms}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)
-        runs = [dicom.read_xray_run(run, isocenter_mm=iso)]
+        iso = parse_isocenter(isocenter, vol)
+        runs = [dicom.read_xray_run(run, isocenter_mm=iso, **given)]
         if run_b is not None:
-            runs.append(dicom.read_xray_run(run_b, isocenter_mm=iso))
+            runs.append(dicom.read_xray_run(run_b, isocenter_mm=iso, **given))
     for w in caught:
         _err(f"warning: {w.message}")
     if len(runs) == 2:

@@ -234,7 +234,7 @@ def frame_times(
     raise DicomError(
         path,
         f"{frames} frames but no frame times: missing {tag_name('FrameTimeVector')}, {tag_name('FrameTime')} "
-        f"and {tag_name('CineRate')} (supply frame_time_ms)",
+        f"and {tag_name('CineRate')} (supply them with frame_time_ms, --frame-time-ms)",
     )
 
 
