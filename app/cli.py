@@ -454,6 +454,14 @@ def main(argv: list[str] | None = None) -> None:
             raise
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except (ArithmeticError, RecursionError, MemoryError, LookupError, TypeError) as exc:
+        # Reachable only from a value no check caught (a file or an option): still a message, exit 2.
+        if debug:
+            raise
+        what = str(exc).strip() or "no details"
+        print(f"error: {type(exc).__name__} on this input ({what}); rerun with ROADMAP3D_DEBUG=1 to see where",
+              file=sys.stderr)  # fmt: skip
+        sys.exit(2)
     sys.exit(int(code or 0))
 
 

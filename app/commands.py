@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
+import tempfile
 import threading
 import time
 import warnings
@@ -148,6 +150,8 @@ def read_motion_json(path: Path, *, what: str) -> tuple[np.ndarray, dict[str, An
         raise ValueError(f"{path}: cannot read the {what} file ({exc})") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: the {what} file nests its JSON too deeply to be a motion file") from None
     if not isinstance(document, dict) or "patient_motion" not in document:
         raise ValueError(f"{path}: the {what} file must be a JSON object with a 'patient_motion' 4x4 matrix")
     try:
@@ -158,7 +162,36 @@ def read_motion_json(path: Path, *, what: str) -> tuple[np.ndarray, dict[str, An
         motion = check_rigid(matrix, name=f"{path}: patient_motion")
     except ValueError as exc:
         raise ValueError(str(exc)) from None
+    shift_mm = float(np.linalg.norm(motion[:3, 3]))
+    if shift_mm > MAX_MOTION_MM:
+        raise ValueError(
+            f"{path}: the {what}'s translation is {shift_mm:.4g} mm; a patient motion is at most {MAX_MOTION_MM:g} mm"
+        )
     return motion, document
+
+
+#: Largest translation (mm) a motion file may hold: far beyond any patient motion on the table.
+MAX_MOTION_MM = 1000.0
+
+
+def check_writable(target: Path | None, flag: str) -> None:
+    """Refuse an output the command could not write, before any work: found only after a
+    registration ran, the message named the ``.tmp`` file."""
+    if target is None:
+        return
+    target = Path(target)
+    if target.is_dir():
+        raise ValueError(f"{target}: is a folder; {flag} takes a file name")
+    parent = target.parent if str(target.parent) else Path(".")
+    if not parent.is_dir():
+        raise ValueError(f"{target}: its folder {parent} does not exist ({flag})")
+    if target.exists() and not os.access(target, os.W_OK):
+        raise ValueError(f"{target}: not writable ({flag})")
+    try:
+        probe = tempfile.NamedTemporaryFile(dir=parent, prefix=f".{target.name}.", suffix=".probe", delete=True)
+    except OSError as exc:
+        raise ValueError(f"{target}: cannot write into {parent} ({flag}: {exc.strerror or exc})") from None
+    probe.close()
 
 
 def read_motion(path: Path, *, what: str, volume_frame_of_reference: str | None = None) -> tuple[np.ndarray, dict]:
@@ -212,6 +245,7 @@ def run_register(
     for target, flag, kind in ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM")):
         if target is not None and Path(target).is_dir():
             raise ValueError(f"{target}: is a folder; {flag} takes a {kind} file name")
+        check_writable(target, flag)  # before the registration runs, not after
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)
@@ -471,6 +505,7 @@ def run_mesh(
     out = Path(out)
     if out.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{out}: the output must end in {', '.join(MESH_SUFFIXES)}")
+    check_writable(out, "--out")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)
