@@ -266,7 +266,7 @@ def listen(
         port: Port to listen on (0: any free port, printed).
         host: Interface to bind; 127.0.0.1 keeps the node on this machine.
         folder: Private folder (0700) for received files (default: the user data dir's roadmap3d/received).
-        volume: Register every received XA/RF image (a run: its newest frame) to this 3DRA/CT.
+        volume: Register every received XA/RF image to this 3DRA/CT, and track every received run (CONVENTIONS §7).
     """
     from app.net_commands import run_listen
 

@@ -37,7 +37,8 @@ def default_received_folder() -> Path:
 # listen
 # --------------------------------------------------------------------------------------
 class _Registrar:
-    """Registers received X-ray images to one volume on a worker thread, in arrival order."""
+    """Registers received X-ray images (tracks received runs) against one volume on a worker
+    thread, in arrival order."""
 
     def __init__(self, volume_path: Path, results: Path) -> None:
         with warnings.catch_warnings():
@@ -49,28 +50,56 @@ class _Registrar:
         self.thread.start()
 
     def _work(self) -> None:
-        from registration.core.register import register
-
         while (item := self.queue.get()) is not None:
             try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    frame = item.frames - 1 if item.frames > 1 else None  # a run: its newest frame
-                    xray = dicom.read_xray(item.path, frame=frame)
-                result = register(self.volume, xray)
-                m = result.patient_motion
-                document = result.to_dict()
-                document["image"] = {"path": str(item.path), "frame": xray.meta.get("frame", 0)}
-                document["volume"] = {"label": self.volume.label}
-                self.results.mkdir(mode=0o700, exist_ok=True)
-                out = self.results / f"{item.path.stem}.json"
-                dicom.write_text_atomic(out, dicom.json_dumps(document))
-                _say(
-                    f"registered {item.path.name}: translation ({m[0, 3]:+.2f}, {m[1, 3]:+.2f}, {m[2, 3]:+.2f}) mm, "
-                    f"similarity {result.similarity:.4f}, {result.seconds:.1f} s -> {out}"
-                )
+                if item.frames > 1:
+                    self._track(item)
+                else:
+                    self._register(item)
             except ValueError as exc:
                 _err(f"error: cannot register {item.path}: {exc}")
+
+    def _write(self, item: Received, document: dict) -> Path:
+        self.results.mkdir(mode=0o700, exist_ok=True)
+        out = self.results / f"{item.path.stem}.json"
+        dicom.write_text_atomic(out, dicom.json_dumps(document))
+        return out
+
+    def _register(self, item: Received) -> None:
+        from registration.core.register import register
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            xray = dicom.read_xray(item.path)
+        result = register(self.volume, xray)
+        m = result.patient_motion
+        document = result.to_dict()
+        document["image"] = {"path": str(item.path), "frame": xray.meta.get("frame", 0)}
+        document["volume"] = {"label": self.volume.label}
+        out = self._write(item, document)
+        _say(
+            f"registered {item.path.name}: translation ({m[0, 3]:+.2f}, {m[1, 3]:+.2f}, {m[2, 3]:+.2f}) mm, "
+            f"similarity {result.similarity:.4f}, {result.seconds:.1f} s -> {out}"
+        )
+
+    def _track(self, item: Received) -> None:
+        """A received run: tracked frame by frame (CONVENTIONS §7), every frame (a replay)."""
+        from registration.core.tracking import track_run
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            run = dicom.read_xray_run(item.path)
+            frames = run.frames()
+        result = track_run(self.volume, [frames], run.times_s, realtime=False)
+        document = result.to_dict()
+        document["run"] = {"path": str(item.path), "frames": len(frames)}
+        document["volume"] = {"label": self.volume.label}
+        out = self._write(item, document)
+        counts: dict[str, int] = {}
+        for f in result.frames:
+            counts[f.status] = counts.get(f.status, 0) + 1
+        statuses = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+        _say(f"tracked {item.path.name}: {len(frames)} frames ({statuses}) -> {out}")
 
     def close(self) -> None:
         self.queue.put(None)

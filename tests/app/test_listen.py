@@ -1,8 +1,8 @@
 """``roadmap3d listen``: the DICOM node as a command, fed to ``register``.
 
 The command runs in its own process (as a user starts it); pynetdicom's StoreSCU plays the
-C-arm. The phantom's XA image is received, reported, and registered to the exported 3DRA;
-SIGTERM stops the node cleanly (exit code 0).
+C-arm. The phantom's XA image is received, reported, and registered to the exported 3DRA; a
+three-frame run is received and tracked; SIGTERM stops the node cleanly (exit code 0).
 """
 
 from __future__ import annotations
@@ -72,6 +72,10 @@ def test_listen_receives_and_registers(tmp_path: Path, small_export: Path) -> No
         assert assoc.is_established
         ds = dicom.read_dataset(small_export / "xa_fluoro.dcm")
         assert assoc.send_c_store(ds).Status == 0x0000
+        # a short run (three frames of the same view, 1/15 s apart) is tracked, not registered
+        image = dicom.read_xray(small_export / "xa_fluoro.dcm")
+        run_file = dicom.write_xray_run([image, image, image], tmp_path / "run.dcm", times_s=[0.0, 1 / 15, 2 / 15])
+        assert assoc.send_c_store(dicom.read_dataset(run_file)).Status == 0x0000
         assoc.release()
         path = Path(_read_until(lines, r"received XA from CARM: (\S+)", seen)[1])
         assert path.is_file() and path.is_relative_to(folder)
@@ -82,8 +86,11 @@ def test_listen_receives_and_registers(tmp_path: Path, small_export: Path) -> No
         # 7-8 mm and 5-7 deg away from the start; a 48^3 / 96^2 export lands within a few mm).
         error_mm = np.abs(np.asarray(doc["patient_motion"])[:3, 3] - np.asarray(truth["patient_motion"])[:3, 3])
         assert error_mm.max() < 3.0, (error_mm, doc["patient_motion"])
+        tracked = Path(_read_until(lines, r"tracked \S+: 3 frames \(.*\) -> (\S+)$", seen)[1])
+        frames = json.loads(tracked.read_text())["frames"]
+        assert [f["frame"] for f in frames] == [0, 1, 2] and all(f["status"] for f in frames)
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=60)
     assert proc.returncode == 0, proc.stderr.read()  # type: ignore[union-attr]
-    _read_until(lines, r"stopped; 1 instance\(s\) received", seen)
+    _read_until(lines, r"stopped; 2 instance\(s\) received", seen)
