@@ -179,6 +179,8 @@ class RegistrationResult:
     residual: Residual | None = None
     parameters: tuple[str, ...] = FIVE_PARAMETERS
     views: tuple[CArm, ...] = ()
+    #: Where the capture runs of the first level ended (4x4 motions; empty with one run).
+    capture_motions: tuple[Array, ...] = ()
 
     @property
     def success(self) -> bool | None:
@@ -264,6 +266,8 @@ class _Monitor:
         self._level = -1
         self._best: tuple[float, Array] | None = None
         self._temperatures: dict[int, float] = {}
+        #: Where the first level's capture runs ended (motions): the confidence's agreement.
+        self.captures: list[Array] = []
 
     @property
     def stopped(self) -> bool:
@@ -353,6 +357,8 @@ def _anneal_level(
     workers = max(1, min(level.restarts, threads or os.cpu_count() or 1))
     with ThreadPoolExecutor(max_workers=workers) as pool:
         results = list(pool.map(lambda c: run(c[0], c[1], False), enumerate(rng.spawn(level.restarts))))
+    if not monitor.captures:
+        monitor.captures = [space.motion(r.x) for r in results]
     return min(results, key=lambda r: r.fun)
 
 
@@ -457,4 +463,5 @@ def _result(inputs: Inputs, space: SearchSpace, x: Array, f: float, monitor: _Mo
         residual=res,
         parameters=space.names,
         views=tuple(v.geometry for v in inputs.views),
+        capture_motions=tuple(monitor.captures),
     )

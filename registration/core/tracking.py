@@ -369,7 +369,7 @@ class Tracker:
             path = "capture"
             result = register(
                 self.volume,
-                views[0],
+                views,  # two planes: all six parameters
                 initial_motion=self.shown_pose,
                 options=o.capture,
                 seed=self.seed + frame,
@@ -587,3 +587,60 @@ def track_run(
     finally:
         tracker.close()
     return TrackingRun(estimates, skipped, n, volume.label, len(runs))
+
+
+# --------------------------------------------------------------------------------------
+# Confidence of a single registration
+# --------------------------------------------------------------------------------------
+def registration_evidence(
+    volume: Volume,
+    xray: XRayImage,
+    motion: ArrayLike,
+    *,
+    renderer: DRRRenderer | None = None,
+    capture_motions: Sequence[ArrayLike] | None = None,
+    image_px: int = 128,
+    volume_voxels: int = 128,
+    support_margin_mm: float = 4.0,
+) -> Evidence:
+    """What the engine can tell about one registration result without a run around it.
+
+    ``margin``: the measure's mean margin at ``motion`` over poses perturbed by PERTURB_MM /
+    PERTURB_DEG along each of the five parameters (10 DRRs at about ``image_px`` pixels),
+    relative to the measure; ``edges``: the field's edge fraction; ``agreement``: the capture
+    runs' agreement with the result (when ``capture_motions`` are given).
+    """
+    from registration.core.confidence import PERTURB_DEG, PERTURB_MM, capture_agreement
+
+    m = check_rigid(motion, name="motion")
+    if renderer is None:
+        renderer = DRRRenderer(volume, levels=3)
+    sizes = [max(renderer.level_volume(k).shape) for k in range(renderer.n_levels)]
+    level = int(np.argmin([abs(math.log(s / volume_voxels)) for s in sizes]))
+    factor = _level_factor(xray.geometry, image_px)
+    small_geom = xray.geometry.resized(xray.geometry.rows // factor, xray.geometry.cols // factor)
+    lv = _Level(xray, factor, support_mask(volume, small_geom, m, support_margin_mm), 1)
+    geometry = xray.geometry
+
+    def f(pose: Array) -> float:
+        return lv.measures[0](renderer.render(lv.geometry, pose, level=level, mask=lv.mask))
+
+    f_est = f(m)
+    steps = [PERTURB_MM, PERTURB_MM, PERTURB_DEG, PERTURB_DEG, PERTURB_DEG]
+    slots = [0, 1, 3, 4, 5]  # tx, ty, rx, ry, rz of the six offsets
+    margins = []
+    for slot, step in zip(slots, steps, strict=True):
+        worst = -math.inf
+        for sign in (1.0, -1.0):
+            o = np.zeros(6)
+            o[slot] = sign * step
+            worst = max(worst, f(offsets_to_matrix(o, geometry) @ m))
+        margins.append(f_est - worst)
+    agreement = None
+    if capture_motions:
+        agreement = capture_agreement([np.asarray(c) for c in capture_motions], m, geometry.isocenter_mm)
+    return Evidence(
+        margin=float(np.mean(margins)) / max(abs(f_est), 1e-12),
+        agreement=agreement,
+        edges=edge_fraction(lv.image, lv.mask),
+    )

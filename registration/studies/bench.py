@@ -89,11 +89,15 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
     reg = bench_registration(seed=seed)
     say("biplane registration (27 cm 3DRA, two planes, clinical offsets) ...")
     biplane = bench_biplane(seed=seed, repeats=2 if quick else 4)
+    from registration.studies.tracking import bench_tracking
+
+    say("tracking a 20 s fluoro run at its frame times ...")
     out: dict = {
         "drr": drr,
         "gradient_difference_ms_median": gd_ms,
         "registration": reg,
         "biplane": biplane,
+        "tracking": bench_tracking(seed=seed),
     }
     if not quick:
         from registration.sim.reconstruct import bench_reconstruction

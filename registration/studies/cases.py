@@ -140,6 +140,29 @@ def case_volume(case: Case) -> Volume:
     )
 
 
+def confidence_fields(volume: Volume, xray: object, result: object, renderer: DRRRenderer | None = None) -> dict:
+    """``confidence``, ``applied`` (CONVENTIONS §7), why not, and the evidence of one registration."""
+    from registration.core.confidence import DEFAULT_RULE
+    from registration.core.tracking import registration_evidence
+
+    start = time.perf_counter()
+    evidence = registration_evidence(
+        volume,
+        xray,  # type: ignore[arg-type]
+        result.patient_motion,  # type: ignore[attr-defined]
+        renderer=renderer,
+        capture_motions=getattr(result, "capture_motions", None),
+    )
+    assessment = DEFAULT_RULE.assess(evidence)
+    return {
+        "confidence": assessment.confidence,
+        "applied": assessment.applied,
+        "withheld_reason": assessment.reason,
+        "confidence_evidence": evidence.to_dict(),
+        "confidence_seconds": time.perf_counter() - start,
+    }
+
+
 def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
     """Simulate the X-ray image of the moved phantom and register the 3DRA to it."""
     from registration.sim.xray import simulate_xray
@@ -189,6 +212,7 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         "similarity": result.similarity,
         "volume_label": result.volume_label,
         "version": __version__,
+        **confidence_fields(volume, xray, result, renderer),
     }
 
 
@@ -328,4 +352,3 @@ def offcenter_volume(
 
     label = RECONSTRUCTION_LABEL.format(n=projections) + f", centered at {center.tolist()} mm"
     return Volume(arrays["data"], arrays["index_to_world"], label=label, meta=params)
-

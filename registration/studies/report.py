@@ -114,6 +114,22 @@ def _num(s: str) -> tuple:
         return (1, 0.0, s)
 
 
+def applied_summary(records: Sequence[dict]) -> dict:
+    """Applied precision (applied estimates that succeeded) and recall (successes that were
+    applied), over the records that carry a decision (CONVENTIONS §7, issue 13)."""
+    decided = [r for r in records if "applied" in r]
+    applied = [r for r in decided if r["applied"]]
+    right = [r for r in decided if r["success"]]
+    both = [r for r in applied if r["success"]]
+    return {
+        "applied_precision": len(both) / len(applied) if applied else None,
+        "applied_recall": len(both) / len(right) if right else None,
+        "applied": len(applied),
+        "withheld": len(decided) - len(applied),
+        "applied_wrong": [r.get("case_id") for r in applied if not r["success"]],
+    }
+
+
 def phantom_summary(records: Sequence[dict], *, config: dict, wall_seconds: float) -> dict:
     """The phantom study's numbers (the ``--json`` object)."""
     grid = [r for r in records if r.get("variant", "standard") == "standard"]
@@ -139,6 +155,7 @@ def phantom_summary(records: Sequence[dict], *, config: dict, wall_seconds: floa
         "success_rate_facial_volume": rate(facial),
         "runs_facial_volume": len(facial),
         "success_rate_total_translation": rate(grid, "success_total"),
+        **applied_summary(records),
         "by_kind": by_kind,
         "by_offset": _breakdown(grid, "offset"),
         "by_volume_format": _breakdown(grid, "volume_format_cm"),
@@ -182,7 +199,7 @@ def _clinical_group(records: Sequence[dict]) -> dict:
 
 def clinical_summary(records: Sequence[dict], *, config: dict, wall_seconds: float) -> dict:
     """The clinical study's numbers (the ``--json`` object)."""
-    out = {"study": "clinical", **_clinical_group(records)}
+    out = {"study": "clinical", **_clinical_group(records), **applied_summary(records)}
     out["contrast"] = _clinical_group([r for r in records if r["contrast"]])
     out["no_contrast"] = _clinical_group([r for r in records if not r["contrast"]])
     out["by_patient"] = {
@@ -821,6 +838,61 @@ def _write(out: Path, md: str, title: str) -> None:
     (out / "report.html").write_text(markdown_to_html(md, title))
 
 
+def roc_plot(confidence: list[float], right: list[bool], threshold: float, path: Path, *, title: str) -> Path:
+    """ROC curve of 'apply when confidence >= c', with the rule's operating point."""
+    from registration.core.confidence import precision_recall, roc_curve
+
+    plt = _plt()
+    roc = roc_curve(confidence, right)
+    fig, ax = plt.subplots(figsize=(5, 5))
+    ax.plot(roc["fpr"], roc["tpr"], color="#1f77b4", lw=1.8, label=f"AUC {roc['auc']:.3f}")
+    ax.plot([0, 1], [0, 1], color="#aaa", lw=0.8, ls=":")
+    applied = [c >= threshold for c in confidence]
+    r = np.asarray(right, dtype=bool)
+    a = np.asarray(applied, dtype=bool)
+    fpr = float((a & ~r).sum() / max((~r).sum(), 1))
+    tpr = float((a & r).sum() / max(r.sum(), 1))
+    p, rc = precision_recall(applied, right)
+    label = f"rule (c >= {threshold:.2f}): precision {100 * (p or 0):.1f} %, recall {100 * (rc or 0):.1f} %"
+    ax.plot([fpr], [tpr], "o", color="#d62728", label=label)
+    ax.set_xlabel("false positive rate (wrong estimates applied)")
+    ax.set_ylabel("true positive rate (right estimates applied)")
+    ax.set_title(f"{title}\n{roc['positives']} right, {roc['negatives']} wrong estimates", fontsize=10)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_xlim(-0.02, 1.02)
+    ax.set_ylim(-0.02, 1.02)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def confidence_section(records: Sequence[dict], out: Path, images: dict[str, str], title: str) -> str:
+    """The ROC plot of the records' confidence against their success, and its markdown section."""
+    from registration.core.confidence import DEFAULT_RULE
+
+    decided = [r for r in records if r.get("confidence") is not None]
+    if not decided:
+        return ""
+    roc_plot([r["confidence"] for r in decided], [bool(r["success"]) for r in decided], DEFAULT_RULE.threshold,
+             out / "roc.png", title=title)  # fmt: skip
+    images["roc"] = "roc.png"
+    s = applied_summary(decided)
+    return "\n".join([
+        "",
+        "## Confidence: which estimates would move the roadmap",
+        "",
+        f"Every registration gets a confidence (margin of the measure over perturbed poses, agreement of the "
+        f"capture runs where known, edges in the field) and is applied when it reaches "
+        f"{DEFAULT_RULE.threshold:g}. {s['applied']} applied, {s['withheld']} withheld; applied precision "
+        f"{_pct(s['applied_precision'])} (applied estimates that are right; target 99 %), recall "
+        f"{_pct(s['applied_recall'])} (right estimates that were applied; target 90 %).",
+        "",
+        "![ROC](roc.png)",
+        "",
+    ])  # fmt: skip
+
+
 def write_phantom_report(records: Sequence[dict], summary: dict, out: Path) -> dict[str, str]:
     """Heatmaps, histograms, report.md/html and summary.json into ``out``."""
     import json
@@ -835,7 +907,9 @@ def write_phantom_report(records: Sequence[dict], summary: dict, out: Path) -> d
         images["hist"] = "fig6_histograms.png"
     else:
         images["hist"] = ""
-    _write(out, phantom_report_md(records, summary, images), "roadmap3d phantom study")
+    md = phantom_report_md(records, summary, images)
+    md += confidence_section(records, out, images, "phantom study: confidence of the registrations")
+    _write(out, md, "roadmap3d phantom study")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return images
 
@@ -860,7 +934,9 @@ def write_clinical_report(
         extra["title"] = title
     if method is not None:
         extra["method"] = method
-    _write(out, clinical_report_md(records, summary, images, **extra), f"roadmap3d {title or 'clinical study'}")
+    md = clinical_report_md(records, summary, images, **extra)
+    md += confidence_section(records, out, images, f"{title or 'clinical study'}: confidence of the registrations")
+    _write(out, md, f"roadmap3d {title or 'clinical study'}")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return images
 
@@ -890,6 +966,12 @@ def summary_lines(summary: dict) -> list[str]:
             f"{_pct(summary['no_contrast']['translation_success_rate'])} / "
             f"{_pct(summary['no_contrast']['rotation_success_rate'])} (paper 92.4/86.6, 81.8/81.2)",
         ]
+    if summary.get("applied_precision") is not None or summary.get("applied_recall") is not None:
+        lines.append(
+            f"confidence: {summary['applied']} applied, {summary['withheld']} withheld; applied precision "
+            f"{_pct(summary['applied_precision'])} (target 99 %), recall {_pct(summary['applied_recall'])} "
+            "(target 90 %)"
+        )
     lines.append(
         f"median {summary['seconds_median'] or 0:.2f} s per registration, wall {summary['wall_seconds']:.0f} s"
     )

@@ -420,7 +420,12 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
         {"frame": case.frame, "source": "rotational run"},
     )
     offset = _translation(case.translation_mm) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg)
-    result = register(data.volume, xray, initial_motion=offset, truth=np.eye(4), seed=case.seed, options=options)
+    from registration.studies.cases import confidence_fields, prepared_renderer
+
+    renderer, _ = prepared_renderer(data.volume)
+    result = register(
+        data.volume, xray, initial_motion=offset, truth=np.eye(4), seed=case.seed, options=options, renderer=renderer
+    )
     res = result.residual
     assert res is not None
     t = np.asarray(case.translation_mm)
@@ -455,6 +460,7 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
         "volume_voxels": case.volume_voxels,
         "projections": case.projections,
         "version": __version__,
+        **confidence_fields(data.volume, xray, result, renderer),
     }
 
 

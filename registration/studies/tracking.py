@@ -311,36 +311,6 @@ def strip_chart(case: dict, path: Path) -> Path:
     return path
 
 
-def roc_plot(confidence: list[float], right: list[bool], threshold: float, path: Path, *, title: str) -> Path:
-    """ROC curve of 'apply when confidence >= c', with the rule's operating point."""
-    from registration.core.confidence import precision_recall, roc_curve
-    from registration.studies.report import _plt
-
-    plt = _plt()
-    roc = roc_curve(confidence, right)
-    fig, ax = plt.subplots(figsize=(5, 5))
-    ax.plot(roc["fpr"], roc["tpr"], color="#1f77b4", lw=1.8, label=f"AUC {roc['auc']:.3f}")
-    ax.plot([0, 1], [0, 1], color="#aaa", lw=0.8, ls=":")
-    applied = [c >= threshold for c in confidence]
-    r = np.asarray(right, dtype=bool)
-    a = np.asarray(applied, dtype=bool)
-    fpr = float((a & ~r).sum() / max((~r).sum(), 1))
-    tpr = float((a & r).sum() / max(r.sum(), 1))
-    p, rc = precision_recall(applied, right)
-    label = f"rule (c >= {threshold:.2f}): precision {100 * (p or 0):.1f} %, recall {100 * (rc or 0):.1f} %"
-    ax.plot([fpr], [tpr], "o", color="#d62728", label=label)
-    ax.set_xlabel("false positive rate (wrong estimates applied)")
-    ax.set_ylabel("true positive rate (right estimates applied)")
-    ax.set_title(f"{title}\n{roc['positives']} right, {roc['negatives']} wrong estimates", fontsize=10)
-    ax.legend(fontsize=8, loc="lower right")
-    ax.set_xlim(-0.02, 1.02)
-    ax.set_ylim(-0.02, 1.02)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
 def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
     """results.json, one strip chart per case, the ROC curve, report.md and report.html."""
     import json
@@ -356,6 +326,8 @@ def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
         name = f"strip_{case['case']}.png"
         strip_chart(case, out / name)
         images[case["case"]] = name
+    from registration.studies.report import roc_plot
+
     est = [f for c in study["cases"] for f in c["frames"] if "right" in f]
     rule_threshold = TrackingOptions().rule.threshold
     if est:

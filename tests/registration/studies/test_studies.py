@@ -141,6 +141,9 @@ def test_phantom_study_runs_resumes_and_reports(tmp_path: Path):
         assert r["version"] == __version__ and r["study_seed"] == 3 and isinstance(r["seed"], int)
         for key in ("inplane_residual_mm", "rotation_residual_deg", "success", "offset", "case_id", "volume_label"):
             assert key in r
+        # every registration carries its confidence and the decision (issue 13)
+        assert 0.0 <= r["confidence"] <= 1.0 and isinstance(r["applied"], bool)
+        assert r["applied"] == (r["confidence"] >= 0.5) and (r["withheld_reason"] == "") == r["applied"]
     lines = (tmp_path / "results.jsonl").read_text().splitlines()
     assert len(lines) == 2
     # a rerun of the whole study does only the missing registration (the facial one)
@@ -163,8 +166,13 @@ def test_phantom_study_runs_resumes_and_reports(tmp_path: Path):
     summary = phantom_summary(records, config={"seed": 3, "quick": True}, wall_seconds=1.0)
     assert summary["runs"] == 3 and summary["runs_grid"] == 2 and summary["runs_facial_volume"] == 1
     assert summary["runs_clinically_relevant"] == 2  # 27/22 and 27/27; the facial 22/27 is not
+    applied = [r for r in records if r["applied"]]
+    right = [r for r in records if r["success"]]
+    both = [r for r in applied if r["success"]]
+    assert summary["applied_precision"] == (len(both) / len(applied) if applied else None)
+    assert summary["applied_recall"] == (len(both) / len(right) if right else None)
     write_phantom_report(records, summary, tmp_path)
-    for name in ("report.md", "report.html", "table2_fluoro.png", "fig6_histograms.png", "summary.json"):
+    for name in ("report.md", "report.html", "table2_fluoro.png", "fig6_histograms.png", "summary.json", "roc.png"):
         assert (tmp_path / name).stat().st_size > 0, name
     md = (tmp_path / "report.md").read_text()
     assert __version__ in md and "seed 3" in md and "97 %" in md
