@@ -137,9 +137,15 @@ def _x_ray_frame_of_reference(meta: Mapping[str, Any], uid_seed: str | None) -> 
     return str(make_uid(instance, "x-ray frame of reference") if instance else make_uid(uid_seed, "x-ray for"))
 
 
-def _matrix_item(matrix: Array, comment: str) -> Dataset:
+def _matrix_item(matrix: Array, comment: str, *, content_based: bool) -> Dataset:
     item = Dataset()
-    item.RegistrationTypeCodeSequence = Sequence([])
+    codes = []
+    if content_based:  # CID 7100 RCS Registration Method Type
+        code = Dataset()
+        code.CodeValue, code.CodingSchemeDesignator = "125024", "DCM"
+        code.CodeMeaning = "Image Content-based Alignment"
+        codes.append(code)
+    item.RegistrationTypeCodeSequence = Sequence(codes)
     item.FrameOfReferenceTransformationComment = comment[:64]  # LO
     entry = Dataset()
     entry.FrameOfReferenceTransformationMatrixType = "RIGID"
@@ -215,12 +221,17 @@ def write_registration(
         if int(xmeta.get("frames", 1) or 1) > 1:
             ref.ReferencedFrameNumber = int(xmeta.get("frame", 0)) + 1  # DICOM frames count from 1
         x_item.ReferencedImageSequence = Sequence([ref])
-    x_item.MatrixRegistrationSequence = Sequence([_matrix_item(np.eye(4), "X-ray image: registered frame")])
+    identity = _matrix_item(np.eye(4), "X-ray image: registered frame", content_based=False)
+    x_item.MatrixRegistrationSequence = Sequence([identity])
     # Item 2: the volume's frame, mapped by the patient motion.
     v_item = Dataset()
     v_item.FrameOfReferenceUID = v_for
     v_item.MatrixRegistrationSequence = Sequence(
-        [_matrix_item(motion, "patient motion M (roadmap3d): volume X is at M @ X in the image")]
+        [
+            _matrix_item(
+                motion, "patient motion M (roadmap3d): volume X is at M @ X in the image", content_based=True
+            )
+        ]
     )
     ds.RegistrationSequence = Sequence([x_item, v_item])
     series = []

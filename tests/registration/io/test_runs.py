@@ -64,6 +64,7 @@ def test_frame_times_from_cine_rate(tmp_path: Path) -> None:
     run = dicom.read_xray_run(_run_file(tmp_path, "cr.dcm", CineRate="15"))
     np.testing.assert_allclose(run.times_s, np.arange(4) / 15.0, rtol=0, atol=1e-12)
     assert run.times_from == "CineRate"
+    assert "from CineRate" in dicom.inspect(run.path)["frame_times"]  # what roadmap3d info shows
 
 
 def test_frame_times_refused_or_supplied(tmp_path: Path) -> None:

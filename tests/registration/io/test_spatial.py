@@ -64,6 +64,8 @@ def test_registration_round_trip(pair, tmp_path: Path) -> None:
     assert len(slices) == 4  # every slice of the series
     written = v_item.MatrixRegistrationSequence[0].MatrixSequence[0]
     assert written.FrameOfReferenceTransformationMatrixType == "RIGID"
+    (method,) = v_item.MatrixRegistrationSequence[0].RegistrationTypeCodeSequence
+    assert (method.CodeValue, method.CodingSchemeDesignator) == ("125024", "DCM")  # image content-based
     np.testing.assert_allclose(
         np.array(written.FrameOfReferenceTransformationMatrix, dtype=float).reshape(4, 4), motion, atol=MATRIX_TOL
     )
