@@ -253,7 +253,10 @@ def _frame_datetimes(path: Path, ds: Dataset, frames: int) -> NDArray[np.float64
             raise DicomError(
                 path, f"{tag_name('FrameAcquisitionDateTime')} of frame {n} is not a date-time: {str(value)[:32]!r}"
             ) from None
-    return np.asarray(stamps, dtype=np.float64)
+    out = np.asarray(stamps, dtype=np.float64)
+    if np.all(out == out[0]):
+        return None  # one date-time for all frames (e.g. only the top level's): no frame times
+    return out
 
 
 def _checked_times(path: Path, times: NDArray[np.float64], keyword: str) -> NDArray[np.float64]:

@@ -148,6 +148,9 @@ def test_enhanced_run_times_angles_and_planes_per_frame(tmp_path: Path) -> None:
     assert run[2].meta["plane"] == "PLANE B"
     assert dicom.read_xray(path, frame=0).meta["plane"] == "PLANE A"
     assert run.geometries[1].sod_mm == 785.0
+    same = _enhanced_run(tmp_path / "same.dcm", frames=2, stamps=["20260101120000"] * 2, planes=None)
+    with pytest.raises(DicomError, match="no frame times"):  # one moment for every frame is no time line
+        dicom.read_xray_run(same)
     bad = _enhanced_run(tmp_path / "bad.dcm", frames=2, stamps=["20260101120000", "tomorrow"], planes=None)
     with pytest.raises(DicomError, match=r"FrameAcquisitionDateTime \(0018,9074\) of frame 1"):
         dicom.read_xray_run(bad)
