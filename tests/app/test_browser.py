@@ -48,7 +48,19 @@ def canvas_is_drawn(page) -> bool:
     from PIL import Image
 
     # A clip of the page, not Locator.screenshot: that waits for the (always animating) canvas to be "stable".
-    box = page.locator("canvas").first.bounding_box()
+    # The 3D scene is the largest canvas on the page (charts in the panels are canvases too, some
+    # of them zero-sized in a closed tab).
+    box = page.evaluate(
+        """() => {
+            let best = null;
+            for (const c of document.querySelectorAll("canvas")) {
+                const r = c.getBoundingClientRect();
+                if (!best || r.width * r.height > best.width * best.height)
+                    best = {x: r.x, y: r.y, width: r.width, height: r.height};
+            }
+            return best;
+        }"""
+    )
     assert box is not None and box["width"] > 100 and box["height"] > 100, f"no 3D canvas: {box}"
     png = page.screenshot(clip=box, timeout=180_000)  # software WebGL on 2 busy cores is slow
     pixels = np.asarray(Image.open(io.BytesIO(png)).convert("L"), dtype=np.float32)
