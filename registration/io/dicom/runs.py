@@ -82,7 +82,9 @@ class XRayRun(Sequence["XRayImage"]):
         One Plane Identification per frame ("MONOPLANE", "PLANE A", "PLANE B"), or "" where
         the file does not say.
     meta
-        What :func:`read_xray_run` read (format, modality, frames, angle source, ...).
+        What :func:`read_xray_run` read (modality, frames, angle and distance sources, and
+        ``acquisition_datetime``: AcquisitionDateTime, else AcquisitionDate + AcquisitionTime,
+        as DICOM text, "" when absent).
 
     ``run[n]`` decodes frame ``n`` as an :class:`~registration.core.images.XRayImage` whose
     geometry is ``geometries[n]`` and whose ``meta`` holds ``frame``, ``t_s`` and ``plane``.
@@ -175,6 +177,9 @@ def read_xray_run(
         "frames": frames,
         "modality": _text(ds, "Modality").upper(),
         "times_from": times_from,
+        # When the first frame was taken (CONVENTIONS §6 pairs the planes of a biplane run by it).
+        "acquisition_datetime": _text(ds, "AcquisitionDateTime")
+        or (_text(ds, "AcquisitionDate") + _text(ds, "AcquisitionTime")),
         **info,
     }
     read = {"rows": rows, "cols": cols, "iso": iso, "kind": kind, "sid_mm": sid_mm, "sod_mm": sod_mm}

@@ -172,6 +172,7 @@ def test_write_xray_run_round_trip(tmp_path: Path, times: list[float]) -> None:
     np.testing.assert_allclose(run.times_s, times, rtol=0, atol=1e-9)
     assert run.angles_deg == [(-20.0 + 7.5 * n, 5.0 - n) for n in range(5)]
     assert run.planes == ("PLANE B",) * 5
+    assert run.meta["acquisition_datetime"] == ds.AcquisitionDateTime  # for pairing biplane runs (§6)
     for original, back in zip(frames, run, strict=True):
         # One stored step is 1 / LOG_UNITS_PER_ATTENUATION (rounding: half of it).
         assert np.max(np.abs(back.image - original.image)) <= 0.5 / dicom.LOG_UNITS_PER_ATTENUATION + 1e-6
