@@ -199,6 +199,20 @@ class StudyEntry:
     modalities: tuple[str, ...]
 
 
+#: SOP classes of X-ray images and runs (XA, enhanced XA, RF, enhanced XRF) ...
+XRAY_SOP_CLASSES = frozenset(
+    {"1.2.840.10008.5.1.4.1.1.12.1", "1.2.840.10008.5.1.4.1.1.12.1.1", "1.2.840.10008.5.1.4.1.1.12.2",
+     "1.2.840.10008.5.1.4.1.1.12.2.1"}
+)  # fmt: skip
+#: ... of volumes (CT, enhanced CT, legacy converted enhanced CT, X-ray 3D angiographic/craniofacial) ...
+VOLUME_SOP_CLASSES = frozenset(
+    {"1.2.840.10008.5.1.4.1.1.2", "1.2.840.10008.5.1.4.1.1.2.1", "1.2.840.10008.5.1.4.1.1.2.2",
+     "1.2.840.10008.5.1.4.1.1.13.1.1", "1.2.840.10008.5.1.4.1.1.13.1.2"}
+)  # fmt: skip
+#: ... and of results (Spatial Registration, Secondary Capture).
+RESULT_SOP_CLASSES = frozenset({"1.2.840.10008.5.1.4.1.1.66.1", "1.2.840.10008.5.1.4.1.1.7"})
+
+
 @dataclass(frozen=True)
 class SeriesEntry:
     study_uid: str
@@ -207,11 +221,21 @@ class SeriesEntry:
     description: str
     number: int | None
     instances: int | None
+    #: SOP class and NumberOfFrames of the series' first instance ("" / None when unknown).
+    sop_class_uid: str = ""
+    frames: int | None = None
 
     @property
     def role(self) -> str:
-        """``volume`` (CT/3DRA), ``xray`` (XA/RF), ``result`` (REG, captures) or ``other``."""
-        if self.modality in VOLUME_MODALITIES or "3DRA" in self.description.upper():
+        """``volume`` (CT/3DRA), ``xray`` (XA/RF image or run), ``result`` (REG, captures) or
+        ``other``: by the SOP class of its instances, else by the modality."""
+        if self.sop_class_uid in XRAY_SOP_CLASSES:
+            return "xray"
+        if self.sop_class_uid in VOLUME_SOP_CLASSES:
+            return "volume"
+        if self.sop_class_uid in RESULT_SOP_CLASSES:
+            return "result"
+        if self.modality in VOLUME_MODALITIES:
             return "volume"
         if self.modality in XRAY_MODALITIES:
             return "xray"
@@ -344,18 +368,32 @@ class Pacs:
             fields=fields,
             get_remaining=True,
         )
-        out = [
-            SeriesEntry(
-                study_uid=study_uid,
-                series_uid=_text(i, "SeriesInstanceUID"),
-                modality=_text(i, "Modality"),
-                description=_text(i, "SeriesDescription"),
-                number=_int(i, "SeriesNumber"),
-                instances=_int(i, "NumberOfSeriesRelatedInstances"),
+        out = []
+        for i in items:
+            series_uid = _text(i, "SeriesInstanceUID")
+            if not series_uid:
+                continue
+            first = self._call(
+                f"looking into series {series_uid}",
+                self._client.search_for_instances,
+                study_instance_uid=study_uid,
+                series_instance_uid=series_uid,
+                fields=["SOPClassUID", "NumberOfFrames"],
+                limit=1,
             )
-            for i in items
-        ]
-        return sorted((s for s in out if s.series_uid), key=lambda s: (s.number is None, s.number or 0, s.series_uid))
+            out.append(
+                SeriesEntry(
+                    study_uid=study_uid,
+                    series_uid=series_uid,
+                    modality=_text(i, "Modality"),
+                    description=_text(i, "SeriesDescription"),
+                    number=_int(i, "SeriesNumber"),
+                    instances=_int(i, "NumberOfSeriesRelatedInstances"),
+                    sop_class_uid=_text(first[0], "SOPClassUID") if first else "",
+                    frames=(_int(first[0], "NumberOfFrames") or 1) if first else None,
+                )
+            )
+        return sorted(out, key=lambda s: (s.number is None, s.number or 0, s.series_uid))
 
     def frames(self, study_uid: str, series_uid: str) -> int:
         """The largest NumberOfFrames of the series' instances (1 for single-frame images)."""

@@ -92,3 +92,23 @@ def test_bad_options_are_clear_errors(export: Path, tmp_path: Path, capsys) -> N
     code, _, err = _run(["validate", "rotational-run", "--volume", str(export / "volume"), "--run",
                          str(export / "xa_fluoro.dcm"), "--out", str(tmp_path)], capsys)  # fmt: skip
     assert code == 2 and "many frames" in err
+
+
+def test_validate_rotational_run_from_a_pacs(export: Path, orthanc, tmp_path: Path, capsys, monkeypatch) -> None:
+    """``--pacs URL --study UID``: the study's CT and its longest run are found and retrieved."""
+    from registration.io.pacs import Pacs, PacsSettings
+
+    orthanc.clear()
+    pacs = Pacs(PacsSettings(orthanc.dicomweb_url, username=orthanc.username, password=orthanc.password))
+    pacs.store(sorted(export.rglob("*.dcm")))
+    (study,) = pacs.studies()
+    monkeypatch.setenv("ROADMAP3D_PACS_USERNAME", orthanc.username)
+    monkeypatch.setenv("ROADMAP3D_PACS_PASSWORD", orthanc.password)
+    args = ["validate", "rotational-run", "--pacs", orthanc.dicomweb_url, "--study", study.study_uid,
+            "--calibration", str(export / rotational_commands.PHANTOM_RUN_CALIBRATION), "--cases", "1", "--json",
+            "--out", str(tmp_path / "v")]  # fmt: skip
+    code, out, err = _run(args, capsys)
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["runs"] == 1 and summary["frames"] == RUN["projections"]
+    assert "rotational run of the 3DRA" in summary["run"] and orthanc.dicomweb_url in summary["run"]
