@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import threading
@@ -17,6 +18,7 @@ from app.data import AppConfig, FileData, PhantomData
 from app.gui import RoadmapApp
 from app.session import Session
 from app.share import refuse_share_requests
+from app.upload import shutdown_readers
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +39,51 @@ def make_server(host: str = "127.0.0.1", port: int = 8080, *, allow_share: bool 
     return server
 
 
+#: Hosts that only this machine can reach.
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+#: After Ctrl-C/SIGTERM the process ends within this many seconds, whatever a thread is doing.
+EXIT_GRACE_S = 5.0
+
+
 def url_of(server: viser.ViserServer) -> str:
+    """The address the server really listens on (a wildcard host as given: every interface)."""
     host = server.get_host()
-    shown = "localhost" if host in ("0.0.0.0", "::") else host
+    shown = f"[{host}]" if ":" in host else host
     return f"http://{shown}:{server.get_port()}"
+
+
+def network_warning(host: str, port: int) -> str | None:
+    """The warning printed when the app listens beyond this machine (None on a loopback host)."""
+    if host in LOOPBACK_HOSTS:
+        return None
+    where = "every network interface" if host in ("0.0.0.0", "::", "") else f"{host}"
+    reachable = ""
+    if host in ("0.0.0.0", "::", ""):
+        try:
+            import socket
+
+            address = socket.gethostbyname(socket.gethostname())
+            reachable = f" (for example http://{address}:{port})"
+        except OSError:
+            reachable = ""
+    return (
+        f"roadmap3d: WARNING: listening on {where}{reachable}. Anyone who can reach this port can see the "
+        "patient's images and drive the one shared session: there is no authentication. Put it behind an "
+        "authenticating reverse proxy (see the README, 'Serving beyond this machine') or use --host 127.0.0.1."
+    )
+
+
+def _exit_soon(code: int, grace_s: float = EXIT_GRACE_S) -> None:
+    """End the process ``grace_s`` seconds from now if it is still alive (a hung thread must not
+    keep a stopped server running)."""
+
+    def watchdog() -> None:
+        time.sleep(grace_s)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+    threading.Thread(target=watchdog, name="exit-watchdog", daemon=True).start()
 
 
 def build_app(
@@ -122,6 +165,9 @@ def run_app(
     server = make_server(host, port, allow_share=allow_share)
     url = url_of(server)
     print(f"roadmap3d: serving on {url}  (Ctrl-C to stop)", flush=True)
+    warning = network_warning(server.get_host(), server.get_port())
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     if open_browser:
         threading.Thread(target=webbrowser.open, args=(url,), daemon=True).start()
 
@@ -140,6 +186,8 @@ def run_app(
     except KeyboardInterrupt:
         print("\nroadmap3d: stopping", file=sys.stderr, flush=True)
     finally:
+        _exit_soon(0)  # whatever hangs below or in another thread, the process ends in EXIT_GRACE_S
+        shutdown_readers()  # upload readers ended, their temporary folders removed
         if app is not None:
             app.close()
         server.stop()

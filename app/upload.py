@@ -3,16 +3,29 @@
 The archive is size-limited twice: while it streams in (an oversized transfer is dropped
 before it is buffered whole) and when it is unpacked by :func:`registration.io.dicom.unpack_upload`
 (no path from the archive is trusted: no ``..``, absolute names or links; zip bombs refused).
-It is unpacked into a private temporary folder that is deleted as soon as the data is read,
-and read with the same readers and checks as the command line.
+All transfers in flight together are held to a budget, per client and for the whole server,
+and a transfer that stops sending parts is dropped after a timeout (:func:`limit_uploads`).
+
+The archive is unpacked and read in a separate process (:func:`read_upload`), so a file that
+makes a reader hang or swell cannot block the app: the read is abandoned after its time budget
+with a message in the page, the process's memory is capped, and :func:`shutdown_readers`
+(called when the server stops) ends every reader and removes its temporary folder. The
+folder is private (0700) and deleted as soon as the data is read; the readers and checks are
+the command line's.
 """
 
 from __future__ import annotations
 
+import atexit
 import logging
+import multiprocessing
+import os
 import shutil
 import tempfile
+import threading
+import time
 from collections.abc import Callable
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -23,56 +36,294 @@ from app.data import AppConfig, FileData
 
 log = logging.getLogger(__name__)
 
+#: Seconds a read of an upload may take before it is abandoned (ROADMAP3D_UPLOAD_READ_S).
+READ_TIMEOUT_S = 120.0
+#: Address space of the reading process (bytes, ROADMAP3D_UPLOAD_READ_MB): the readers' own
+#: ceilings keep genuine data far below; this stops whatever they miss.
+READER_MEMORY_BYTES = 6 * 1024**3
+#: A transfer that sends no part for this long is dropped (seconds).
+IDLE_TIMEOUT_S = 60.0
+#: All transfers in flight together, as multiples of the single-upload limit: per client, per server.
+CLIENT_BUDGET_UPLOADS = 1.0
+SERVER_BUDGET_UPLOADS = 2.0
+
 EXPECTED = (
     "a .zip holding your volume (a DICOM series folder, one multi-frame file or the project's .npz) "
     "and one XA/RF image file"
 )
 
 
-def limit_uploads(server: viser.ViserServer, max_bytes: int, on_refused: Callable[[Any, str], None]) -> None:
-    """Drop browser uploads larger than ``max_bytes`` while they stream in (viser has no limit)."""
+class UploadBudget:
+    """Admission of browser transfers: each under ``max_bytes``, and all in flight together under
+    ``client_bytes`` per client and ``server_bytes`` for the server (declared sizes, and bytes
+    received for a client that lies); transfers idle for ``idle_timeout_s`` are dropped.
+
+    Works on viser's transfer states (``{uuid: {"client_id", "filename", "total_bytes",
+    "transferred_bytes", ...}}``); :meth:`admit` and :meth:`sweep` return the refusals to report.
+    """
+
+    def __init__(
+        self, max_bytes: int, *, client_bytes: int | None = None, server_bytes: int | None = None,
+        idle_timeout_s: float = IDLE_TIMEOUT_S,
+    ) -> None:  # fmt: skip
+        if max_bytes <= 0:
+            raise ValueError(f"max_bytes must be positive, got {max_bytes}")
+        self.max_bytes = int(max_bytes)
+        self.client_bytes = int(client_bytes if client_bytes is not None else CLIENT_BUDGET_UPLOADS * max_bytes)
+        self.server_bytes = int(server_bytes if server_bytes is not None else SERVER_BUDGET_UPLOADS * max_bytes)
+        self.idle_timeout_s = float(idle_timeout_s)
+        self._last_seen: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def _size(state: dict) -> int:
+        return max(int(state.get("total_bytes") or 0), int(state.get("transferred_bytes") or 0))
+
+    def admit(self, states: dict, transfer_uuid: str, *, now: float | None = None) -> str | None:
+        """None if the transfer may go on, else why it is refused (the caller drops it)."""
+        with self._lock:
+            state = states.get(transfer_uuid)
+            if state is None:
+                return None
+            self._last_seen[transfer_uuid] = time.monotonic() if now is None else now
+            size = self._size(state)
+            mb = 1e6
+            if size > self.max_bytes:
+                return (
+                    f"{state['filename']}: {size / mb:.1f} MB is over the upload limit of {self.max_bytes / mb:.0f} MB"
+                )
+            others = [s for uid, s in list(states.items()) if uid != transfer_uuid]
+            client = size + sum(self._size(s) for s in others if s.get("client_id") == state.get("client_id"))
+            if client > self.client_bytes:
+                return (
+                    f"{state['filename']}: this tab's uploads in flight would hold {client / mb:.1f} MB, over its "
+                    f"budget of {self.client_bytes / mb:.0f} MB: wait for the others to finish"
+                )
+            total = size + sum(self._size(s) for s in others)
+            if total > self.server_bytes:
+                return (
+                    f"{state['filename']}: uploads in flight on the server would hold {total / mb:.1f} MB, over its "
+                    f"budget of {self.server_bytes / mb:.0f} MB: try again in a moment"
+                )
+            return None
+
+    def sweep(self, states: dict, *, now: float | None = None) -> list[tuple[Any, str]]:
+        """Drop transfers idle for longer than the timeout; (client id, message) of each."""
+        now = time.monotonic() if now is None else now
+        dropped = []
+        with self._lock:
+            for uid in list(self._last_seen):
+                if uid not in states:
+                    self._last_seen.pop(uid, None)
+            for uid, state in list(states.items()):
+                seen = self._last_seen.setdefault(uid, now)
+                if now - seen > self.idle_timeout_s and states.pop(uid, None) is not None:
+                    self._last_seen.pop(uid, None)
+                    dropped.append(
+                        (
+                            state.get("client_id"),
+                            f"{state['filename']}: upload dropped, no data for {self.idle_timeout_s:.0f} s",
+                        )
+                    )
+        return dropped
+
+
+def limit_uploads(
+    server: viser.ViserServer, max_bytes: int, on_refused: Callable[[Any, str], None], *,
+    budget: UploadBudget | None = None,
+) -> UploadBudget:  # fmt: skip
+    """Hold browser uploads to ``budget`` (default: :class:`UploadBudget` of ``max_bytes``)
+    while they stream in (viser has no limit); refused and idle transfers are dropped, their
+    buffered parts freed, and ``on_refused(client_id, message)`` says why."""
+    budget = budget or UploadBudget(max_bytes)
     gui = server.gui
     states: dict = gui._current_file_upload_states  # noqa: SLF001 - viser keeps transfers here
 
-    def too_big(client_id: Any, transfer_uuid: str, size: int) -> None:
-        state = states.pop(transfer_uuid, None)
-        if state is not None:
-            mb = max_bytes / 1e6
-            on_refused(client_id, f"{state['filename']}: {size / 1e6:.1f} MB is over the upload limit of {mb:.0f} MB")
+    def check(client_id: Any, transfer_uuid: str) -> None:
+        why = budget.admit(states, transfer_uuid)
+        if why is not None and states.pop(transfer_uuid, None) is not None:
+            on_refused(client_id, why)
 
     def on_start(client_id: Any, message: _messages.FileTransferStartUpload) -> None:
-        if message.size_bytes > max_bytes:
-            too_big(client_id, message.transfer_uuid, message.size_bytes)
+        check(client_id, message.transfer_uuid)
 
     def on_part(client_id: Any, message: _messages.FileTransferPart) -> None:
-        state = states.get(message.transfer_uuid)
-        if state is not None and state["transferred_bytes"] > max_bytes:  # a client that lied about the size
-            too_big(client_id, message.transfer_uuid, state["transferred_bytes"])
+        check(client_id, message.transfer_uuid)  # a client that lied about the size is caught here
 
     # Registered after viser's own handlers, so they run right after them.
     server._websock_server.register_handler(_messages.FileTransferStartUpload, on_start)  # noqa: SLF001
     server._websock_server.register_handler(_messages.FileTransferPart, on_part)  # noqa: SLF001
 
+    def sweeper() -> None:
+        while True:
+            time.sleep(max(1.0, min(10.0, budget.idle_timeout_s / 4)))
+            for client_id, why in budget.sweep(states):
+                try:
+                    on_refused(client_id, why)
+                except Exception:  # the tab or the server is going away
+                    log.debug("could not report a dropped upload", exc_info=True)
 
-def read_upload(name: str, content: bytes, *, max_bytes: int, config: AppConfig) -> FileData:
-    """The volume and image in an uploaded zip; ValueError (with a message for the page) if not."""
-    from registration.io.dicom import UploadError, classify_upload, unpack_upload
+    threading.Thread(target=sweeper, name="upload-sweeper", daemon=True).start()
+    return budget
+
+
+# --------------------------------------------------------------------------------------
+# Reading in a separate process
+# --------------------------------------------------------------------------------------
+_ACTIVE_LOCK = threading.Lock()
+_ACTIVE_PROCESSES: set[Any] = set()
+_ACTIVE_FOLDERS: set[Path] = set()
+_CONTEXT: Any = None
+
+
+def _context() -> Any:
+    """A forkserver context preloaded with the readers: a read starts in milliseconds, forked
+    from a clean single-threaded process (never from the server's threads)."""
+    global _CONTEXT
+    with _ACTIVE_LOCK:
+        if _CONTEXT is None:
+            method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+            ctx = multiprocessing.get_context(method)
+            if method == "forkserver":
+                ctx.set_forkserver_preload(["app.upload", "registration.io.dicom"])
+            _CONTEXT = ctx
+        return _CONTEXT
+
+
+def _env_float(name: str, default: float) -> float:
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{name} must be a number, got {text!r}") from None
+    if not value > 0:
+        raise ValueError(f"{name} must be positive, got {text!r}")
+    return value
+
+
+def _read_in_child(
+    zip_path: str, folder: str, name: str, max_bytes: int, memory_bytes: int, conn: Connection,
+    reader: Callable[[Path, Path, str, int], tuple[Any, Any]] | None = None,
+) -> None:  # fmt: skip
+    """The reading process: unpack, find and read the volume and the image, send them back."""
+    try:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
+    except (ImportError, ValueError, OSError):
+        pass
+    try:
+        volume, xray = (reader or _unpack_and_read)(Path(zip_path), Path(folder), name, max_bytes)
+        conn.send(("ok", volume, xray))
+    except ValueError as exc:  # UploadError, DicomError: the message for the page
+        conn.send(("refused", str(exc), None))
+    except MemoryError:
+        conn.send(("refused", f"{name}: reading it needs more than {memory_bytes / 1e9:.1f} GB of memory", None))
+    except BaseException as exc:  # a reader bug: still a message, never a hung page
+        conn.send(("refused", f"{name}: cannot read it ({type(exc).__name__}: {str(exc)[:200]})", None))
+    finally:
+        conn.close()
+
+
+def _unpack_and_read(zip_path: Path, folder: Path, name: str, max_bytes: int) -> tuple[Any, Any]:
+    from registration.io.dicom import UploadError, classify_upload, read_volume, read_xray, unpack_upload
+
+    try:
+        unpack_upload(zip_path.read_bytes(), folder, max_bytes=max_bytes)
+    except UploadError as exc:  # name the upload: the archive's own messages do not know it
+        raise UploadError(f"{name}: {exc}") from None
+    found = classify_upload(folder)
+    if found["volume"] is None or found["image"] is None:
+        missing = "volume" if found["volume"] is None else "XA/RF image"
+        raise UploadError(f"{name}: found no {missing}; expected {EXPECTED}")
+    return read_volume(found["volume"]), read_xray(found["image"], frame=None)
+
+
+def shutdown_readers(timeout_s: float = 2.0) -> None:
+    """End every reading process and remove every upload folder (when the server stops)."""
+    with _ACTIVE_LOCK:
+        processes = list(_ACTIVE_PROCESSES)
+        folders = list(_ACTIVE_FOLDERS)
+    for process in processes:
+        if process.is_alive():
+            process.kill()
+    for process in processes:
+        process.join(timeout_s)
+    for folder in folders:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+atexit.register(shutdown_readers)
+
+
+def read_upload(
+    name: str, content: bytes, *, max_bytes: int, config: AppConfig, timeout_s: float | None = None,
+    memory_bytes: int | None = None, reader: Callable[[Path, Path, str, int], tuple[Any, Any]] | None = None,
+) -> FileData:  # fmt: skip
+    """The volume and image in an uploaded zip, read in a separate process within ``timeout_s``
+    (default READ_TIMEOUT_S or ROADMAP3D_UPLOAD_READ_S) and ``memory_bytes``; ValueError
+    (UploadError, with a message for the page) if refused, abandoned or failed.
+
+    ``reader(zip_path, folder, name, max_bytes) -> (volume, xray)`` replaces the unpacking and
+    reading (a module-level function: it is called in the reading process; tests hang it).
+    """
+    from registration.io.dicom import UploadError
 
     if not name.lower().endswith(".zip"):
         raise UploadError(f"{name}: expected {EXPECTED}")
+    if len(content) > max_bytes:
+        raise UploadError(f"{name}: upload of {len(content)} bytes exceeds the limit of {max_bytes} bytes")
+    timeout_s = _env_float("ROADMAP3D_UPLOAD_READ_S", READ_TIMEOUT_S) if timeout_s is None else float(timeout_s)
+    if memory_bytes is None:
+        memory_bytes = int(_env_float("ROADMAP3D_UPLOAD_READ_MB", READER_MEMORY_BYTES / 1024**2) * 1024**2)
     tmp = Path(tempfile.mkdtemp(prefix="roadmap3d-upload-"))  # mode 0700: private to this user
+    with _ACTIVE_LOCK:
+        _ACTIVE_FOLDERS.add(tmp)
+    process = None
     try:
-        folder = tmp / "files"
+        zip_path = tmp / "upload.zip"
+        zip_path.write_bytes(content)
+        ctx = _context()
+        receiver, sender = ctx.Pipe(duplex=False)
+        process = ctx.Process(
+            target=_read_in_child,
+            args=(str(zip_path), str(tmp / "files"), name, max_bytes, memory_bytes, sender, reader),
+            name="roadmap3d-upload-reader",
+            daemon=True,
+        )
+        with _ACTIVE_LOCK:
+            _ACTIVE_PROCESSES.add(process)
+        process.start()
+        sender.close()
         try:
-            unpack_upload(content, folder, max_bytes=max_bytes)
-        except UploadError as exc:  # name the upload: the archive's own messages do not know it
-            raise UploadError(f"{name}: {exc}") from None
-        found = classify_upload(folder)
-        if found["volume"] is None or found["image"] is None:
-            missing = "volume" if found["volume"] is None else "XA/RF image"
-            raise UploadError(f"{name}: found no {missing}; expected {EXPECTED}")
-        data = FileData.from_paths(found["volume"], found["image"], frame=None, config=config)
-        data.source = f"upload {name}"
+            ready = receiver.poll(timeout_s)
+            reply = receiver.recv() if ready else None
+        except (EOFError, OSError):
+            process.join(5.0)
+            code = process.exitcode
+            why = "it was stopped" if code is not None and code < 0 else f"exit code {code}"
+            raise UploadError(f"{name}: the reader ended without an answer ({why}; out of memory?)") from None
+        finally:
+            receiver.close()
+        if reply is None:
+            raise UploadError(
+                f"{name}: reading took longer than {timeout_s:g} s and was abandoned (a damaged or hostile file?); "
+                "the app goes on with what it showed"
+            )
+        status, first, second = reply
+        if status != "ok":
+            raise UploadError(first)
+        data = FileData(first, second, source=f"upload {name}", config=config)
         return data
     finally:
+        if process is not None:
+            if process.is_alive():
+                process.kill()
+            process.join(5.0)
+            with _ACTIVE_LOCK:
+                _ACTIVE_PROCESSES.discard(process)
         shutil.rmtree(tmp, ignore_errors=True)  # nothing of the patient's stays on disk
+        with _ACTIVE_LOCK:
+            _ACTIVE_FOLDERS.discard(tmp)
