@@ -84,6 +84,9 @@ class PacsPanel(BasePanel):
         self.ctx.message(text, error=error)
 
     def _in_background(self, work: Any) -> None:
+        if threading.current_thread() is self._thread:  # a widget changed by the worker itself
+            work()
+            return
         if self._thread is not None and self._thread.is_alive():
             self._say("The PACS is still busy with the last request.")
             return
