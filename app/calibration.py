@@ -35,7 +35,6 @@ from app.data import PhantomData
 from app.panels import PanelContext
 from app.scene import M_PER_MM
 from registration.core.geometry import CArm
-from registration.io.cache import cache_dir, cache_key, cached_arrays
 from registration.sim.calibration import (
     CalibrationShot,
     Dodecahedron,
@@ -44,12 +43,10 @@ from registration.sim.calibration import (
     machine_based_error_mm,
     machine_based_geometry,
 )
-from registration.sim.reconstruct import run_angles
+from registration.sim.rotational_run import RUN_ARC_DEG, RunRecipe, RunStopped
 
 log = logging.getLogger(__name__)
 
-#: Propeller arc of the rotational run (degrees), as the reconstruction's protocol.
-RUN_ARC_DEG = 200.0
 #: Size of the calibration image tile in the panel (pixels).
 TILE_PX = 384
 #: The spheres are drawn this much larger than they are (2.5 mm lead beads vanish in a head-sized scene).
@@ -294,57 +291,44 @@ class CalibrationView:
         self.shot, self.errors = shot, errors
         self.shots_computed += 1
 
-    def _run_params(self, volume_format_cm: float) -> dict[str, Any]:
-        from registration.sim.phantom import PHANTOM_MODEL_VERSION
-
+    def run_recipe(self, volume_format_cm: float) -> RunRecipe:
+        """The rotational run the view shows: the engine's run of the phantom, at low resolution."""
         config = self.data.config
-        return {
-            "phantom_seed": config.seed,
-            "phantom_model": PHANTOM_MODEL_VERSION,
-            "image_format_cm": float(volume_format_cm),
-            "projections": config.run_projections,
-            "arc_deg": RUN_ARC_DEG,
-            "pixels": config.run_pixels,
-            "kind": "exposure",
-            "bending_seed": default_bending().seed,
-        }
+        return RunRecipe(
+            phantom_seed=config.seed,
+            image_format_cm=float(volume_format_cm),
+            projections=config.run_projections,
+            arc_deg=RUN_ARC_DEG,
+            pixels=config.run_pixels,
+            kind="exposure",
+            seed=config.seed,
+            supersample=1,
+        )
 
     def run_cached(self, volume_format_cm: float) -> bool:
-        return (cache_dir() / f"{cache_key('app-rotational-run', self._run_params(volume_format_cm))}.npz").exists()
+        return self.run_recipe(volume_format_cm).is_cached()
 
     def _load_run(self, volume_format_cm: float) -> None:
-        config = self.data.config
-        angles = run_angles(config.run_projections, RUN_ARC_DEG)
-        bending = default_bending()
+        recipe = self.run_recipe(volume_format_cm)
+        start = time.monotonic()
 
-        def build() -> dict[str, np.ndarray]:
-            from registration.sim.xray import simulate_xray
+        def progress(done: int, total: int) -> bool:
+            if done == 1:
+                self.run_bar.visible = True
+            self.run_bar.value = 100.0 * done / total
+            self.run_readout.content = (
+                f"Simulating the rotational run: view {done} of {total} "
+                f"({time.monotonic() - start:.0f} s; cached afterwards)"
+            )
+            return self._quit.is_set()
 
-            phantom = self.data.phantom(True)
-            self.run_bar.value = 0.0
-            self.run_bar.visible = True
-            images, masks = [], []
-            start = time.monotonic()
-            for index, angle in enumerate(angles):
-                if self._quit.is_set():
-                    raise RuntimeError("stopped")
-                nominal = CArm.for_format(volume_format_cm, pixels=config.run_pixels, primary_deg=float(angle))
-                xray = simulate_xray(
-                    phantom, bending.true_geometry(nominal), kind="exposure", seed=config.seed * 100003 + index,
-                    supersample=1,
-                )  # fmt: skip
-                images.append(np.asarray(xray.image, np.float32))
-                masks.append(np.asarray(xray.mask, bool))
-                self.run_bar.value = 100.0 * (index + 1) / len(angles)
-                self.run_readout.content = (
-                    f"Simulating the rotational run: view {index + 1} of {len(angles)} "
-                    f"({time.monotonic() - start:.0f} s; cached afterwards)"
-                )
-            return {"images": np.stack(images), "masks": np.stack(masks)}
-
+        self.run_bar.value = 0.0
         self.run_readout.content = "Loading the rotational run…"
-        arrays = cached_arrays("app-rotational-run", self._run_params(volume_format_cm), build)
-        self.frames = RunFrames(arrays["images"], arrays["masks"].astype(bool), angles, float(volume_format_cm))
+        try:
+            images, masks = recipe.images(progress=progress)
+        except RunStopped:
+            return  # the app is closing
+        self.frames = RunFrames(images, masks, recipe.angles(), float(volume_format_cm))
         with self.server.atomic():
             self.run_bar.visible = False
             self.run_button.disabled = False

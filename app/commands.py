@@ -25,20 +25,16 @@ import numpy as np
 
 from registration.core.geometry import OFFSET_NAMES, TABLE_I, CArm, check_rigid, matrix_to_offsets, offsets_to_matrix
 from registration.io import dicom
+from registration.sim.threedra import VOLUME_SOURCES, VolumeRecipe
 
 if TYPE_CHECKING:
     from registration.core.volume import Volume
-    from registration.sim.phantom import HeadPhantom
 
 #: Files written by ``roadmap3d phantom`` inside its output folder.
 PHANTOM_VOLUME_DIR = "volume"
 PHANTOM_FLUORO = "xa_fluoro.dcm"
 PHANTOM_EXPOSURE = "xa_exposure.dcm"
 PHANTOM_TRUTH = "truth.json"
-#: What ``roadmap3d phantom`` writes as the 3DRA series: the FDK reconstruction of a simulated
-#: rotational run (:func:`registration.sim.reconstruct.reconstruct_3dra`), or the phantom resampled to
-#: the 3DRA grid (:func:`registration.sim.phantom.registration_volume`, a fast stand-in).
-VOLUME_SOURCES = ("fdk", "resampled")
 #: Long work (building the FDK 3DRA the first time) is announced on stderr once it has taken
 #: this long (seconds); a cached volume loads well within it ...
 PROGRESS_AFTER_S = 3.0
@@ -360,7 +356,6 @@ def run_info(path: Path, *, as_json: bool = False, sid_mm: float | None = None, 
 # phantom
 # --------------------------------------------------------------------------------------
 def _phantom_3dra(
-    phantom: HeadPhantom,
     *,
     source: str,
     seed: int,
@@ -368,23 +363,24 @@ def _phantom_3dra(
     volume_format: float,
     voxels: int,
 ) -> tuple[Volume, str, dict[str, Any]]:
-    """The 3DRA to export, its SeriesDescription (<= 64 characters) and how it was made (for the truth)."""
-    if source == "resampled":
-        from registration.sim.phantom import registration_volume
+    """The 3DRA to export, its SeriesDescription (<= 64 characters) and how it was made (for the truth).
 
-        volume = registration_volume(phantom, volume_format, voxels=voxels, seed=seed)
+    The same phantom (seed, contrast) as the XA images; the run's own noise seed and protocol
+    are the recipe's defaults, so the cache entry is shared with the validation and the app.
+    """
+    recipe = VolumeRecipe(
+        phantom_seed=seed, volume_format_cm=volume_format, source=source, voxels=voxels, contrast=contrast,
+        noise_seed=seed,
+    )  # fmt: skip
+    if not recipe.reconstructed:
+        volume = recipe.build()
         return volume, "3DRA stand-in: phantom resampled to the 3DRA grid", {"volume_source": source}
-    from registration.sim.reconstruct import reconstruct_3dra
-
     message = (
         f"3DRA: simulating the rotational run and reconstructing it (FDK, {voxels}^3 voxels, "
         f"{volume_format:g} cm format); this takes minutes the first time and is cached afterwards"
     )
     with _progress(message):
-        # The same phantom (seed, contrast) as the XA images; the run's own noise seed and
-        # protocol are reconstruct_3dra's defaults, so the cache entry is shared with the
-        # validation and the app.
-        volume = reconstruct_3dra(seed, volume_format_cm=volume_format, contrast=contrast, voxels=voxels)
+        volume = recipe.build()
     run = {k: volume.meta[k] for k in ("projections", "arc_deg", "pixels", "kind", "seed") if k in volume.meta}
     label = f"3DRA: {volume.label}, head phantom seed {seed} {'with' if contrast else 'without'} contrast"
     description = f"3DRA: FDK reconstruction, {run.get('projections', '?')} projections"
@@ -407,8 +403,8 @@ def run_phantom_export(
 ) -> int:
     """Export the phantom: DICOM 3DRA series, XA fluoro and exposure with known motion, truth JSON.
 
-    The 3DRA series is ``volume_source`` (one of ``VOLUME_SOURCES``). The XA images are the
-    analytic phantom moved by the known motion and projected with the nominal geometry that
+    The 3DRA series is ``volume_source`` (one of :data:`registration.sim.threedra.VOLUME_SOURCES`).
+    The XA images are the analytic phantom moved by the known motion and projected with the nominal geometry that
     their positioner tags state; the FDK volume is reconstructed in the same world frame (from
     the calibrated geometry of its run), so the truth holds for either source.
     """
@@ -429,7 +425,7 @@ def run_phantom_export(
     motion = offsets_to_matrix(offsets, geometry)
     phantom = make_head_phantom(seed=seed, contrast=contrast)
     volume, description, made = _phantom_3dra(
-        phantom, source=volume_source, seed=seed, contrast=contrast, volume_format=volume_format, voxels=voxels
+        source=volume_source, seed=seed, contrast=contrast, volume_format=volume_format, voxels=voxels
     )
     fluoro = simulate_xray(phantom, geometry, motion=motion, kind="fluoro", seed=seed)
     exposure = simulate_xray(phantom, geometry, motion=motion, kind="exposure", seed=seed + 1)

@@ -21,10 +21,9 @@ import trimesh
 from registration.core.drr import DRRRenderer
 from registration.core.images import XRayImage
 from registration.core.volume import Volume
-from registration.io import meshes as surfaces
-from registration.io.cache import cached_arrays
-from registration.io.meshes import surface_meshes
-from registration.sim.phantom import HeadPhantom, make_head_phantom, registration_volume
+from registration.io.meshes import cached_surface_meshes, surface_meshes
+from registration.sim.phantom import HeadPhantom, make_head_phantom
+from registration.sim.threedra import FDK, VOLUME_SOURCES, VolumeRecipe
 from registration.sim.xray import simulate_xray
 
 __all__ = ["AppConfig", "DataSource", "FileData", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
@@ -53,10 +52,10 @@ class AppConfig:
     """Size of each 2-D tile in the panel."""
     skull_detail: int = 64
     """Marching-cubes cells across the skull (the browser draws it, in software on some machines)."""
-    volume_source: str = "fdk"
-    """The phantom's 3DRA: "fdk" (reconstructed from a simulated rotational run, as a real 3DRA; about a
-    minute the first time per volume format, then cached) or "resampled" (the phantom resampled on the
-    3DRA grid, a quick stand-in; ``ROADMAP3D_APP_VOLUME=resampled``)."""
+    volume_source: str = FDK
+    """The phantom's 3DRA, one of registration.sim.threedra.VOLUME_SOURCES: "fdk" (reconstructed from a
+    simulated rotational run, as a real 3DRA; about a minute the first time per volume format, then cached)
+    or "resampled" (the phantom resampled on the 3DRA grid, a quick stand-in; ``ROADMAP3D_APP_VOLUME=resampled``)."""
     run_pixels: int = 128
     """Image size of the rotational run shown in the calibration view (simulated on demand)."""
     run_projections: int = 120
@@ -70,8 +69,8 @@ class AppConfig:
         voxels = int(os.environ.get("ROADMAP3D_APP_VOXELS", cls.voxels))
         pixels = int(os.environ.get("ROADMAP3D_APP_PIXELS", cls.pixels))
         source = os.environ.get("ROADMAP3D_APP_VOLUME", cls.volume_source)
-        if source not in ("resampled", "fdk"):
-            raise ValueError(f"ROADMAP3D_APP_VOLUME must be 'resampled' or 'fdk', got {source!r}")
+        if source not in VOLUME_SOURCES:
+            raise ValueError(f"ROADMAP3D_APP_VOLUME must be one of {', '.join(VOLUME_SOURCES)}, got {source!r}")
         if not 32 <= voxels <= 512 or not 64 <= pixels <= 2048:
             raise ValueError(
                 f"ROADMAP3D_APP_VOXELS must lie in 32..512 and _PIXELS in 64..2048, got {voxels}, {pixels}"
@@ -114,19 +113,6 @@ class DataSource(Protocol):
         ...
 
 
-def _mesh_arrays(meshes: dict[str, trimesh.Trimesh]) -> dict[str, np.ndarray]:
-    out: dict[str, np.ndarray] = {}
-    for name, mesh in meshes.items():
-        out[f"{name}.vertices"] = np.asarray(mesh.vertices, dtype=np.float32)
-        out[f"{name}.faces"] = np.asarray(mesh.faces, dtype=np.int32)
-    return out
-
-
-def _meshes_from_arrays(arrays: dict[str, np.ndarray]) -> dict[str, trimesh.Trimesh]:
-    names = sorted({key.rsplit(".", 1)[0] for key in arrays})
-    return {name: trimesh.Trimesh(arrays[f"{name}.vertices"], arrays[f"{name}.faces"], process=False) for name in names}
-
-
 class PhantomData:
     """The built-in head phantom and what is derived from it, built lazily and cached."""
 
@@ -151,32 +137,32 @@ class PhantomData:
                 self._phantoms[contrast] = make_head_phantom(seed=self.config.seed, contrast=contrast)
             return self._phantoms[contrast]
 
+    def recipe(self, volume_format_cm: float) -> VolumeRecipe:
+        """Which 3DRA of the phantom the app registers to at this volume format."""
+        config = self.config
+        return VolumeRecipe(
+            phantom_seed=config.seed,
+            volume_format_cm=volume_format_cm,
+            source=config.volume_source,
+            voxels=config.voxels,
+            noise_seed=config.seed,
+        )
+
     def volume(self, volume_format_cm: float) -> Volume:
-        """The registration volume (3DRA stand-in) of one volume format (cached on disk by the engine)."""
+        """The registration volume (3DRA) of one volume format (cached on disk by the engine)."""
         with self._lock:
             if volume_format_cm not in self._volumes:
-                phantom = self.phantom(True)
-                if self.config.volume_source == "fdk":
-                    self._volumes[volume_format_cm] = self._reconstruct(volume_format_cm)
-                else:
-                    self.progress(
-                        f"Loading or voxelizing the {volume_format_cm:g} cm volume ({self.config.voxels}³ voxels)",
-                        0.2,
-                    )
-                    self._volumes[volume_format_cm] = registration_volume(
-                        phantom, volume_format_cm, voxels=self.config.voxels, seed=self.config.seed
-                    )
+                self._volumes[volume_format_cm] = self._build(self.recipe(volume_format_cm))
             return self._volumes[volume_format_cm]
 
-    def _reconstruct(self, volume_format_cm: float) -> Volume:
-        """The FDK 3DRA (cached on disk by the engine), reporting elapsed time while it is built."""
-        from registration.sim.reconstruct import reconstruct_3dra
-
-        what = (
-            f"3DRA {volume_format_cm:g} cm: simulating the rotational run ({self.config.run_projections} views) "
-            f"and reconstructing it (FDK, {self.config.voxels}³)"
-        )
-        self.progress(f"Loading the {volume_format_cm:g} cm 3DRA (FDK reconstruction) from the cache…", 0.15)
+    def _build(self, recipe: VolumeRecipe) -> Volume:
+        """Load or build the volume, reporting elapsed time while it is built."""
+        fmt = f"{recipe.volume_format_cm:g} cm"
+        if not recipe.reconstructed:
+            self.progress(f"Loading or voxelizing the {fmt} volume ({recipe.voxels}³ voxels)", 0.2)
+            return recipe.build()
+        what = f"3DRA {fmt}: {recipe.describe()}"
+        self.progress(f"Loading the {fmt} 3DRA (FDK reconstruction) from the cache…", 0.15)
         done = threading.Event()
         start = time.monotonic()
 
@@ -190,7 +176,7 @@ class PhantomData:
         ticker = threading.Thread(target=tick, name="fdk-progress", daemon=True)
         ticker.start()
         try:
-            return reconstruct_3dra(self.config.seed, volume_format_cm=volume_format_cm, voxels=self.config.voxels)
+            return recipe.build()
         finally:
             done.set()
             ticker.join()
@@ -207,34 +193,13 @@ class PhantomData:
         with self._lock:
             if volume_format_cm not in self._meshes:
                 volume = self.volume(volume_format_cm)
+                self.progress("Loading or extracting skull and vessel surfaces (marching cubes)", 0.35)
+                vessel_step, bone_step = self.mesh_steps
                 # Keyed by what defines the volume (its meta holds the phantom model version).
-                params = {
-                    "volume": volume.meta,
-                    "label": volume.label,
-                    "steps": self.mesh_steps,
-                    "segmentation": (
-                        surfaces.VESSEL_HU,
-                        surfaces.BONE_HU,
-                        surfaces.BONE_MARGIN_VOXELS,
-                        surfaces.MIN_VESSEL_VOXELS,
-                        surfaces.OPENING_ITERATIONS,
-                        surfaces.EDGE_MARGIN_VOXELS,
-                        surfaces.MAX_EDGE_FRACTION,
-                        surfaces.SHELL_VOXELS,
-                        surfaces.MAX_SHELL_AIR_FRACTION,
-                    ),  # fmt: skip
-                }
-
-                def build() -> dict[str, np.ndarray]:
-                    self.progress("Extracting skull and vessel surfaces (marching cubes)", 0.4)
-                    vessel_step, bone_step = self.mesh_steps
-                    meshes = surface_meshes(volume, step=vessel_step)
-                    if bone_step != vessel_step:
-                        meshes["bone"] = surface_meshes(volume, step=bone_step).get("bone")
-                    return _mesh_arrays({k: v for k, v in meshes.items() if v is not None})
-
-                self.progress("Loading surface meshes", 0.35)
-                self._meshes[volume_format_cm] = _meshes_from_arrays(cached_arrays("app-meshes", params, build))
+                key = {"meta": volume.meta, "label": volume.label}
+                self._meshes[volume_format_cm] = cached_surface_meshes(
+                    volume, key, step=vessel_step, bone_step=bone_step
+                )
             return self._meshes[volume_format_cm]
 
     @property
@@ -306,12 +271,7 @@ class FileData:
         with self._lock:
             if self._meshes is None:
                 vessel_step, bone_step = self.mesh_steps
-                meshes = surface_meshes(self._volume, step=vessel_step)
-                if bone_step != vessel_step and "bone" in meshes:
-                    bone = surface_meshes(self._volume, step=bone_step).get("bone")
-                    if bone is not None:
-                        meshes["bone"] = bone
-                self._meshes = meshes
+                self._meshes = surface_meshes(self._volume, step=vessel_step, bone_step=bone_step)
             return self._meshes
 
     def mesh_spacing_mm(self, _volume_format_cm: float | None = None) -> float:

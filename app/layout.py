@@ -23,7 +23,7 @@ import numpy as np
 import viser
 
 from app.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
-from registration.core.geometry import IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I
+from registration.core.geometry import DEFAULT_SID_MM, IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I
 
 #: Widths of the two side panels (pixels).
 VIEW_PANEL_PX = 600
@@ -139,7 +139,7 @@ class Layout:
             self.secondary = gui.add_slider(
                 "CRAN/CAUD (°)", -50.0, 50.0, 1.0, 0.0, hint="Secondary angle: CRAN positive, CAUD negative"
             )
-            self.sid = gui.add_slider("SID (mm)", 900.0, 1300.0, 10.0, 1200.0)
+            self.sid = gui.add_slider("SID (mm)", 900.0, 1300.0, 10.0, DEFAULT_SID_MM)
             self.image_format = gui.add_dropdown("Image format", FORMAT_OPTIONS, initial_value="27 cm")
             self.volume_format = gui.add_dropdown("Volume format", FORMAT_OPTIONS, initial_value="27 cm")
             self.kind = gui.add_dropdown("Image type", ("fluoro", "exposure"), initial_value="fluoro")

@@ -18,7 +18,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from app.data import AppConfig, DataSource, PhantomData, XRayImage, simulate_xray
-from registration.core.geometry import TABLE_I, CArm, default_system, matrix_to_offsets, offsets_to_matrix
+from registration.core.geometry import (
+    DEFAULT_SID_MM,
+    TABLE_I,
+    CArm,
+    default_system,
+    matrix_to_offsets,
+    offsets_to_matrix,
+)
 from registration.core.metrics import Residual, residuals
 from registration.core.register import Progress, RegistrationResult, register
 
@@ -42,7 +49,7 @@ class CArmSettings:
 
     primary_deg: float = 0.0
     secondary_deg: float = 0.0
-    sid_mm: float = 1200.0
+    sid_mm: float = DEFAULT_SID_MM
     image_format_cm: float = 27.0
     volume_format_cm: float = 27.0
     kind: str = "fluoro"

@@ -22,8 +22,13 @@ ASSETS = Path(__file__).resolve().parents[2] / "assets"
 #: The offset parameter names of Table I, in order: translations (mm), rotations (deg).
 OFFSET_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 
-#: Image formats of the default system (field diameter at the detector, cm).
-IMAGE_FORMATS_CM = (15, 19, 22, 27, 31, 37, 42, 48)
+#: Image formats of the default system (field diameter at the detector, cm), as
+#: assets/carm_system.txt states them; Table II of the paper uses the same eight.
+IMAGE_FORMATS_CM: tuple[float, ...] = (15.0, 19.0, 22.0, 27.0, 31.0, 37.0, 42.0, 48.0)
+#: Source-to-image and source-to-iso-center distances of the default system (mm), as
+#: assets/carm_system.txt states them: the defaults of every geometry.
+DEFAULT_SID_MM = 1200.0
+DEFAULT_SOD_MM = 810.0
 #: Formats the commercial product does not register (paper section II.C): too few landmarks.
 SMALL_FORMATS_CM: tuple[float, ...] = (15.0, 19.0)
 
@@ -131,8 +136,8 @@ class CArm:
 
     primary_deg: float = 0.0
     secondary_deg: float = 0.0
-    sid_mm: float = 1200.0
-    sod_mm: float = 810.0
+    sid_mm: float = DEFAULT_SID_MM
+    sod_mm: float = DEFAULT_SOD_MM
     rows: int = 512
     cols: int = 512
     #: (row spacing, column spacing) at the detector plane, as ImagerPixelSpacing.
@@ -423,9 +428,9 @@ class SystemSpec:
     """A C-arm system: distances, image formats and the default grids."""
 
     name: str = "neuro flat-detector C-arm"
-    sid_mm: float = 1200.0
-    sod_mm: float = 810.0
-    image_formats_cm: tuple[float, ...] = tuple(float(f) for f in IMAGE_FORMATS_CM)
+    sid_mm: float = DEFAULT_SID_MM
+    sod_mm: float = DEFAULT_SOD_MM
+    image_formats_cm: tuple[float, ...] = IMAGE_FORMATS_CM
     image_pixels: int = 512
     volume_voxels: int = 256
 

@@ -167,7 +167,12 @@ def format_grid(
     return spacing, axis
 
 
-def hu_to_mu_per_mm(hu: ArrayLike, *, mu_water_per_mm: float = 0.0206) -> NDArray[np.float32]:
-    """Linear attenuation (1/mm) from HU at an effective energy (default ~60 keV water)."""
+#: Linear attenuation of water (1/mm) at the effective energy (~60 keV) that defines 0 HU: the
+#: one value the phantom, the X-ray image model, the DRR and the FDK reconstruction share.
+MU_WATER_PER_MM = 0.0206
+
+
+def hu_to_mu_per_mm(hu: ArrayLike, *, mu_water_per_mm: float = MU_WATER_PER_MM) -> NDArray[np.float32]:
+    """Linear attenuation (1/mm) from HU at an effective energy (default water at ~60 keV)."""
     mu = mu_water_per_mm * (1.0 + np.asarray(hu, dtype=np.float32) / 1000.0)
     return np.maximum(mu, 0.0).astype(np.float32)

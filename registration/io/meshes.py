@@ -154,6 +154,45 @@ def surface_meshes(
     return out
 
 
+def surface_params(
+    *, vessel_hu: float = VESSEL_HU, bone_hu: float = BONE_HU, step: int = 1, bone_step: int | None = None
+) -> dict:
+    """Everything besides the volume that defines :func:`surface_meshes`' output (cache keys)."""
+    return {
+        "vessel_hu": float(vessel_hu),
+        "bone_hu": float(bone_hu),
+        "steps": [int(step), int(step if bone_step is None else bone_step)],
+        "segmentation": [
+            BONE_MARGIN_VOXELS, MIN_VESSEL_VOXELS, OPENING_ITERATIONS, EDGE_MARGIN_VOXELS, MAX_EDGE_FRACTION,
+            UNRECONSTRUCTED_HU, SHELL_VOXELS, MAX_SHELL_AIR_FRACTION, AIR_HU,
+        ],
+    }  # fmt: skip
+
+
+def cached_surface_meshes(
+    volume: Volume, volume_key: dict, *, step: int = 1, bone_step: int | None = None
+) -> dict[str, trimesh.Trimesh]:
+    """:func:`surface_meshes` through the on-disk cache (:mod:`registration.io.cache`).
+
+    ``volume_key`` must identify the volume's contents (e.g. a recipe's cache parameters, or
+    the volume's ``meta`` and label); the surface parameters are added here
+    (:func:`surface_params`).
+    """
+    from registration.io.cache import cached_arrays
+
+    def build() -> dict[str, np.ndarray]:
+        out: dict[str, np.ndarray] = {}
+        for name, mesh in surface_meshes(volume, step=step, bone_step=bone_step).items():
+            out[f"{name}.vertices"] = np.asarray(mesh.vertices, dtype=np.float32)
+            out[f"{name}.faces"] = np.asarray(mesh.faces, dtype=np.int32)
+        return out
+
+    params = {"volume": volume_key, **surface_params(step=step, bone_step=bone_step)}
+    arrays = cached_arrays("meshes", params, build)
+    names = sorted({key.rsplit(".", 1)[0] for key in arrays})
+    return {name: trimesh.Trimesh(arrays[f"{name}.vertices"], arrays[f"{name}.faces"], process=False) for name in names}
+
+
 def write_meshes(meshes: dict[str, trimesh.Trimesh], path: str | os.PathLike[str]) -> Path:
     """Write the surfaces to STL or PLY (one combined mesh) or GLB (one node per surface).
 

@@ -41,6 +41,7 @@ from scipy import ndimage
 from scipy.optimize import least_squares, linear_sum_assignment
 
 from registration.core.geometry import ASSETS, CArm, rotation_x, rotation_y, rotation_z
+from registration.core.volume import MU_WATER_PER_MM
 
 if TYPE_CHECKING:
     pass
@@ -247,7 +248,7 @@ class SpherePhantom:
         idx = np.asarray(index)
         return SpherePhantom(self.centers_mm[idx], self.radii_mm[idx], self.mu_per_mm[idx])
 
-    def hu_at(self, points_mm: ArrayLike, *, mu_water_per_mm: float = 0.0206) -> NDArray[np.float32]:
+    def hu_at(self, points_mm: ArrayLike, *, mu_water_per_mm: float = MU_WATER_PER_MM) -> NDArray[np.float32]:
         """Hounsfield units at world points (air -1000 outside every sphere)."""
         p = np.asarray(points_mm, dtype=np.float64)
         mu = np.zeros(p.shape[:-1])

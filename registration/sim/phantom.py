@@ -11,7 +11,7 @@ sinus is exactly air whatever lay there, and no point is ever below air (-1000 H
 Everything is evaluated exactly: a point takes the value of the newest primitive holding it,
 and the line integral of ``mu`` along a segment is the sum over the visible pieces of each
 primitive's chord (painter's algorithm along the ray, newest first) times its attenuation
-``mu = 0.0206 (1 + HU / 1000)`` per mm (:func:`registration.core.volume.hu_to_mu_per_mm`, air 0).
+``mu = MU_WATER_PER_MM (1 + HU / 1000)`` per mm (:func:`registration.core.volume.hu_to_mu_per_mm`, air 0).
 No sampling, no grid: the phantom is resolution independent.
 
 Anatomy (world mm; +x left, +y posterior, +z superior): scalp over a skull of outer table,
@@ -37,11 +37,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from registration.core.geometry import check_rigid, invert_rigid, rotation_x, rotation_y, rotation_z
-from registration.core.volume import Volume, format_grid
+from registration.core.volume import MU_WATER_PER_MM, Volume, format_grid
 from registration.io.cache import cached_arrays
 
-#: Linear attenuation of water (1/mm) at the effective energy, as in ``hu_to_mu_per_mm``.
-MU_WATER_PER_MM = 0.0206
 #: Most quadrics and half-spaces one primitive may intersect.
 MAX_QUADRICS = 6
 MAX_PLANES = 12
@@ -1436,6 +1434,19 @@ STAND_IN_SMOOTH_VOXELS = 0.6
 STAND_IN_NOISE_HU = 20.0
 
 
+def standin_params(phantom: HeadPhantom, volume_format_cm: float, voxels: int, noise_seed: int) -> dict:
+    """The cache parameters of :func:`registration_volume` (kind ``"standin3dra"``)."""
+    return {
+        **phantom.key,
+        "volume_format_cm": float(volume_format_cm),
+        "voxels": int(voxels),
+        "noise_seed": int(noise_seed),
+        "smooth": STAND_IN_SMOOTH_VOXELS,
+        "noise_hu": STAND_IN_NOISE_HU,
+        "n_prims": phantom.n_primitives,
+    }
+
+
 def registration_volume(
     phantom: HeadPhantom | int,
     volume_format_cm: float,
@@ -1484,14 +1495,6 @@ def registration_volume(
         hu += rng.normal(0.0, STAND_IN_NOISE_HU, hu.shape).astype(np.float32)
         return {"data": hu.astype(np.float32)}
 
-    params = {
-        **phantom.key,
-        "volume_format_cm": fmt,
-        "voxels": voxels,
-        "noise_seed": int(seed),
-        "smooth": STAND_IN_SMOOTH_VOXELS,
-        "noise_hu": STAND_IN_NOISE_HU,
-        "n_prims": phantom.n_primitives,
-    }
+    params = standin_params(phantom, fmt, voxels, seed)
     data = cached_arrays("standin3dra", params, build, enabled=cache)["data"]
     return Volume(data, affine, label=STAND_IN_LABEL, meta={"source": "phantom", **params})

@@ -1,19 +1,17 @@
-"""Rotational run and FDK cone-beam reconstruction: the 3DRA (paper section II.A).
+"""FDK cone-beam reconstruction of a rotational run: the 3DRA (paper section II.A).
 
-A rotational run is a propeller rotation of the C-arm (primary angle sweeping ~200 degrees,
-secondary 0) taking ~120 projections. The images are formed with the *true* (bent) geometry
-of each view (:class:`registration.sim.calibration.BendingModel`); the reconstruction sees only
-the images and the geometry *calibrated* from a dodecahedron run with the same angles
-(:func:`registration.sim.calibration.calibrate_true_view`), as on a real system.
+The run (:mod:`registration.sim.rotational_run`) forms its images with the *true* (bent)
+geometry of each view; the reconstruction sees only the images and the geometry *calibrated*
+from a dodecahedron run with the same angles, as on a real system.
 
 :func:`fdk` back-projects filtered projections with each view's general 3x4 projection matrix
 (Feldkamp-Davis-Kress: cosine weights, Parker short-scan weights, ramp filter with a Hann
 window, voxel-driven numba back-projection with bilinear detector interpolation) into the 3DRA
 grid of a volume format (field of view f x SOD / SID at the iso-center,
 :func:`registration.core.volume.format_grid`) and returns Hounsfield units
-(HU = 1000 (mu / mu_water - 1), mu_water = 0.0206 / mm as
-:func:`registration.core.volume.hu_to_mu_per_mm`). Voxels that leave the collimated field in any
-view lie outside the reconstructable cylinder and are set to air (-1000 HU).
+(HU = 1000 (mu / mu_water - 1), mu_water = :data:`registration.core.volume.MU_WATER_PER_MM`, as
+:func:`registration.core.volume.hu_to_mu_per_mm`). Voxels that leave the collimated field in
+any view lie outside the reconstructable cylinder and are set to air (-1000 HU).
 
 Conventions (frames, angles, units) are those of ``shared/CONVENTIONS.md``.
 
@@ -29,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numba
@@ -38,19 +36,18 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import fft as sfft
 
 from registration.core.geometry import CArm
-from registration.core.volume import Volume, format_grid
-from registration.sim.calibration import (
-    BendingModel,
-    calibrate_true_view,
-    calibration_geometry,
-    default_bending,
-    with_deviation,
+from registration.core.volume import MU_WATER_PER_MM, Volume, format_grid
+from registration.sim.calibration import default_bending
+from registration.sim.rotational_run import (
+    RUN_ARC_DEG,
+    RUN_PROJECTIONS,
+    Imager,
+    RotationalRun,
+    rotational_run,
+    run_angles,
 )
 
 Array = NDArray[np.float64]
-
-#: Attenuation of water (1/mm) that defines 0 HU (registration.core.volume.hu_to_mu_per_mm).
-MU_WATER_PER_MM = 0.0206
 
 #: Label of reconstructed volumes (outputs repeat it).
 RECONSTRUCTION_LABEL = "FDK reconstruction of a simulated rotational run ({n} projections)"
@@ -64,133 +61,6 @@ TRUNCATION_MAX_MM = 200.0
 TRUNCATION_MU_PER_MM = 2.0 * MU_WATER_PER_MM
 #: Pixels over which the slope at the field edge is measured for the extrapolation.
 TRUNCATION_FIT_PX = 4
-
-
-# --------------------------------------------------------------------------------------
-# The rotational run
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class RotationalRun:
-    """Images of a propeller run with the geometry they were formed with and the calibrated one.
-
-    ``images[i]`` is the attenuation image (CONVENTIONS §5) of view i, ``masks[i]`` its
-    collimated field; ``true_geometries`` formed the images, ``calibrated_geometries`` are what
-    the dodecahedron calibration estimated (the reconstruction uses only those).
-    """
-
-    images: NDArray[np.float32]
-    masks: NDArray[np.bool_]
-    primary_deg: Array
-    true_geometries: tuple[CArm, ...]
-    calibrated_geometries: tuple[CArm, ...]
-    kind: str = "exposure"
-
-    def __len__(self) -> int:
-        return int(self.images.shape[0])
-
-    @property
-    def nominal_geometries(self) -> tuple[CArm, ...]:
-        return tuple(g.nominal() for g in self.true_geometries)
-
-
-#: An image former: (phantom, true geometry, view index) -> (attenuation image, field mask).
-Imager = Callable[[object, CArm, int], tuple[NDArray[np.float32], NDArray[np.bool_]]]
-
-
-def run_angles(projections: int, arc_deg: float) -> Array:
-    """Nominal primary angles of a propeller run: ``projections`` evenly over ``arc_deg``,
-    centered on the frontal view (0 degrees)."""
-    if projections < 2:
-        raise ValueError(f"projections must be >= 2, got {projections}")
-    if not 180.0 < arc_deg <= 360.0:
-        raise ValueError(f"arc_deg must exceed 180 (a short scan needs 180 + fan angle), got {arc_deg}")
-    return np.linspace(-arc_deg / 2.0, arc_deg / 2.0, projections)
-
-
-def calibrate_protocol(
-    primary_deg: ArrayLike,
-    *,
-    bending: BendingModel | None = None,
-    seed: int = 0,
-    cache: bool = True,
-) -> Array:
-    """Deviation parameters (views x 9) of a rotational protocol, from a dodecahedron run.
-
-    As on a real system the calibration run has the protocol's angles and is made once per
-    system and protocol (here: cached by bending seed, angles and noise seed), then used for
-    every 3D acquisition with that protocol. Each view is imaged with the true geometry and
-    calibrated from its image alone (:func:`registration.sim.calibration.calibrate_true_view`).
-    """
-    from registration.io.cache import cached_arrays
-
-    bending = bending or default_bending()
-    angles = np.asarray(primary_deg, dtype=np.float64).reshape(-1)
-
-    def build() -> dict[str, np.ndarray]:
-        dev = np.zeros((angles.size, 9))
-        for i, a in enumerate(angles):
-            true = bending.true_geometry(calibration_geometry(float(a), 0.0))
-            dev[i] = calibrate_true_view(true, seed=seed * 7919 + i).deviation
-        return {"deviations": dev}
-
-    params = {
-        "bending_seed": bending.seed,
-        "bending": [bending.source_amplitude_mm, bending.detector_amplitude_mm, bending.tilt_amplitude_deg],
-        "angles": np.round(angles, 6).tolist(),
-        "seed": int(seed),
-    }
-    return cached_arrays("calibration-run", params, build, enabled=cache)["deviations"]
-
-
-def rotational_run(
-    phantom: object,
-    *,
-    image_format_cm: float,
-    projections: int = 120,
-    arc_deg: float = 200.0,
-    kind: str = "exposure",
-    bending: BendingModel | None = None,
-    pixels: int = 512,
-    seed: int = 0,
-    imager: Imager | None = None,
-    calibrate: bool = True,
-    calibration_seed: int = 0,
-) -> RotationalRun:
-    """Simulate a rotational run of ``phantom`` and calibrate its geometry.
-
-    Each view's image is formed with the true (bent) geometry by ``imager`` (default:
-    :func:`registration.sim.xray.simulate_xray` with ``kind`` and a per-view seed). The calibrated
-    geometries come from a dodecahedron run with the same nominal angles
-    (:func:`calibrate_protocol`, noise seed ``calibration_seed``); with ``calibrate=False``
-    they are the nominal geometries (what an uncalibrated system would use).
-    """
-    bending = bending or default_bending()
-    angles = run_angles(projections, arc_deg)
-    if imager is None:
-        from registration.sim.xray import simulate_xray
-
-        def imager(ph: object, geom: CArm, index: int) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-            xr = simulate_xray(ph, geom, kind=kind, seed=seed * 100003 + index)
-            return np.asarray(xr.image, np.float32), np.asarray(xr.mask, bool)
-
-    deviations = calibrate_protocol(angles, bending=bending, seed=calibration_seed) if calibrate else None
-    images, masks, true_geoms, cal_geoms = [], [], [], []
-    for index, angle in enumerate(angles):
-        nominal = CArm.for_format(image_format_cm, pixels=pixels, primary_deg=float(angle))
-        true = bending.true_geometry(nominal)
-        image, mask = imager(phantom, true, index)
-        images.append(np.asarray(image, np.float32))
-        masks.append(np.asarray(mask, bool))
-        true_geoms.append(true)
-        cal_geoms.append(nominal if deviations is None else with_deviation(nominal, deviations[index]))
-    return RotationalRun(
-        images=np.stack(images),
-        masks=np.stack(masks),
-        primary_deg=angles,
-        true_geometries=tuple(true_geoms),
-        calibrated_geometries=tuple(cal_geoms),
-        kind=kind,
-    )
 
 
 # --------------------------------------------------------------------------------------
@@ -510,14 +380,34 @@ def _3dra_params(
     }
 
 
+def fdk_3dra_params(
+    phantom_seed: int,
+    *,
+    volume_format_cm: float,
+    contrast: bool = True,
+    voxels: int = 256,
+    pixels: int = 256,
+    projections: int = RUN_PROJECTIONS,
+    arc_deg: float = RUN_ARC_DEG,
+    kind: str = "exposure",
+    seed: int = 0,
+) -> dict:
+    """The cache parameters of :func:`reconstruct_3dra` (kind ``"fdk-3dra"``)."""
+    params = _3dra_params(
+        phantom_seed, volume_format_cm=volume_format_cm, contrast=contrast, pixels=pixels,
+        projections=projections, arc_deg=arc_deg, kind=kind, seed=seed,
+    )  # fmt: skip
+    return {**params, "voxels": int(voxels)}
+
+
 def rotational_run_3dra(
     phantom_seed: int,
     *,
     volume_format_cm: float,
     contrast: bool = True,
     pixels: int = 256,
-    projections: int = 120,
-    arc_deg: float = 200.0,
+    projections: int = RUN_PROJECTIONS,
+    arc_deg: float = RUN_ARC_DEG,
     kind: str = "exposure",
     seed: int = 0,
     cache: bool = True,
@@ -566,8 +456,8 @@ def reconstruct_3dra(
     contrast: bool = True,
     voxels: int = 256,
     pixels: int = 256,
-    projections: int = 120,
-    arc_deg: float = 200.0,
+    projections: int = RUN_PROJECTIONS,
+    arc_deg: float = RUN_ARC_DEG,
     kind: str = "exposure",
     seed: int = 0,
     cache: bool = True,
@@ -586,8 +476,7 @@ def reconstruct_3dra(
         volume_format_cm=volume_format_cm, contrast=contrast, pixels=pixels, projections=projections,
         arc_deg=arc_deg, kind=kind, seed=seed,
     )  # fmt: skip
-    params = _3dra_params(phantom_seed, **run_params)  # type: ignore[arg-type]
-    params["voxels"] = int(voxels)
+    params = fdk_3dra_params(phantom_seed, voxels=voxels, **run_params)  # type: ignore[arg-type]
 
     def build() -> dict[str, np.ndarray]:
         run = rotational_run_3dra(phantom_seed, cache=cache, **run_params)  # type: ignore[arg-type]
@@ -611,7 +500,9 @@ def bench_reconstruction(*, projections: int = 120, pixels: int = 512, voxels: i
     """
     from registration.sim.calibration import SpherePhantom, simulate_sphere_image
 
-    spheres = SpherePhantom(np.array([[0.0, 0.0, 0.0], [20.0, -10.0, 5.0]]), np.array([60.0, 5.0]), [0.0206, 0.01])
+    spheres = SpherePhantom(
+        np.array([[0.0, 0.0, 0.0], [20.0, -10.0, 5.0]]), np.array([60.0, 5.0]), [MU_WATER_PER_MM, 0.01]
+    )
     angles = run_angles(projections, 200.0)
     geoms = [CArm.for_format(27.0, pixels=pixels, primary_deg=float(a)) for a in angles]
     images = np.stack([simulate_sphere_image(spheres, g, supersample=1, full_frame=True) for g in geoms])

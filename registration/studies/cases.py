@@ -20,6 +20,7 @@ from registration import __version__
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import TABLE_I, CArm, offsets_to_matrix, rigid
 from registration.core.register import RegistrationOptions, register
+from registration.sim.threedra import VolumeRecipe
 
 if TYPE_CHECKING:
     from registration.core.volume import Volume
@@ -42,8 +43,8 @@ class Case:
     facial: bool = True
     image_pixels: int = 512
     volume_voxels: int = 256
-    #: "fdk": the 3DRA reconstructed from a simulated rotational run (issue 5);
-    #: "resampled": the phantom resampled to the 3DRA grid (a faster stand-in).
+    #: How the 3DRA is made (registration.sim.threedra.VOLUME_SOURCES): "fdk", reconstructed
+    #: from a simulated rotational run; "resampled", the phantom resampled (a faster stand-in).
     volume_source: str = "fdk"
     #: Contrast in the rotational run of the 3DRA (the fluoro image never has contrast).
     volume_contrast: bool = True
@@ -59,30 +60,23 @@ def _phantom(seed: int, contrast: bool, facial: bool) -> HeadPhantom:
     return make_head_phantom(seed=seed, contrast=contrast, facial=facial)
 
 
-VOLUME_SOURCES = ("fdk", "resampled")
+def volume_recipe(case: Case) -> VolumeRecipe:
+    """Which 3DRA a case registers to (its phantom, format, grid, source, contrast, center)."""
+    return VolumeRecipe(
+        phantom_seed=case.phantom_seed,
+        volume_format_cm=case.volume_format_cm,
+        source=case.volume_source,
+        voxels=case.volume_voxels,
+        contrast=case.volume_contrast,
+        facial=case.facial,
+        center_mm=tuple(case.volume_center_mm),  # type: ignore[arg-type]
+    )
 
 
 @lru_cache(maxsize=4)
-def load_volume(
-    phantom_seed: int,
-    facial: bool,
-    volume_format_cm: float,
-    voxels: int,
-    source: str = "fdk",
-    contrast: bool = True,
-) -> Volume:
-    """The registration volume of a phantom variant (cached on disk and in memory)."""
-    if source == "fdk":
-        if not facial:
-            raise ValueError("the FDK 3DRA is reconstructed from the full phantom (facial=True)")
-        from registration.sim.reconstruct import reconstruct_3dra
-
-        return reconstruct_3dra(phantom_seed, volume_format_cm=volume_format_cm, contrast=contrast, voxels=voxels)
-    if source == "resampled":
-        from registration.sim.phantom import registration_volume
-
-        return registration_volume(_phantom(phantom_seed, contrast, facial), volume_format_cm, voxels=voxels)
-    raise ValueError(f"volume source must be one of {VOLUME_SOURCES}, got {source!r}")
+def load_volume(recipe: VolumeRecipe) -> Volume:
+    """The registration volume of a recipe (cached on disk and, for the last few, in memory)."""
+    return recipe.build()
 
 
 def offset_vector(offset: str) -> np.ndarray:
@@ -121,23 +115,7 @@ def prepared_renderer(volume: Volume) -> tuple[DRRRenderer, float]:
 
 def case_volume(case: Case) -> Volume:
     """The registration volume of a case: the 3DRA of its phantom and format (cached)."""
-    if any(case.volume_center_mm):
-        return offcenter_volume(
-            case.phantom_seed,
-            case.volume_format_cm,
-            tuple(case.volume_center_mm),
-            voxels=case.volume_voxels,
-            source=case.volume_source,
-            contrast=case.volume_contrast,
-        )
-    return load_volume(
-        case.phantom_seed,
-        case.facial,
-        case.volume_format_cm,
-        case.volume_voxels,
-        case.volume_source,
-        case.volume_contrast,
-    )
+    return load_volume(volume_recipe(case))
 
 
 def confidence_fields(volume: Volume, xray: object, result: object, renderer: DRRRenderer | None = None) -> dict:
@@ -272,83 +250,3 @@ def format_table(records: list[dict]) -> str:
 
 def _translation(t_mm: Sequence[float]) -> NDArray[np.float64]:
     return rigid(None, np.asarray(t_mm, dtype=np.float64))
-
-
-@lru_cache(maxsize=2)
-def offcenter_volume(
-    phantom_seed: int,
-    volume_format_cm: float,
-    center_mm: tuple[float, float, float],
-    *,
-    voxels: int = 256,
-    source: str = "fdk",
-    contrast: bool = True,
-) -> Volume:
-    """A 3DRA whose grid is centered at ``center_mm`` instead of the iso-center.
-
-    As on a real system, the rotational run is made with the table moved by ``-center_mm``
-    (the phantom imaged moved by that translation, so ``center_mm`` sits at the iso-center of
-    the run), reconstructed around the iso-center with the calibrated geometry, and put back
-    into the world frame of the X-ray images by the known table shift. ``source="resampled"``
-    voxelises the phantom on the shifted grid instead (the fast stand-in). Cached on disk.
-    """
-    from registration.core.volume import Volume, format_grid
-    from registration.io.cache import cached_arrays
-    from registration.sim.phantom import (
-        PHANTOM_MODEL_VERSION,
-        STAND_IN_LABEL,
-        STAND_IN_NOISE_HU,
-        STAND_IN_SMOOTH_VOXELS,
-        make_head_phantom,
-    )
-
-    center = np.asarray(center_mm, dtype=np.float64)
-    phantom = make_head_phantom(seed=phantom_seed, contrast=contrast)
-    params = {
-        "phantom_model": PHANTOM_MODEL_VERSION,
-        "phantom_seed": int(phantom_seed),
-        "volume_format_cm": float(volume_format_cm),
-        "center_mm": [float(c) for c in center],
-        "contrast": bool(contrast),
-        "voxels": int(voxels),
-        "source": source,
-    }
-    if source == "resampled":
-        from scipy import ndimage
-
-        spacing, axis = format_grid(volume_format_cm, voxels=voxels)
-        affine = np.diag([spacing, spacing, spacing, 1.0])
-        affine[:3, 3] = axis[0] + center
-
-        def build_resampled() -> dict[str, np.ndarray]:
-            hu = phantom.voxelize((voxels, voxels, voxels), affine, supersample=2)
-            hu = ndimage.gaussian_filter(hu, STAND_IN_SMOOTH_VOXELS, mode="nearest")
-            hu += np.random.default_rng(0).normal(0.0, STAND_IN_NOISE_HU, hu.shape).astype(np.float32)
-            return {"data": hu.astype(np.float32)}
-
-        data = cached_arrays("standin3dra-offcenter", {**params, "n_prims": phantom.n_primitives}, build_resampled)
-        return Volume(data["data"], affine, label=STAND_IN_LABEL + f", centered at {center.tolist()} mm")
-    if source != "fdk":
-        raise ValueError(f"source must be 'fdk' or 'resampled', got {source!r}")
-    from registration.sim.reconstruct import reconstruct_run, rotational_run
-    from registration.sim.xray import simulate_xray
-
-    table = _translation(-center)  # the phantom as the run sees it: moved by -center
-    pixels, projections, kind, seed = 256, 120, "exposure", 0  # as reconstruct_3dra
-
-    def imager(ph: object, geom: CArm, index: int) -> tuple[np.ndarray, np.ndarray]:
-        xr = simulate_xray(ph, geom, motion=table, kind=kind, seed=seed * 100003 + index)  # type: ignore[arg-type]
-        return np.asarray(xr.image, np.float32), np.asarray(xr.mask, bool)
-
-    def build_fdk() -> dict[str, np.ndarray]:
-        run = rotational_run(
-            phantom, image_format_cm=volume_format_cm, projections=projections, kind=kind, pixels=pixels, imager=imager
-        )
-        vol = reconstruct_run(run, volume_format_cm=volume_format_cm, voxels=voxels)
-        return {"data": vol.data, "index_to_world": _translation(center) @ vol.index_to_world}
-
-    arrays = cached_arrays("fdk-3dra-offcenter", {**params, "pixels": pixels, "projections": projections}, build_fdk)
-    from registration.sim.reconstruct import RECONSTRUCTION_LABEL
-
-    label = RECONSTRUCTION_LABEL.format(n=projections) + f", centered at {center.tolist()} mm"
-    return Volume(arrays["data"], arrays["index_to_world"], label=label, meta=params)

@@ -39,15 +39,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import __version__
-from registration.core.geometry import TABLE_I, CArm, clinically_relevant, rigid
+from registration.core.geometry import IMAGE_FORMATS_CM, TABLE_I, CArm, clinically_relevant, rigid
 from registration.core.register import RegistrationOptions
 from registration.studies.cases import Case, _translation, case_volume, run_case
 
 if TYPE_CHECKING:
     from registration.core.volume import Volume
 
-#: Image and volume formats of Table II (cm).
-STUDY_FORMATS_CM: tuple[float, ...] = (15.0, 19.0, 22.0, 27.0, 31.0, 37.0, 42.0, 48.0)
+#: Image and volume formats of Table II (cm): the system's eight.
+STUDY_FORMATS_CM: tuple[float, ...] = IMAGE_FORMATS_CM
 IMAGE_KINDS: tuple[str, ...] = ("exposure", "fluoro")
 
 #: The alternative 22 cm 3DRA "which contained the facial structures" (paper III.A): the
@@ -318,12 +318,13 @@ def patient_data(
     The run is an exposure-dose propeller run of the phantom variant ``phantom_seed`` (iodine in
     the vessels when ``contrast``) at image format = ``volume_format_cm``; images are formed with
     the true (bent) geometry; the reconstruction uses the calibrated geometry
-    (:func:`registration.sim.reconstruct.rotational_run`, :func:`~registration.sim.reconstruct.reconstruct_run`).
+    (:func:`registration.sim.rotational_run.rotational_run`, :func:`~registration.sim.reconstruct.reconstruct_run`).
     """
     from registration.core.volume import Volume
     from registration.io.cache import cached_arrays
     from registration.sim.phantom import PHANTOM_MODEL_VERSION, make_head_phantom
-    from registration.sim.reconstruct import RECONSTRUCTION_LABEL, reconstruct_run, rotational_run
+    from registration.sim.reconstruct import RECONSTRUCTION_LABEL, reconstruct_run
+    from registration.sim.rotational_run import rotational_run
 
     params = {
         "phantom_model": PHANTOM_MODEL_VERSION,

@@ -35,7 +35,7 @@ def test_the_first_reconstruction_reports_what_it_prepares(monkeypatch) -> None:
     config = AppConfig(voxels=32, volume_source="fdk")
     calls: list[tuple[int, float, int]] = []
 
-    def slow_reconstruction(seed: int, *, volume_format_cm: float, voxels: int):
+    def slow_reconstruction(seed: int, *, volume_format_cm: float, voxels: int, contrast: bool = True):
         calls.append((seed, volume_format_cm, voxels))
         time.sleep(2.3)
         return PhantomData(AppConfig(voxels=32, volume_source="resampled")).volume(volume_format_cm)

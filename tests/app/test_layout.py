@@ -67,3 +67,14 @@ def test_a_new_panel_mounts_with_one_line(app: RoadmapApp) -> None:
         built.close()
         server.stop()
     assert panel.closed
+
+
+def test_the_command_line_offers_the_engines_volume_sources() -> None:
+    """The CLI's choices are typing.Literal declarations: they must stay the engine's list."""
+    import typing
+
+    from app import cli, options
+    from registration.sim.threedra import VOLUME_SOURCES
+
+    for hints in (typing.get_type_hints(options.PhantomStudy), typing.get_type_hints(cli.phantom)):
+        assert typing.get_args(hints["volume_source"]) == VOLUME_SOURCES

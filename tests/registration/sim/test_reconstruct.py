@@ -8,18 +8,10 @@ import numpy as np
 import pytest
 
 from registration.core.geometry import CArm
-from registration.core.volume import format_grid
+from registration.core.volume import MU_WATER_PER_MM, format_grid
 from registration.sim.calibration import SpherePhantom, machine_based_error_mm, simulate_sphere_image
-from registration.sim.reconstruct import (
-    MU_WATER_PER_MM,
-    RotationalRun,
-    fdk,
-    parker_weights,
-    ramp_kernel_spectrum,
-    reconstruct_run,
-    rotational_run,
-    run_angles,
-)
+from registration.sim.reconstruct import fdk, parker_weights, ramp_kernel_spectrum, reconstruct_run
+from registration.sim.rotational_run import RotationalRun, rotational_run, run_angles
 
 #: Small sizes so the file runs in well under a minute on 2 shared cores.
 FORMAT_CM = 15.0  # FOV 101 mm at the iso-center
