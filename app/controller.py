@@ -196,13 +196,21 @@ class Controller:
 
     def load_upload(self, name: str, content: bytes) -> bool:
         """Read an uploaded zip and show it; a refusal becomes a message in the page."""
-        from app.upload import read_upload
+        from app.upload import distance_mm, read_upload
 
+        ui = self.layout
         self.message(f"Reading {name} ({len(content) / 1e6:.1f} MB)…")
         try:
-            data = read_upload(name, content, max_bytes=self.max_upload_bytes, config=self.session.config)
+            sid_mm = distance_mm(str(ui.upload_sid.value), "SID")
+            sod_mm = distance_mm(str(ui.upload_sod.value), "SOD")
+            data = read_upload(
+                name, content, max_bytes=self.max_upload_bytes, config=self.session.config, sid_mm=sid_mm, sod_mm=sod_mm
+            )
         except ValueError as exc:  # UploadError, DicomError: say why, keep what is shown
-            self.message(f"Upload refused: {exc}", error=True)
+            hint = ""
+            if "sid_mm" in str(exc) or "sod_mm" in str(exc):
+                hint = " · Enter the distance under Data (SID/SOD) and upload again."
+            self.message(f"Upload refused: {exc}{hint}", error=True)
             return False
         self.use_data(data)
         self.message(f"Loaded {name}: {data.label}. Press **Register**.")

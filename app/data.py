@@ -240,13 +240,14 @@ class FileData:
     @classmethod
     def from_paths(
         cls, volume_path: str | os.PathLike[str], image_path: str | os.PathLike[str], *, frame: int | None,
-        config: AppConfig,
+        config: AppConfig, sid_mm: float | None = None, sod_mm: float | None = None,
     ) -> FileData:  # fmt: skip
-        """Read with the engine's DICOM readers (their errors name the file and the tag)."""
+        """Read with the engine's DICOM readers (their errors name the file and the tag);
+        ``sid_mm`` / ``sod_mm`` for an image that lacks the distances."""
         from registration.io.dicom import read_volume, read_xray
 
         volume = read_volume(volume_path)
-        xray = read_xray(image_path, frame=frame)
+        xray = read_xray(image_path, frame=frame, sid_mm=sid_mm, sod_mm=sod_mm)
         return cls(volume, xray, source=f"{volume_path} + {image_path}", config=config)
 
     @property

@@ -157,6 +157,19 @@ class Layout:
                 f"<small>Limit {max_upload_bytes / 1e6:g} MB. Unpacked into a private temporary folder, read, "
                 "then deleted. Your data has no ground truth: the motion controls move the roadmap.</small>"
             )
+            self.upload_sid = gui.add_text(
+                "SID (mm)",
+                "",
+                hint="Source-detector distance for an XA/RF file without DistanceSourceToDetector; "
+                "a value here replaces the file's (with a warning). Empty: from the file.",
+            )
+            self.upload_sod = gui.add_text(
+                "SOD (mm)",
+                "",
+                hint="Source-iso-center distance for an XA/RF file without DistanceSourceToPatient; "
+                "a value here replaces the file's (with a warning). Empty: from the file.",
+            )
+            gui.add_markdown("<small>SID/SOD: only for images that lack the distances; then upload again.</small>")
             self.phantom_button = gui.add_button("Back to the phantom", visible=False)
         with tabs.add_tab("Display", viser.Icon.EYE):
             self.show_ghost = gui.add_checkbox("True position (ghost)", False)

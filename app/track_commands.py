@@ -212,9 +212,8 @@ def run_phantom_run_export(
     _err(f"simulating {script.frames} frames x {len(geometries)} plane(s) of {pixels} px (cached after the first time)")
     runs = simulate_biplane_run(anatomy, geometries, script, progress=progress)
     volume, description, made = _phantom_3dra(
-        make_head_phantom(seed=0, contrast=True), source=volume_source, seed=0, contrast=True,
-        volume_format=image_format, voxels=voxels,
-    )  # fmt: skip
+        source=volume_source, seed=0, contrast=True, volume_format=image_format, voxels=voxels
+    )
     truth = {
         "frames": [
             {"frame": n, "t_s": float(t), "patient_motion": runs[0].truth[n].tolist(), "phase": runs[0].phases[n]}

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import atexit
 import logging
+import math
 import multiprocessing
 import os
 import shutil
@@ -206,6 +207,7 @@ def _env_float(name: str, default: float) -> float:
 def _read_in_child(
     zip_path: str, folder: str, name: str, max_bytes: int, memory_bytes: int, conn: Connection,
     reader: Callable[[Path, Path, str, int], tuple[Any, Any]] | None = None,
+    distances_mm: tuple[float | None, float | None] = (None, None),
 ) -> None:  # fmt: skip
     """The reading process: unpack, find and read the volume and the image, send them back."""
     try:
@@ -215,7 +217,11 @@ def _read_in_child(
     except (ImportError, ValueError, OSError):
         pass
     try:
-        volume, xray = (reader or _unpack_and_read)(Path(zip_path), Path(folder), name, max_bytes)
+        if reader is None:
+            sid_mm, sod_mm = distances_mm
+            volume, xray = _unpack_and_read(Path(zip_path), Path(folder), name, max_bytes, sid_mm=sid_mm, sod_mm=sod_mm)
+        else:
+            volume, xray = reader(Path(zip_path), Path(folder), name, max_bytes)
         conn.send(("ok", volume, xray))
     except ValueError as exc:  # UploadError, DicomError: the message for the page
         conn.send(("refused", str(exc), None))
@@ -227,7 +233,9 @@ def _read_in_child(
         conn.close()
 
 
-def _unpack_and_read(zip_path: Path, folder: Path, name: str, max_bytes: int) -> tuple[Any, Any]:
+def _unpack_and_read(
+    zip_path: Path, folder: Path, name: str, max_bytes: int, *, sid_mm: float | None = None, sod_mm: float | None = None
+) -> tuple[Any, Any]:
     from registration.io.dicom import UploadError, classify_upload, read_volume, read_xray, unpack_upload
 
     try:
@@ -238,7 +246,7 @@ def _unpack_and_read(zip_path: Path, folder: Path, name: str, max_bytes: int) ->
     if found["volume"] is None or found["image"] is None:
         missing = "volume" if found["volume"] is None else "XA/RF image"
         raise UploadError(f"{name}: found no {missing}; expected {EXPECTED}")
-    return read_volume(found["volume"]), read_xray(found["image"], frame=None)
+    return read_volume(found["volume"]), read_xray(found["image"], frame=None, sid_mm=sid_mm, sod_mm=sod_mm)
 
 
 def shutdown_readers(timeout_s: float = 2.0) -> None:
@@ -258,9 +266,24 @@ def shutdown_readers(timeout_s: float = 2.0) -> None:
 atexit.register(shutdown_readers)
 
 
+def distance_mm(text: str, what: str) -> float | None:
+    """An optional distance typed into the Data tab: empty gives None, else a positive number of mm."""
+    text = text.strip().removesuffix("mm").strip()
+    if not text:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{what} must be a number of mm (or empty), got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{what} must be a positive number of mm (or empty), got {text!r}")
+    return value
+
+
 def read_upload(
     name: str, content: bytes, *, max_bytes: int, config: AppConfig, timeout_s: float | None = None,
     memory_bytes: int | None = None, reader: Callable[[Path, Path, str, int], tuple[Any, Any]] | None = None,
+    sid_mm: float | None = None, sod_mm: float | None = None,
 ) -> FileData:  # fmt: skip
     """The volume and image in an uploaded zip, read in a separate process within ``timeout_s``
     (default READ_TIMEOUT_S or ROADMAP3D_UPLOAD_READ_S) and ``memory_bytes``; ValueError
@@ -268,6 +291,8 @@ def read_upload(
 
     ``reader(zip_path, folder, name, max_bytes) -> (volume, xray)`` replaces the unpacking and
     reading (a module-level function: it is called in the reading process; tests hang it).
+    ``sid_mm`` / ``sod_mm`` supply the distances of an X-ray image that lacks them
+    (:func:`registration.io.dicom.read_xray`).
     """
     from registration.io.dicom import UploadError
 
@@ -289,7 +314,7 @@ def read_upload(
         receiver, sender = ctx.Pipe(duplex=False)
         process = ctx.Process(
             target=_read_in_child,
-            args=(str(zip_path), str(tmp / "files"), name, max_bytes, memory_bytes, sender, reader),
+            args=(str(zip_path), str(tmp / "files"), name, max_bytes, memory_bytes, sender, reader, (sid_mm, sod_mm)),
             name="roadmap3d-upload-reader",
             daemon=True,
         )

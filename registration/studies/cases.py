@@ -74,9 +74,25 @@ def volume_recipe(case: Case) -> VolumeRecipe:
 
 
 @lru_cache(maxsize=4)
-def load_volume(recipe: VolumeRecipe) -> Volume:
+def recipe_volume(recipe: VolumeRecipe) -> Volume:
     """The registration volume of a recipe (cached on disk and, for the last few, in memory)."""
     return recipe.build()
+
+
+def load_volume(
+    phantom_seed: int,
+    facial: bool,
+    volume_format_cm: float,
+    voxels: int,
+    source: str = "fdk",
+    contrast: bool = True,
+) -> Volume:
+    """The registration volume of a phantom variant centered at the iso-center (cached)."""
+    recipe = VolumeRecipe(
+        phantom_seed=phantom_seed, volume_format_cm=volume_format_cm, source=source, voxels=voxels,
+        contrast=contrast, facial=facial,
+    )  # fmt: skip
+    return recipe_volume(recipe)
 
 
 def offset_vector(offset: str) -> np.ndarray:
@@ -115,7 +131,7 @@ def prepared_renderer(volume: Volume) -> tuple[DRRRenderer, float]:
 
 def case_volume(case: Case) -> Volume:
     """The registration volume of a case: the 3DRA of its phantom and format (cached)."""
-    return load_volume(volume_recipe(case))
+    return recipe_volume(volume_recipe(case))
 
 
 def confidence_fields(volume: Volume, xray: object, result: object, renderer: DRRRenderer | None = None) -> dict:

@@ -78,3 +78,47 @@ def test_the_command_line_offers_the_engines_volume_sources() -> None:
 
     for hints in (typing.get_type_hints(options.PhantomStudy), typing.get_type_hints(cli.phantom)):
         assert typing.get_args(hints["volume_source"]) == VOLUME_SOURCES
+
+
+def test_the_data_tab_supplies_distances_a_file_lacks(fresh: RoadmapApp, tmp_path) -> None:
+    """An XA image without DistanceSourceToDetector/ToPatient: refused with a hint, then read with
+    the SID/SOD typed into the Data tab (the geometry then has exactly those distances)."""
+    import io
+    import zipfile
+
+    import pydicom
+
+    from app.data import simulate_xray
+    from registration.io.dicom import write_npz, write_xray
+
+    app = fresh
+    phantom = app._phantom_data  # noqa: SLF001
+    write_npz(phantom.volume(27.0), tmp_path / "volume.npz")
+    geometry = app.session.settings.geometry(128)
+    write_xray(simulate_xray(phantom.phantom(True), geometry, supersample=1), tmp_path / "image.dcm")
+    ds = pydicom.dcmread(tmp_path / "image.dcm")
+    del ds.DistanceSourceToDetector, ds.DistanceSourceToPatient
+    if "EstimatedRadiographicMagnificationFactor" in ds:
+        del ds.EstimatedRadiographicMagnificationFactor
+    ds.save_as(tmp_path / "image.dcm")
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name in ("volume.npz", "image.dcm"):
+            zf.write(tmp_path / name, arcname=name)
+    content = buf.getvalue()
+    before = app.session.data
+    try:
+        assert not app.load_upload("case.zip", content)
+        assert "DistanceSourceToDetector" in app.status.content and "Data (SID/SOD)" in app.status.content
+        assert app.session.data is before
+        app.upload_sid.value = "twelve hundred"
+        assert not app.load_upload("case.zip", content) and "SID must be a number" in app.status.content
+        app.upload_sid.value = str(geometry.sid_mm)
+        app.upload_sod.value = f"{geometry.sod_mm} mm"
+        assert app.load_upload("case.zip", content), app.status.content
+        read = app.session.data.fixed_xray.geometry
+        assert (read.sid_mm, read.sod_mm) == (geometry.sid_mm, geometry.sod_mm)
+    finally:
+        app.upload_sid.value = app.upload_sod.value = ""
+        app.phantom_button.value = True
+    assert app.session.data is app._phantom_data  # noqa: SLF001
