@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from registration.core.geometry import CArm
+from registration.core.geometry import DEFAULT_SID_MM, DEFAULT_SOD_MM, CArm
 from registration.core.images import XRayImage
 from registration.sim.calibration import (
     SYSTEM_BENDING_SEED,
@@ -75,7 +75,7 @@ class PlaneSpec:
 
 def plane_a_spec(*, image_format_cm: float = 27.0, pixels: int = 512) -> PlaneSpec:
     """The frontal plane: the default system."""
-    return PlaneSpec(PLANE_A, 1200.0, 810.0, image_format_cm, pixels, SYSTEM_BENDING_SEED)
+    return PlaneSpec(PLANE_A, DEFAULT_SID_MM, DEFAULT_SOD_MM, image_format_cm, pixels, SYSTEM_BENDING_SEED)
 
 
 def plane_b_spec(*, image_format_cm: float = 22.0, pixels: int = 384) -> PlaneSpec:
