@@ -63,10 +63,12 @@ class OrthancServer:
     username: str
     password: str
     folder: Path
+    #: The self-signed certificate (PEM) when the server is reached through :class:`TlsProxy`.
+    certificate: Path | None = None
 
     @property
     def url(self) -> str:
-        return f"http://127.0.0.1:{self.http_port}"
+        return f"{'https' if self.certificate else 'http'}://127.0.0.1:{self.http_port}"
 
     @property
     def dicomweb_url(self) -> str:
@@ -74,10 +76,13 @@ class OrthancServer:
 
     def rest(self, path: str, method: str = "GET") -> object:
         """Orthanc's own REST API (for checks the DICOMweb client does not make)."""
+        import ssl
+
         request = urllib.request.Request(self.url + path, method=method)
         token = b64encode(f"{self.username}:{self.password}".encode()).decode()
         request.add_header("Authorization", f"Basic {token}")
-        with urllib.request.urlopen(request, timeout=10) as response:
+        context = ssl.create_default_context(cafile=str(self.certificate)) if self.certificate else None
+        with urllib.request.urlopen(request, timeout=10, context=context) as response:
             body = response.read()
         return json.loads(body) if body else None
 
@@ -94,6 +99,20 @@ class OrthancServer:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait(timeout=5)
+
+
+def self_signed_certificate(folder: Path) -> tuple[Path, Path]:
+    """(certificate, certificate + key) for 127.0.0.1, made with the openssl command."""
+    key, cert = folder / "key.pem", folder / "cert.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(cert),
+         "-days", "1", "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1"],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    both = folder / "orthanc.pem"
+    both.write_text(cert.read_text() + key.read_text())
+    both.chmod(0o600)
+    return cert, both
 
 
 def start_orthanc(folder: Path) -> OrthancServer:
@@ -147,3 +166,60 @@ def start_orthanc(folder: Path) -> OrthancServer:
             time.sleep(0.1)
     server.stop()
     raise RuntimeError(f"Orthanc did not answer on port {http_port} within {START_TIMEOUT_S:.0f} s")
+
+
+class TlsProxy:
+    """HTTPS in front of a plain-HTTP server on this machine (TLS ends here, bytes are relayed).
+
+    Orthanc 1.10.1 as packaged by Debian crashes (SIGSEGV) on its first HTTPS connection with
+    its own ``SslEnabled``, so the HTTPS tests put this proxy, with a self-signed certificate
+    for 127.0.0.1, in front of the plain Orthanc. Listens on 127.0.0.1 only; daemon threads.
+    """
+
+    def __init__(self, target_port: int, folder: Path) -> None:
+        import ssl
+        import threading
+
+        self.certificate, both = self_signed_certificate(folder)
+        self.context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        self.context.load_cert_chain(str(both))
+        self.target_port = target_port
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = int(self.listener.getsockname()[1])
+        self._thread = threading.Thread(target=self._accept, daemon=True)
+        self._thread.start()
+
+    def _accept(self) -> None:
+        import ssl
+        import threading
+
+        while True:
+            try:
+                raw, _ = self.listener.accept()
+            except OSError:
+                return  # closed
+            try:
+                client = self.context.wrap_socket(raw, server_side=True)
+            except (ssl.SSLError, OSError):
+                raw.close()  # a client that does not trust the certificate hangs up here
+                continue
+            upstream = socket.create_connection(("127.0.0.1", self.target_port), timeout=30)
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(src: socket.socket, dst: socket.socket) -> None:
+        try:
+            while data := src.recv(65536):
+                dst.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for sock in (src, dst):
+                try:
+                    sock.close()
+                except OSError:
+                    pass
+
+    def close(self) -> None:
+        self.listener.close()

@@ -135,3 +135,27 @@ def test_unreachable_server_is_a_clear_error() -> None:
     pacs = Pacs(PacsSettings(f"http://127.0.0.1:{free_port()}/dicom-web", timeout_s=(1.0, 1.0), attempts=1))
     with pytest.raises(PacsError, match="cannot connect"):
         pacs.studies()
+
+
+def test_https_verifies_the_server_against_the_ca_bundle(orthanc: OrthancServer, tmp_path: Path) -> None:
+    """HTTPS (self-signed certificate for 127.0.0.1, tests/orthanc.TlsProxy in front of the real
+    Orthanc): refused without the CA bundle, served with it."""
+    import shutil as _shutil
+
+    from tests.orthanc import TlsProxy
+
+    if _shutil.which("openssl") is None:
+        pytest.skip("the openssl command is not installed (apt-get install openssl)")
+    orthanc.clear()
+    proxy = TlsProxy(orthanc.http_port, tmp_path)
+    try:
+        url = f"https://127.0.0.1:{proxy.port}/dicom-web"
+        blind = Pacs(PacsSettings(url, username=orthanc.username, password=orthanc.password, attempts=1))
+        with pytest.raises(PacsError, match="certificate is not trusted"):
+            blind.studies()
+        trusting = Pacs(
+            PacsSettings(url, username=orthanc.username, password=orthanc.password, ca_bundle=proxy.certificate)
+        )
+        assert trusting.studies() == []
+    finally:
+        proxy.close()
