@@ -93,6 +93,8 @@ class TrackingStudy:
     """Print the summary as one JSON object."""
     seed: int = 0
     """Seed of the patient's script, the frames' noise and the captures."""
+    every_frame: bool = False
+    """Process every frame (a deterministic replay) instead of skipping frames that arrive while busy."""
 
 
 @dataclass

@@ -213,6 +213,7 @@ def run_tracking_study(args: TrackingStudy) -> int:
     from registration.studies.tracking import run_tracking_study as study_run
 
     config = TrackingConfig.quick_config(args.seed) if args.quick else TrackingConfig.full_config(args.seed)
+    config = replace(config, realtime=not args.every_frame)
     study = study_run(config, log=_stderr)
     write_tracking_report(study, Path(args.out))
     s = study["summary"]

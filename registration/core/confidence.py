@@ -72,15 +72,19 @@ class ConfidenceRule:
     #: per noise unit of deficit beyond ``deficit_free`` (tracking).
     deficit_weight: float = 0.6
     deficit_free: float = 2.0
-    #: per unit of relative margin below ``margin_good`` (a flat or shared peak).
+    #: per unit of relative margin below ``margin_good`` (a flat or shared peak): a margin of
+    #: 0 costs 3, as much as the bias.
     margin_weight: float = 3000.0
-    margin_good: float = 0.0004
-    #: per missing fraction of agreeing capture runs.
-    agreement_weight: float = 6.0
-    agreement_free: float = 0.25
+    margin_good: float = 0.001
+    #: per missing fraction of agreeing capture runs beyond ``agreement_free``: the capture
+    #: runs end at the coarse level, where right estimates often agree with none of the
+    #: others within 1 mm / 1 degree (quick clinical study: 14 of 38), so disagreement alone
+    #: costs 1.
+    agreement_weight: float = 4.0
+    agreement_free: float = 0.75
     #: per missing fraction of edges below ``edges_good``.
     edges_weight: float = 12.0
-    edges_good: float = 0.3
+    edges_good: float = 0.2
     #: per mm of disagreement between the planes beyond ``planes_free_mm``.
     planes_weight: float = 2.0
     planes_free_mm: float = 1.0

@@ -130,6 +130,9 @@ class FrameEstimate:
     drop_sigmas: float
     drr_count: int
     evidence: dict = field(default_factory=dict)
+    #: CPU time of the process over the frame (ms, all threads): the work, whatever else
+    #: shares the machine (on a busy machine ``latency_ms`` grows, this does not).
+    cpu_ms: float = 0.0
 
     def to_dict(self) -> dict:
         return {
@@ -142,6 +145,7 @@ class FrameEstimate:
             "confidence": self.confidence,
             "reason": self.reason,
             "latency_ms": self.latency_ms,
+            "cpu_ms": self.cpu_ms,
             "similarity": self.similarity,
             "drop_sigmas": self.drop_sigmas,
             "drr_count": self.drr_count,
@@ -209,6 +213,7 @@ class Tracker:
         #: shown pose = the tracking level's pose @ _bias (see process(), first frame): the
         #: coarse level's bias sits on the volume's side
         self._bias = np.eye(4)
+        self._cpu_start = time.process_time()
 
     @property
     def shown_pose(self) -> Array:
@@ -321,6 +326,7 @@ class Tracker:
     def process(self, views: XRayImage | Sequence[XRayImage], frame: int = 0, t_s: float = 0.0) -> FrameEstimate:
         """Decide for one frame (one image per plane, taken at the same moment)."""
         start = time.perf_counter()
+        self._cpu_start = time.process_time()
         views = [views] if isinstance(views, XRayImage) else list(views)
         if not 1 <= len(views) <= 2:
             raise ValueError(f"one or two views per frame, got {len(views)}")
@@ -464,6 +470,7 @@ class Tracker:
             confidence=confidence,
             reason=reason,
             latency_ms=(time.perf_counter() - start) * 1e3,
+            cpu_ms=(time.process_time() - self._cpu_start) * 1e3,
             similarity=float(similarity),
             drop_sigmas=float(drop),
             drr_count=self.renderer.count - drrs0,
@@ -488,6 +495,9 @@ class TrackingRun:
         lat = np.array([f.latency_ms for f in self.frames]) if self.frames else np.zeros(0)
         refine = np.array([f.latency_ms for f in self.frames if f.path in ("check", "refine")])
         capture = np.array([f.latency_ms for f in self.frames if f.path == "capture"])
+        cpu = np.array([f.cpu_ms for f in self.frames])
+        cpu_refine = np.array([f.cpu_ms for f in self.frames if f.path in ("check", "refine")])
+        cpu_capture = np.array([f.cpu_ms for f in self.frames if f.path == "capture"])
 
         def q(a: np.ndarray, p: float) -> float | None:
             return float(np.percentile(a, p)) if len(a) else None
@@ -506,6 +516,10 @@ class TrackingRun:
             "refine_path_ms_median": q(refine, 50),
             "refine_path_ms_p95": q(refine, 95),
             "capture_ms_median": q(capture, 50),
+            "cpu_ms_per_frame_median": q(cpu, 50),
+            "cpu_ms_per_frame_p95": q(cpu, 95),
+            "refine_path_cpu_ms_p95": q(cpu_refine, 95),
+            "capture_cpu_ms_median": q(cpu_capture, 50),
         }
 
     def to_dict(self) -> dict:

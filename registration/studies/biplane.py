@@ -250,6 +250,11 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
         "pixels": list(case.pixels),
         "version": __version__,
     }
+    from registration.studies.cases import confidence_fields
+
+    record.update(confidence_fields(volume, list(views), both, renderer, single_plane_motion=single.patient_motion))
+    single_conf = confidence_fields(volume, views[0], single, renderer)
+    record.update({f"single_{k}": v for k, v in single_conf.items() if k in ("confidence", "applied")})
     return record
 
 
@@ -282,6 +287,9 @@ def biplane_summary(records: list[dict], *, config: dict, wall_seconds: float) -
         out[f"{name}inplane_residual_mm_median"] = _median(records, f"{prefix}inplane_residual_mm")
         out[f"{name}rotation_residual_deg_median"] = _median(records, f"{prefix}rotation_residual_deg")
         out[f"{name}seconds_median"] = _median(records, f"{prefix}seconds")
+    from registration.studies.report import applied_summary
+
+    out.update(applied_summary(records))
     out["image_source"] = records[0]["image_source"] if records else ""
     out["volume_labels"] = sorted({r["volume_label"] for r in records})
     out["wall_seconds"] = wall_seconds

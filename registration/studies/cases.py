@@ -134,19 +134,52 @@ def case_volume(case: Case) -> Volume:
     return recipe_volume(volume_recipe(case))
 
 
-def confidence_fields(volume: Volume, xray: object, result: object, renderer: DRRRenderer | None = None) -> dict:
-    """``confidence``, ``applied`` (CONVENTIONS §7), why not, and the evidence of one registration."""
+def confidence_fields(
+    volume: Volume,
+    xray: object,
+    result: object,
+    renderer: DRRRenderer | None = None,
+    *,
+    single_plane_motion: object = None,
+) -> dict:
+    """``confidence``, ``applied`` (CONVENTIONS §7), why not, and the evidence of one registration.
+
+    ``xray``: the view, or the views of a biplane registration (margins and edges averaged
+    over the planes); ``single_plane_motion``: plane A's own single-view estimate, whose
+    in-plane disagreement with the biplane estimate is the planes' agreement.
+    """
+    from dataclasses import replace as _replace
+
+    import numpy as _np
+
     from registration.core.confidence import DEFAULT_RULE
+    from registration.core.geometry import apply
     from registration.core.tracking import registration_evidence
 
     start = time.perf_counter()
-    evidence = registration_evidence(
-        volume,
-        xray,  # type: ignore[arg-type]
-        result.patient_motion,  # type: ignore[attr-defined]
-        renderer=renderer,
-        capture_motions=getattr(result, "capture_motions", None),
+    views = list(xray) if isinstance(xray, (list, tuple)) else [xray]
+    motion = result.patient_motion  # type: ignore[attr-defined]
+    per_view = [
+        registration_evidence(
+            volume,
+            v,  # type: ignore[arg-type]
+            motion,
+            renderer=renderer,
+            capture_motions=getattr(result, "capture_motions", None),
+        )
+        for v in views
+    ]
+    evidence = _replace(
+        per_view[0],
+        margin=float(_np.mean([e.margin for e in per_view])),
+        edges=float(_np.mean([e.edges for e in per_view])),
     )
+    if single_plane_motion is not None:
+        g = views[0].geometry  # type: ignore[attr-defined]
+        iso = _np.asarray(g.isocenter_mm)
+        shift = apply(_np.asarray(motion), iso) - apply(_np.asarray(single_plane_motion), iso)
+        inplane = shift - (shift @ g.direction) * g.direction
+        evidence = _replace(evidence, plane_disagreement_mm=float(_np.linalg.norm(inplane)))
     assessment = DEFAULT_RULE.assess(evidence)
     return {
         "confidence": assessment.confidence,
