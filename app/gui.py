@@ -24,6 +24,7 @@ from app.controller import Controller
 from app.layout import Layout
 from app.pacs_panel import PacsPanel
 from app.panels import Panel, PanelContext, PanelFactory, mount
+from app.playback import PlaybackPanel
 from app.presenter import Presenter
 from app.scene import Scene
 from app.session import Session
@@ -33,7 +34,7 @@ if TYPE_CHECKING:
 
 #: The optional panels every app mounts, in tab order after the layout's own tabs (left:
 #: Roadmap; right: Patient motion, C-arm, Data, Display). A new panel: one line here.
-PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel)
+PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel, PlaybackPanel)
 
 #: Handles of the layout that are also reachable as ``app.<name>`` (tests, scripts, panels).
 _LAYOUT_HANDLES = frozenset(
@@ -105,6 +106,11 @@ class RoadmapApp:
     def calibration(self) -> CalibrationPanel:
         """The calibration view (a mounted panel)."""
         return next(p for p in self.panels if isinstance(p, CalibrationPanel))
+
+    @property
+    def playback(self) -> PlaybackPanel:
+        """The Play run panel (a mounted panel)."""
+        return next(p for p in self.panels if isinstance(p, PlaybackPanel))
 
     @property
     def frames_shown(self) -> int:

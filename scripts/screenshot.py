@@ -7,7 +7,10 @@ app's default (the FDK 3DRA; ``ROADMAP3D_APP_VOLUME=resampled`` for the stand-in
 and saves that too.
 
     python scripts/screenshot.py [--out docs/app.png] [--chromium /usr/bin/chromium] [--no-register]
-        [--calibration /tmp/calibration.png]
+        [--calibration /tmp/calibration.png] [--playback /tmp/playback.png]
+
+``--playback PATH`` then opens the Play run tab, presses Play and saves the run as it plays
+(after a sudden move has been corrected, or after ``--playback-seconds``).
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ def main() -> int:
     parser.add_argument("--height", type=int, default=900)
     parser.add_argument("--no-register", action="store_true", help="only T4, no registration")
     parser.add_argument("--calibration", type=Path, default=None, help="also save the calibration view here")
+    parser.add_argument("--playback", type=Path, default=None, help="also save the Play run tab here")
+    parser.add_argument("--playback-seconds", type=float, default=14.0)
     args = parser.parse_args()
     if not Path(args.chromium).exists():
         print(f"error: {args.chromium} not found (apt-get install chromium)", file=sys.stderr)
@@ -72,6 +77,17 @@ def main() -> int:
                 page.get_by_text(re.compile(r"Frame 1 of \d+")).wait_for(timeout=180_000)
                 time.sleep(2.0)
                 page.screenshot(path=str(args.calibration), timeout=180_000)
+            if args.playback is not None:
+                page.get_by_role("tab", name="Play run").click()
+                page.get_by_role("button", name="Play", exact=True).click()
+                try:
+                    page.get_by_text(re.compile(r"motion corrected")).first.wait_for(timeout=180_000)
+                except Exception:  # noqa: BLE001 - no correction yet: take the picture anyway
+                    pass
+                time.sleep(args.playback_seconds)
+                dismiss_notifications(page)
+                page.screenshot(path=str(args.playback), timeout=180_000)
+                print(f"wrote {args.playback}")
             browser.close()
     finally:
         app.close()

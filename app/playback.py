@@ -1,0 +1,273 @@
+"""The "Play run" panel: a fluoroscopy run played at its frame times, the roadmap following.
+
+A simulated run of the phantom (:mod:`registration.sim.fluoro`: still periods, drift, sudden
+moves, breathing, a guidewire advancing; honest images) is played at its real frame times while
+the tracker (:class:`registration.core.tracking.Tracker`) follows the patient. Each shown frame
+carries the roadmap (the vessel outline at the last applied pose) and the product's message on
+top of the image ("motion corrected 3.2 mm, 1.1°", "motion detected, correction withheld");
+a strip chart shows the estimated (shown) and true motion and the per-frame latency. Frames
+that arrive while the engine is busy are skipped (the picture always shows the newest frame).
+
+Play, Pause and Stop control one shared playback: every browser tab watches the same run
+(the panel's widgets are server-level). The work runs on the panel's own thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import viser
+
+from app import views
+from app.panels import BasePanel, PanelContext
+from registration.core.geometry import CArm, apply, invert_rigid, matrix_to_offsets, rotation_angle_deg
+
+if TYPE_CHECKING:
+    from registration.core.tracking import FrameEstimate
+    from registration.sim.fluoro import FluoroRun
+
+log = logging.getLogger(__name__)
+
+#: Size of the shown frame (pixels) and how often the strip chart is redrawn (Hz).
+DISPLAY_PX = 384
+CHART_HZ = 5.0
+#: Message colours (as the Roadmap tab's badge).
+GREEN, ORANGE, GRAY = (64, 192, 87), (253, 126, 20), (134, 142, 150)
+
+
+def motion_message(est: FrameEstimate, previous: np.ndarray, geometry: CArm) -> tuple[str, tuple[int, int, int]]:
+    """The product's message for one frame and its colour."""
+    if est.status == "applied":
+        change = est.patient_motion @ invert_rigid(previous)
+        iso = np.asarray(geometry.isocenter_mm)
+        mm = float(np.linalg.norm(apply(change, iso) - iso))
+        return f"motion corrected {mm:.1f} mm, {rotation_angle_deg(change):.1f}°", GREEN
+    if est.status == "withheld":
+        return "motion detected, correction withheld", ORANGE
+    return "no motion", GRAY
+
+
+def draw_message(rgb: np.ndarray, text: str, color: tuple[int, int, int]) -> np.ndarray:
+    """The message on a coloured strip across the top of the image (in place). OpenCV's font
+    has no degree sign: it is drawn as 'deg'."""
+    h = max(22, rgb.shape[0] // 14)
+    rgb[:h] = (0.35 * rgb[:h] + 0.65 * np.array(color)).astype(np.uint8)
+    scale = h / 34.0
+    cv2.putText(rgb, text.replace("°", " deg"), (8, int(h * 0.72)), cv2.FONT_HERSHEY_SIMPLEX, scale,
+                (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
+    return rgb
+
+
+class PlaybackPanel(BasePanel):
+    """The Play run tab (left) with its controls."""
+
+    def __init__(self, ctx: PanelContext) -> None:
+        self.ctx = ctx
+        gui = ctx.server.gui
+        with ctx.layout.view_tab("Play run", viser.Icon.PLAYER_PLAY):
+            self.image = gui.add_image(np.zeros((DISPLAY_PX, DISPLAY_PX, 3), np.uint8), label=None, format="jpeg",
+                                       jpeg_quality=85)  # fmt: skip
+            self.message = gui.add_markdown("A 20 s fluoroscopy run of the phantom: press **Play**.")
+            with gui.add_folder("Playback", expand_by_default=True):
+                self.play_button = gui.add_button("Play", color="green", icon=viser.Icon.PLAYER_PLAY)
+                self.pause_button = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True)
+                self.stop_button = gui.add_button("Stop", color="red", icon=viser.Icon.PLAYER_STOP, disabled=True)
+            self.stats = gui.add_markdown("")
+            self.chart = gui.add_uplot(
+                data=(np.zeros(1), *(np.full(1, np.nan) for _ in range(5))),
+                series=(
+                    {"label": "t (s)"},
+                    {"label": "true tx", "stroke": "#74c0fc", "width": 1, "scale": "mm"},
+                    {"label": "roadmap tx", "stroke": "#1c7ed6", "width": 2, "scale": "mm"},
+                    {"label": "true ty", "stroke": "#ffa8a8", "width": 1, "scale": "mm"},
+                    {"label": "roadmap ty", "stroke": "#e03131", "width": 2, "scale": "mm"},
+                    {"label": "latency (ms)", "stroke": "#ffd43b", "width": 1, "scale": "ms", "paths": None,
+                     "points": {"show": True, "size": 3}},
+                ),  # fmt: skip
+                scales={"x": {"time": False}, "mm": {"auto": True}, "ms": {"auto": True, "distr": 3}},
+                axes=(
+                    {"stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
+                    {"scale": "mm", "stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
+                    {"scale": "ms", "side": 1, "stroke": "#ffd43b", "grid": {"show": False}},
+                ),
+                title="Estimated (roadmap) and true motion (mm, view frame); latency (ms, log)",
+                height=220,
+            )
+        self.play_button.on_click(ctx.guarded(lambda _e: self.play()))
+        self.pause_button.on_click(ctx.guarded(lambda _e: self.toggle_pause()))
+        self.stop_button.on_click(ctx.guarded(lambda _e: self.stop()))
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._resume = threading.Event()
+        self._resume.set()
+        #: The run to play (a :class:`~registration.studies.tracking.TrackingCase`): the quick
+        #: study's 20 s run of the phantom; tests set a shorter one.
+        from registration.studies.tracking import TrackingConfig
+
+        self.case = TrackingConfig.quick_config().cases[0]
+        #: What the playback did (tests and scripts read it).
+        self.frames_shown = 0
+        self.skipped = 0
+        self.estimates: list[FrameEstimate] = []
+        self.last_message = ""
+        self.finished = threading.Event()
+
+    # ----- controls ---------------------------------------------------------------------
+    @property
+    def playing(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def paused(self) -> bool:
+        return not self._resume.is_set()
+
+    def play(self) -> None:
+        with self._lock:
+            if self.playing:
+                if self.paused:
+                    self.toggle_pause()
+                return
+            self._stop.clear()
+            self._resume.set()
+            self.finished.clear()
+            self._thread = threading.Thread(target=self._run_guarded, name="play-run", daemon=True)
+            self._thread.start()
+        self._buttons(playing=True)
+
+    def toggle_pause(self) -> None:
+        if not self.playing:
+            return
+        if self._resume.is_set():
+            self._resume.clear()
+            self.pause_button.label = "Resume"
+        else:
+            self._resume.set()
+            self.pause_button.label = "Pause"
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._resume.set()
+
+    def close(self) -> None:
+        self.stop()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def _buttons(self, *, playing: bool) -> None:
+        self.play_button.disabled = playing
+        self.pause_button.disabled = not playing
+        self.stop_button.disabled = not playing
+        if not playing:
+            self.pause_button.label = "Pause"
+
+    # ----- the run ----------------------------------------------------------------------
+    def _load(self) -> tuple[FluoroRun, Any, Any, np.ndarray, float]:
+        """The run (simulated once, cached on disk), the volume, its renderer, vessel vertices."""
+        from registration.studies.tracking import case_runs
+
+        case = self.case
+        start = time.perf_counter()
+
+        def progress(done: int, total: int) -> None:
+            if done % 15 == 0:
+                self.message.content = (
+                    f"Simulating the run: frame {done}/{total} ({time.perf_counter() - start:.0f} s; once, then cached)"
+                )
+
+        self.message.content = "Loading the run ..."
+        run = case_runs(case, progress=progress)[0]
+        phantom = self.ctx.phantom
+        volume = phantom.volume(case.volume_format_cm)
+        renderer = phantom.renderer(case.volume_format_cm)
+        vessels = phantom.meshes(case.volume_format_cm).get("vessels")
+        vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
+        return run, volume, renderer, vertices, phantom.mesh_spacing_mm(case.volume_format_cm)
+
+    def _run_guarded(self) -> None:
+        try:
+            self._run()
+        except Exception as exc:  # noqa: BLE001 - shown in the page, logged with its traceback
+            log.exception("play run failed")
+            self.ctx.message(f"Play run failed: {exc}", error=True)
+        finally:
+            self._buttons(playing=False)
+            self.finished.set()
+
+    def _run(self) -> None:
+        from registration.core.tracking import Tracker
+
+        run, volume, renderer, vertices, spacing = self._load()
+        geometry = run.geometry
+        times = run.times_s
+        n = len(run)
+        self.frames_shown, self.skipped, self.estimates = 0, 0, []
+        chart: dict[str, list[float]] = {k: [] for k in ("t", "true_x", "shown_x", "true_y", "shown_y", "ms")}
+        last_chart = 0.0
+        with Tracker(volume, renderer=renderer) as tracker:
+            tracker.warm_up(run[0])
+            shown = tracker.shown_pose
+            paused_s = 0.0
+            t0 = time.perf_counter()
+            i = 0
+            while i < n and not self._stop.is_set():
+                if not self._resume.is_set():
+                    p0 = time.perf_counter()
+                    self._resume.wait()
+                    paused_s += time.perf_counter() - p0
+                    continue
+                run_time = time.perf_counter() - t0 - paused_s
+                if run_time < times[i] - times[0]:
+                    self._stop.wait(min(0.05, times[i] - times[0] - run_time))
+                    continue
+                newest = int(np.searchsorted(times - times[0], run_time, side="right")) - 1
+                if newest > i:  # frames that arrived while busy: skipped, never queued
+                    self.skipped += newest - i
+                    i = newest
+                est = tracker.process(run[i], frame=i, t_s=float(times[i] - times[0]))
+                self.estimates.append(est)
+                text, color = motion_message(est, shown, geometry)
+                shown = est.patient_motion
+                self._show_frame(run, i, est, text, color, vertices, spacing)
+                true_xy = matrix_to_offsets(run.truth[i], geometry)[:2]
+                shown_xy = matrix_to_offsets(shown, geometry)[:2]
+                for key, value in zip(chart, (est.t_s, true_xy[0], shown_xy[0], true_xy[1], shown_xy[1],
+                                              est.latency_ms), strict=True):  # fmt: skip
+                    chart[key].append(float(value))
+                now = time.perf_counter()
+                if now - last_chart >= 1.0 / CHART_HZ or i == n - 1:
+                    self.chart.data = tuple(np.asarray(chart[k]) for k in chart)
+                    last_chart = now
+                i += 1
+        self.chart.data = tuple(np.asarray(chart[k]) for k in chart)
+        applied = sum(e.status == "applied" for e in self.estimates)
+        withheld = sum(e.status == "withheld" for e in self.estimates)
+        self.stats.content = (
+            f"{'Stopped' if self._stop.is_set() else 'Finished'}: {self.frames_shown} frames shown, "
+            f"{self.skipped} skipped (arrived while busy); {applied} corrections applied, {withheld} withheld."
+        )
+
+    def _show_frame(self, run: FluoroRun, i: int, est: FrameEstimate, text: str, color: tuple[int, int, int],
+                    vertices: np.ndarray, spacing: float) -> None:  # fmt: skip
+        image = run[i]
+        gray = views.resize(views.to_gray(image.image, image.mask), DISPLAY_PX)
+        rgb = views.gray_rgb(gray)
+        if len(vertices):
+            silhouette = views.vessel_silhouette(vertices, est.patient_motion,
+                                                 image.geometry.resized(DISPLAY_PX, DISPLAY_PX), spacing)  # fmt: skip
+            views.draw_outline(rgb, silhouette)
+        draw_message(rgb, text, color)
+        views.label(rgb, f"t = {est.t_s:5.2f} s  frame {i}  {est.latency_ms:.0f} ms", corner="bottom-left")
+        self.image.image = rgb
+        self.last_message = text
+        self.message.content = (
+            f"**{text}** · frame {i}/{len(run) - 1} at {est.t_s:.2f} s · {est.path} {est.latency_ms:.0f} ms"
+            + (f" · confidence {est.confidence:.2f}" if est.confidence is not None else "")
+            + (f" · {est.reason}" if est.reason else "")
+        )
+        self.frames_shown += 1
