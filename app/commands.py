@@ -287,6 +287,13 @@ def run_register(
             f"residual vs truth: {r.inplane_mm:.2f} mm in-plane, {r.translation_mm:.2f} mm total, "
             f"{r.rotation_deg:.2f} deg{mtre} -> {verdict}"
         )
+    if result.at_bounds:  # inputs without information drift to the search bounds: not a registration
+        print(
+            f"error: cannot register: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "
+            "no result written",
+            file=sys.stderr,
+        )
+        return 2
     if out is not None:
         document = result.to_dict()
         document["volume"] = {"path": str(volume), "label": vol.label}

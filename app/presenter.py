@@ -256,6 +256,8 @@ class Presenter:
             readout = f"**{residual.readout()}**"
         if running:
             badge_html = badge("REGISTERING…", "#1c7ed6")
+        elif result is not None and getattr(result, "at_bounds", ()):
+            badge_html = badge("✗ NOT REGISTERED  (estimate at the search bounds)", "#c92a2a")
         elif residual is None:
             badge_html = badge("REGISTERED" if result is not None else "SENSOR ALIGNMENT ONLY", "#495057")
         elif residual.success:

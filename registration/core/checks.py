@@ -32,7 +32,7 @@ MIN_EDGE_FIELD_FRACTION = 0.002
 STRUCTURE_HU = 50.0
 #: At least this many structure voxels (counted on a subsample of at most SAMPLE_VOXELS).
 MIN_STRUCTURE_VOXELS = 100
-SAMPLE_VOXELS = 2_000_000
+SAMPLE_VOXELS = 262_144
 #: A parameter within this fraction of its search span from a bound is "at the bound".
 BOUND_FRACTION = 0.01
 

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.core.anneal import AnnealResult, AnnealState, PolishState, Schedule, anneal, polish
+from registration.core.checks import check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, check_rigid
 from registration.core.images import XRayImage
@@ -181,6 +182,9 @@ class RegistrationResult:
     views: tuple[CArm, ...] = ()
     #: Where the capture runs of the first level ended (4x4 motions; empty with one run).
     capture_motions: tuple[Array, ...] = ()
+    #: Parameters whose estimate ended on the search bounds: such a result is not a registration
+    #: (inputs without information drift there), whatever its similarity.
+    at_bounds: tuple[str, ...] = ()
 
     @property
     def success(self) -> bool | None:
@@ -203,6 +207,8 @@ class RegistrationResult:
         if self.residual is not None:
             out["residual"] = self.residual.to_dict()
             out["success"] = self.residual.success
+        if self.at_bounds:
+            out["at_bounds"] = list(self.at_bounds)
         return out
 
 
@@ -415,6 +421,8 @@ def register(
     start = time.perf_counter()
     options = options or RegistrationOptions()
     inputs = check_inputs(volume, views, initial_motion, truth, renderer, options)
+    for view in inputs.views:
+        check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
     space = SearchSpace.for_views(
         inputs.views[0].geometry,
         inputs.initial_motion,
@@ -464,4 +472,5 @@ def _result(inputs: Inputs, space: SearchSpace, x: Array, f: float, monitor: _Mo
         parameters=space.names,
         views=tuple(v.geometry for v in inputs.views),
         capture_motions=tuple(monitor.captures),
+        at_bounds=tuple(space.names[i] for i in parameters_at_bounds(x, space.bounds)),
     )

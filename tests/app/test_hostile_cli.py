@@ -107,3 +107,13 @@ def test_arithmetic_errors_still_end_in_a_message(monkeypatch, capsys) -> None:
     monkeypatch.setattr(app.commands, "run_info", lambda *a, **k: overflow())
     code, _, err = run(["info", "whatever.dcm"], capsys)
     assert code == 2 and err.startswith("error: OverflowError") and "ROADMAP3D_DEBUG=1" in err
+
+
+def test_an_all_zero_volume_cannot_be_registered_and_nothing_is_written(tmp_path: Path, capsys) -> None:
+    volume = Volume(np.zeros((8, 8, 8), np.float32), np.diag([2.0, 2.0, 2.0, 1.0]), label="zeros")
+    path = dicom.write_npz(volume, tmp_path / "zeros.npz")
+    image = xa_file(tmp_path / "xa.dcm", ramp((16, 16)))
+    out = tmp_path / "result.json"
+    code, _, err = run(["register", "--volume", str(path), "--image", str(image), "--out", str(out)], capsys)
+    assert code == 2 and "error: cannot register: the volume 'zeros' is constant" in err
+    assert not out.exists()

@@ -69,3 +69,13 @@ def test_parameters_at_bounds() -> None:
     assert parameters_at_bounds([-20.0, 20.0, -3.6, -15.0, -15.0, 13.4], bounds) == [0, 1, 3, 4]
     assert parameters_at_bounds([0.0] * 6, bounds) == []
     assert parameters_at_bounds([19.7, 0, 0, 0, 0, 0], bounds) == [0]  # within 1 % of the 40 mm span
+
+
+def test_register_refuses_inputs_without_information_before_searching() -> None:
+    """An all-zero uploaded volume got the REGISTERED badge at the search bounds."""
+    from registration.core.register import register
+
+    with pytest.raises(NoInformationError, match="cannot register: the volume 'test volume' is constant"):
+        register(_volume(np.zeros((16, 16, 16))), _step_image())
+    with pytest.raises(NoInformationError, match="cannot register: the X-ray image"):
+        register(_ball(), _image(np.full((64, 64), 1.5)))
