@@ -124,8 +124,11 @@ class Presenter:
             return
         mesh_key = (id(s.data), settings.volume_format_cm)
         if mesh_key != self._mesh_key:
+            before = self.layout.status.content
             self.message("Loading the volume and its surfaces…")
             self.scene.set_anatomy(s.data.meshes(settings.volume_format_cm))
+            if self.layout.status.content.startswith("Loading the volume"):
+                self.layout.status.content = before  # the status stayed on "Loading…" after an upload
             self._mesh_key = mesh_key
             self.show_source()
         is_preview = not s.xray_ready() and self._preview_version != version
