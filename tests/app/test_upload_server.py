@@ -151,3 +151,64 @@ def test_binding_beyond_this_machine_is_warned_about(host: str, warned: bool) ->
     if text:
         assert "no authentication" in text and "README" in text
         assert ("every network interface" in text) == (host == "0.0.0.0")
+
+
+SERVER_WITH_A_HUNG_READER = """
+import threading, time
+import app.main as main
+from app.upload import read_upload
+from tests.app.conftest import TEST_CONFIG
+from tests.app.test_upload_server import _upload, hanging_reader
+
+class App:
+    def close(self):
+        pass
+
+def build_app(server, config, **kwargs):
+    # an upload whose reader hangs, in a non-daemon thread as viser's callbacks are ...
+    def upload():
+        try:
+            read_upload("case.zip", _upload(), max_bytes=10**6, config=TEST_CONFIG, timeout_s=3600,
+                        reader=hanging_reader)
+        except ValueError as exc:  # what the controller shows in the page
+            print("upload refused:", exc, flush=True)
+    threading.Thread(target=upload).start()
+    # ... and a callback that never returns
+    threading.Thread(target=lambda: time.sleep(3600)).start()
+    return App()
+
+main.build_app = build_app
+main.run_app(host="127.0.0.1", port=0, volume=None, image=None)
+"""
+
+
+def test_sigterm_ends_a_server_with_a_hung_reader_and_removes_its_folder(tmp_path: Path) -> None:
+    """SIGTERM printed 'Server stopped' but the process needed SIGKILL and its upload folder stayed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "TMPDIR": str(tmp_path), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SERVER_WITH_A_HUNG_READER], cwd=root, env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not list(tmp_path.glob("roadmap3d-upload-*/files/partial.dcm")):
+            assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+            time.sleep(0.2)
+        assert list(tmp_path.glob("roadmap3d-upload-*/files/partial.dcm")), "the hung reader never started"
+        proc.send_signal(signal.SIGTERM)
+        start = time.monotonic()
+        proc.wait(timeout=30)
+        assert time.monotonic() - start < 15.0  # EXIT_GRACE_S (5 s) plus a loaded machine's slack
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    output = proc.stdout.read() if proc.stdout else ""
+    assert "Traceback" not in output, output
+    assert "upload refused: case.zip: the reader ended without an answer" in output
+    assert not list(tmp_path.glob("roadmap3d-upload-*")), "the upload folder outlived the server"
