@@ -115,6 +115,8 @@ class RotationalRunStudy:
     """C-arm calibration table JSON (per-angle deviations) that refines each frame's geometry."""
     cases: int = 20
     """Number of random registrations."""
+    contrast: bool | None = None
+    """Whether the run shows iodine contrast in the vessels (the report's grouping; default unknown)."""
     out: Path = Path("validation-rotational-run")
     """Output folder (results.jsonl, report.md/html, histograms)."""
     json: bool = False

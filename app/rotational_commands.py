@@ -188,7 +188,12 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
             shutil.rmtree(work, ignore_errors=True)
     config = {**asdict(args), "frames": len(run), "calibrated": table is not None, "seed": args.seed}
     config = {k: (str(v) if isinstance(v, Path) else v) for k, v in config.items()}
+    for record in records:
+        record["contrast"] = args.contrast
     summary = clinical_summary(records, config=config, wall_seconds=wall)
+    if args.contrast is None:  # neither group: the report's contrast rows stay empty
+        empty = clinical_summary([], config={}, wall_seconds=0.0)
+        summary["contrast"], summary["no_contrast"] = empty["contrast"], empty["no_contrast"]
     summary.update({"study": "rotational-run", "run": run_label, "frames": len(run), "calibrated": table is not None})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ from registration.core.geometry import CArm
 from registration.core.images import XRayImage
 from registration.core.register import RegistrationOptions
 from registration.core.volume import Volume
+from registration.studies.report import source_revision
 from registration.studies.runs import (
     CLINICAL_MAX_ROTATION_DEG,
     CLINICAL_MAX_TRANSLATION_MM,
@@ -93,6 +94,7 @@ def run_rotational_case(
     *,
     run_label: str = "",
     options: RegistrationOptions | None = None,
+    revision: str = "",
 ) -> dict:
     """Register ``image`` (frame ``case.frame``, seen with ``geometry``) to ``volume`` from the
     case's offset pose; truth: the identity. A record with the clinical study's fields."""
@@ -142,6 +144,7 @@ def run_rotational_case(
         "image_pixels": int(geometry.cols),
         "volume_voxels": int(max(volume.shape)),
         "version": __version__,
+        "revision": revision,
     }
 
 
@@ -159,10 +162,13 @@ def validate_rotational_run(
     ``geometry_of`` maps a frame's geometry from the file to the scoring geometry (the user's
     calibration; default: the file's own); ``done`` sees each record as it is made."""
     records = []
+    revision = source_revision()
     for case in cases:
         image = frames[case.frame]
         geometry = geometry_of(image.geometry) if geometry_of is not None else image.geometry
-        record = run_rotational_case(volume, image, geometry, case, run_label=run_label, options=options)
+        record = run_rotational_case(
+            volume, image, geometry, case, run_label=run_label, options=options, revision=revision
+        )
         records.append(record)
         if done is not None:
             done(record)
