@@ -23,6 +23,7 @@ from app.options import (
     RotationalRunStudy,
     Table1,
     TrackingStudy,
+    VolumeStudy,
 )
 
 ImageKind = Literal["fluoro", "exposure"]
@@ -43,6 +44,7 @@ Study = (
     | Annotated[TrackingStudy, tyro.conf.subcommand("tracking")]
     | Annotated[RotationalRunStudy, tyro.conf.subcommand("rotational-run")]
     | Annotated[BiplaneStudy, tyro.conf.subcommand("biplane")]
+    | Annotated[VolumeStudy, tyro.conf.subcommand("volume")]
 )
 
 
@@ -64,6 +66,10 @@ def validate(study: Study) -> int:
         from app.study_commands import run_tracking_study
 
         return run_tracking_study(study)
+    if isinstance(study, VolumeStudy):
+        from app.study_commands import run_volume_validation
+
+        return run_volume_validation(study)
     if isinstance(study, RotationalRunStudy):
         from app.rotational_commands import run_rotational_validation
 

@@ -122,3 +122,28 @@ class RotationalRunStudy:
     json: bool = False
     """Print the summary as one JSON object."""
     seed: int = 0
+
+
+@dataclass
+class VolumeStudy:
+    """How well registration holds on your own CT or 3DRA: random views and offsets, images formed
+    from the volume (a best case: the images come from the same volume)."""
+
+    volume: Path
+    """The CT or 3DRA: DICOM series folder, enhanced multi-frame file, or the project's .npz."""
+    isocenter: str | None = None
+    """Iso-center "x,y,z" in mm or "volume-center" (default: IsocenterPosition from the files, else the origin)."""
+    cases: int = 20
+    """Number of random registrations."""
+    max_mm: float = 25.0
+    """Largest translation of the random offsets (length, random 3-D direction), mm."""
+    max_deg: float = 10.0
+    """Largest rotation of the random offsets (about a random axis through the iso-center), degrees."""
+    biplane: bool = False
+    """Register two views of the same moment (plane B lateral to plane A), six parameters."""
+    json: bool = False
+    """Print the summary as one JSON object."""
+    out: Path | None = None
+    """Output folder (results.jsonl, summary.json, report.md)."""
+    seed: int = 0
+    """Seed of the views, offsets, noise and annealing."""

@@ -14,7 +14,9 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from app.options import BiplaneStudy, CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy
+import numpy as np
+
+from app.options import BiplaneStudy, CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy, VolumeStudy
 from registration import __version__
 from registration.sim.calibration import ERROR_REGION_RADIUS_MM, calibration_study
 from registration.studies import bench, runs
@@ -242,4 +244,43 @@ def run_tracking_study(args: TrackingStudy) -> int:
         f"recall {pct(s['applied_recall'])} (target 90 %)"
     )
     print(f"\nwritten: {Path(args.out) / 'results.json'}, {Path(args.out) / 'report.md'}, report.html and the plots")
+    return 0
+
+
+def run_volume_validation(args: VolumeStudy) -> int:
+    """``roadmap3d validate volume``: random views and offsets on the user's volume, a table or
+    one JSON object with ``--json``; ``--out`` keeps results.jsonl, summary.json and report.md."""
+    import warnings
+
+    from app.commands import resolve_isocenter
+    from registration.io import dicom
+    from registration.studies.volume import SUMMARY_KEYS, VolumeStudyConfig, report_markdown, run_volume_study
+
+    config = VolumeStudyConfig(
+        cases=args.cases, max_mm=args.max_mm, max_deg=args.max_deg, biplane=args.biplane, seed=args.seed
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        volume = dicom.read_volume(args.volume)
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        _stderr(f"warning: {message}")
+    iso, iso_from = resolve_isocenter(args.isocenter, volume)
+    corners = volume.world_corners_mm()
+    if np.any(np.asarray(iso) < corners.min(axis=0)) or np.any(np.asarray(iso) > corners.max(axis=0)):
+        raise ValueError(
+            f"the iso-center ({', '.join(f'{c:.1f}' for c in iso)}) mm ({iso_from}) lies outside the volume "
+            f"{args.volume}; give --isocenter x,y,z inside the anatomy or --isocenter volume-center"
+        )
+    _stderr(f"iso-center ({', '.join(f'{c:.1f}' for c in iso)}) mm: {iso_from}")
+    _stderr("Best case: the X-ray images are formed from the same volume (not real X-rays).")
+    log = _stderr
+    records, summary = run_volume_study(volume, iso, config, out=args.out, log=log)
+    if args.json:
+        ordered = {k: summary[k] for k in SUMMARY_KEYS}
+        ordered.update({k: v for k, v in summary.items() if k not in ordered})
+        print(_json_dumps(ordered))
+        return 0
+    print(report_markdown(records, summary))
+    if args.out is not None:
+        print(f"written: {args.out / 'results.jsonl'}, {args.out / 'summary.json'}, {args.out / 'report.md'}")
     return 0

