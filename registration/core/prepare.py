@@ -19,7 +19,10 @@ of its pyramid. :func:`prepare_volume` makes that volume once:
    the capture level, has voxels as large as the pixels of a 64-pixel image of the field at
    the iso-center (2.85 mm for a 27 cm format), level 1, the polish level, those of a 128-pixel
    image (1.42 mm): DRR samples as fine as the image pixels they are compared with, whatever
-   grid the scanner used (a 1 mm CT and a 0.5 x 2.5 mm CT get the same levels). When a
+   grid the scanner used, but level 0 is never finer than the volume's own finest spacing
+   (resampling adds no detail; levels L then have 2**L times that): a 0.5 x 0.5 x 2.5 mm CT
+   gets 1.42 and 2.85 mm at levels 1 and 2 of a 27 cm field, a 1 x 1 x 3 mm CT 2 and 4 mm,
+   a coarse 64^3 volume its own pyramid. When a
    level's spacing lies within ``SNAP_TOLERANCE`` of a power-of-two multiple of an isotropic
    volume's own spacing (a 3DRA whose format is the image format), that grid is used and made
    by block averages, exactly the volume's own pyramid.
@@ -354,32 +357,27 @@ def _prepare(volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels:
     margin = 2.0 * level_spacing_mm(extent_guess, max(levels)) + float(spacing.max())
     lo, hi = needed_box(volume, geometries, reach, margin_mm=margin) or full
     extent = min(extent_guess, max(_anatomy_extent_mm(volume, lo, hi, g) for g in geometries))
-    targets = {lv: level_spacing_mm(extent, lv) for lv in levels}
-    finest = min(levels)
-    snap = _snap_factor(spacing, targets[finest])
-    built: dict[int, Volume] = {}
-    if snap is not None and all(_snap_factor(spacing, targets[lv]) == snap * 2 ** (lv - finest) for lv in levels):
-        # the volume's own pyramid: crop on block boundaries of the coarsest level, block averages
-        coarsest = snap * 2 ** (max(levels) - finest)
-        lo = (lo // coarsest) * coarsest
-        span = hi - lo + 1
-        span = np.maximum(-(-span // coarsest) * coarsest, 2 * coarsest)
+    # level 0 never finer than the volume's own finest spacing (resampling cannot add detail)
+    base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()))
+    targets = {lv: base_mm * 2**lv for lv in levels}
+    snaps = {lv: _snap_factor(spacing, targets[lv]) for lv in levels}
+    largest = max([f for f in snaps.values() if f is not None], default=1)
+    if largest > 1:  # crop on block boundaries, so block averages are the volume's own pyramid's
+        lo = (lo // largest) * largest
+        span = np.maximum(-(-(hi - lo + 1) // largest) * largest, 2 * largest)
         hi = np.minimum(lo + span - 1, full[1])
-        base = _crop(volume, lo, hi)
-        for lv in sorted(levels):
-            factor = snap * 2 ** (lv - finest)
-            built[lv] = base.downsample(factor) if factor > 1 else base
-    else:
-        fine = resample_isotropic(volume, targets[finest], lo, hi)
-        built[finest] = fine
-        for lv in sorted(levels):
-            if lv == finest:
-                continue
-            factor = 2 ** (lv - finest)
-            if min(fine.shape) >= 2 * factor:
-                built[lv] = fine.downsample(factor)
-            else:
-                built[lv] = resample_isotropic(volume, targets[lv], lo, hi)
+    base = _crop(volume, lo, hi) if any(f is not None for f in snaps.values()) else None
+    built: dict[int, Volume] = {}
+    for lv in levels:  # finest first
+        finer = built.get(lv - 1)
+        if snaps[lv] is not None and base is not None:
+            built[lv] = base.downsample(snaps[lv]) if snaps[lv] > 1 else base
+        elif finer is not None and abs(targets[lv] / float(finer.spacing_mm[0]) - 2.0) < 1e-6 and min(finer.shape) >= 4:
+            built[lv] = finer.downsample(2)
+        elif finer is not None and abs(targets[lv] - float(finer.spacing_mm[0])) < 1e-6:
+            built[lv] = finer
+        else:
+            built[lv] = resample_isotropic(volume, targets[lv], lo, hi)
     pyramid = tuple(built.get(lv) for lv in range(max(levels) + 1))
     renderer = DRRRenderer(volume, levels=list(pyramid))
     return PreparedVolume(

@@ -55,15 +55,16 @@ def test_level_spacing_is_the_pixel_at_the_isocenter() -> None:
 
 
 def test_scanner_grids_get_the_same_levels() -> None:
-    """A 2 x 2 x 4 mm and a 1.5 x 1.5 x 5 mm scan of one anatomy: same grids, same DRRs."""
+    """A 1.5 x 1.5 x 3 mm and a 1.5 x 1.5 x 5 mm scan of one anatomy: the slices do not change
+    the (isotropic) grids, and the DRRs agree."""
     g = _view(20.0, -10.0, fmt_cm=27.0)
-    a = prepare_volume(_volume((2.0, 2.0, 4.0), extent_mm=240.0), g, cache=False)
+    a = prepare_volume(_volume((1.5, 1.5, 3.0), extent_mm=240.0), g, cache=False)
     b = prepare_volume(_volume((1.5, 1.5, 5.0), extent_mm=240.0), g, cache=False)
     assert a.spacing_mm == pytest.approx(b.spacing_mm)
     for lv in (1, 2):
         va, vb = a.levels[lv], b.levels[lv]
         assert np.allclose(va.spacing_mm, va.spacing_mm[0])  # isotropic
-        # the crops agree to a probe block (4 vs 5 mm slices) at each end
+        # the crops agree to a probe block (of 4 mm: one 3 or 5 mm slice) at each end
         extent_a, extent_b = np.array(va.shape) * va.spacing_mm[0], np.array(vb.shape) * vb.spacing_mm[0]
         assert np.all(np.abs(extent_a - extent_b) <= 2 * 5.0 + 2 * va.spacing_mm[0])
     motion = offsets_to_matrix([3.0, -2.0, 0.0, 2.0, -1.0, 3.0], g)
@@ -94,17 +95,17 @@ def test_crop_keeps_every_ray_the_search_can_see() -> None:
         np.testing.assert_allclose(cut.render(g, m)[mask], full.render(g, m)[mask], rtol=1e-5, atol=1e-4)
 
 
-def test_a_volume_on_the_levels_grid_keeps_its_voxels() -> None:
-    """A 3DRA whose grid already is the level's (its format is the image's) is not resampled:
-    the prepared level holds its own voxels (and its block averages one level up)."""
+def test_a_coarse_volume_keeps_its_own_pyramid() -> None:
+    """A volume coarser than the field's level 0 (here 64 voxels across the field) is not
+    resampled: level 0 holds its voxels, level 1 their 2^3 block averages."""
     g = _view(fmt_cm=15.0)
     extent = prepare.field_extent_mm(g)
     rng = np.random.default_rng(0)
     data = ndimage.gaussian_filter(rng.normal(0.0, 300.0, (64, 64, 64)), 1.5).astype(np.float32)
-    vol = Volume.from_grid(data, extent / 64, center_mm=ISO)  # tissue everywhere, 64 voxels = the field
-    prep = prepare_volume(vol, g, levels=(2, 3), cache=False)
-    np.testing.assert_array_equal(prep.levels[2].data, vol.data)
-    np.testing.assert_allclose(prep.levels[3].data, vol.downsample(2).data)
+    vol = Volume.from_grid(data, extent / 64, center_mm=ISO)  # tissue everywhere
+    prep = prepare_volume(vol, g, levels=(0, 1), cache=False)
+    np.testing.assert_array_equal(prep.levels[0].data, vol.data)
+    np.testing.assert_allclose(prep.levels[1].data, vol.downsample(2).data)
 
 
 def test_crop_drops_tissue_out_of_reach_and_what_a_scanner_adds() -> None:
