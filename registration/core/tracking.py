@@ -71,8 +71,14 @@ class TrackingOptions:
     #: (and ``detect_relative``) means no motion (the image changed, e.g. a wire advanced).
     suspect_sigmas: float = 2.5
     probe_every: int = 4
-    #: Floor of the learned noise, relative to the level.
+    #: Floor of the learned noise, relative to the level, and its ceiling in floors (the
+    #: learned deviations include slow image changes: a guidewire advancing, drift).
     noise_floor_relative: float = 0.0002
+    noise_ceiling_floors: float = 2.0
+    #: A refinement that moves the pose by less than this (iso-center mm, in-plane for one
+    #: view; degrees) is the tracking level's jitter, not motion: the frame is unchanged.
+    min_correction_mm: float = 0.15
+    min_correction_deg: float = 0.15
     #: A drop beyond this fraction of the level goes straight to the full capture.
     capture_relative: float = 0.02
     #: A refinement whose measure stays more than this many noise units below the level
@@ -321,7 +327,7 @@ class Tracker:
     def _scale(self) -> float:
         assert self.level is not None
         floor = self.options.noise_floor_relative * abs(self.level)
-        return max(self.noise or 0.0, floor)
+        return min(max(self.noise or 0.0, floor), self.options.noise_ceiling_floors * floor)
 
     def process(self, views: XRayImage | Sequence[XRayImage], frame: int = 0, t_s: float = 0.0) -> FrameEstimate:
         """Decide for one frame (one image per plane, taken at the same moment)."""
@@ -363,8 +369,11 @@ class Tracker:
             estimate, f_est, margin, _ = self._refine(levels, self.pose, f0)
             self._since_refine = 0
             gain = (f_est - f0) / scale
-            if not significant and (gain <= o.detect_sigmas or (f_est - f0) / abs(self.level) <= o.detect_relative):
-                # a probe that found no better pose: the patient did not move
+            moved_mm, moved_deg = self._correction(estimate, views)
+            small = moved_mm < o.min_correction_mm and moved_deg < o.min_correction_deg
+            if small or (not significant and gain <= o.suspect_sigmas):
+                # a probe that found no better pose (or one within the tracking level's own
+                # jitter): the patient did not move, whatever else changed in the image
                 self._learn(f0)
                 return self._result(frame, t_s, "unchanged", None, "refine", None, "", start, f0, drop, drrs0, {})
             capture = not (
@@ -430,6 +439,17 @@ class Tracker:
         levels = self._levels(views)
         self._evaluate(levels, [self.pose, self.pose])
         edge_fraction(levels[0].image, levels[0].mask)
+
+    def _correction(self, estimate: Array, views: Sequence[XRayImage]) -> tuple[float, float]:
+        """How far ``estimate`` is from the applied pose: the iso-center's shift (in-plane for
+        one view, 3-D for two; mm) and the rotation (deg)."""
+        g = views[0].geometry
+        iso = np.asarray(g.isocenter_mm)
+        err = estimate @ invert_rigid(self.pose)
+        shift = apply(err, iso) - iso
+        if len(views) == 1:
+            shift = shift - (shift @ g.direction) * g.direction
+        return float(np.linalg.norm(shift)), rotation_angle_deg(err)
 
     def _moved_mm(self, a: Array, b: Array, geometry: CArm) -> float:
         iso = np.asarray(geometry.isocenter_mm)
