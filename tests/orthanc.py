@@ -2,8 +2,10 @@
 
 :func:`start_orthanc` runs ``/usr/sbin/Orthanc`` with a temporary storage folder, its own free
 HTTP port, the DICOMweb plugin, HTTP basic authentication (a random password) and
-``RemoteAccessAllowed: false`` (Orthanc 1.10 has no bind-address option: it refuses every
-client that is not on this machine); its DICOM port is off (the tests talk DICOMweb to it).
+``RemoteAccessAllowed: false`` (it refuses every client that is not on this machine) plus
+``HttpBindAddresses: ["127.0.0.1"]`` (binds loopback only in Orthanc releases since late 2025; Debian's 1.10.1
+ignores it and binds every interface, still refusing remote clients); its DICOM port is off (the
+tests talk DICOMweb to it).
 """
 
 from __future__ import annotations
@@ -131,6 +133,7 @@ def start_orthanc(folder: Path) -> OrthancServer:
         "DicomServerEnabled": False,
         "DicomPort": free_port(),
         "RemoteAccessAllowed": False,
+        "HttpBindAddresses": ["127.0.0.1"],  # releases since late 2025; older ones ignore it (and bind all)
         "AuthenticationEnabled": True,
         "RegisteredUsers": {username: password},
         "Plugins": [plugin],
