@@ -28,6 +28,7 @@ import ipaddress
 import json
 import logging
 import os
+import shutil
 import stat
 import tempfile
 from collections.abc import Iterable, Sequence
@@ -312,6 +313,8 @@ class Pacs:
 
         try:
             return fn(*args, **kwargs)
+        except PacsError:
+            raise
         except requests.exceptions.SSLError:
             raise PacsError(
                 f"PACS {self.name}: {what}: the server's certificate is not trusted (give --ca-bundle)"
@@ -426,21 +429,36 @@ class Pacs:
                 f"PACS {self.name}: series {series_uid} holds {len(instances)} instances "
                 f"(more than {MAX_SERIES_INSTANCES}); refused"
             )
+        created = folder is None
         out = Path(folder) if folder is not None else Path(tempfile.mkdtemp(prefix="roadmap3d-pacs-"))
         out.mkdir(parents=True, exist_ok=True)
         out.chmod(0o700)
-        total = 0
-        datasets = self._call(
-            f"retrieving series {series_uid}",
-            lambda: list(self._client.iter_series(study_uid, series_uid)),
-        )
-        for n, ds in enumerate(datasets):
-            path = out / f"{n:04d}.dcm"
-            _save(ds, path)
-            total += path.stat().st_size
-            if total > MAX_SERIES_BYTES:
-                raise PacsError(f"PACS {self.name}: series {series_uid} exceeds {MAX_SERIES_BYTES} bytes; refused")
-        log.info("retrieved %d instances (%d bytes) of series %s from %s", len(datasets), total, series_uid, self.name)
+
+        def fetch() -> tuple[int, int]:
+            # one instance in memory at a time: each is written as it arrives
+            count, size = 0, 0
+            for ds in self._client.iter_series(study_uid, series_uid):
+                if count >= MAX_SERIES_INSTANCES:
+                    raise PacsError(
+                        f"PACS {self.name}: series {series_uid} sends more than {MAX_SERIES_INSTANCES} instances"
+                    )
+                path = out / f"{count:04d}.dcm"
+                _save(ds, path)
+                count += 1
+                size += path.stat().st_size
+                if size > MAX_SERIES_BYTES:
+                    raise PacsError(f"PACS {self.name}: series {series_uid} exceeds {MAX_SERIES_BYTES} bytes; refused")
+            return count, size
+
+        try:
+            count, total = self._call(f"retrieving series {series_uid}", fetch)
+        except BaseException:
+            if created:
+                shutil.rmtree(out, ignore_errors=True)
+            raise
+        if count == 0:
+            raise PacsError(f"PACS {self.name}: series {series_uid} sent no instance")
+        log.info("retrieved %d instances (%d bytes) of series %s from %s", count, total, series_uid, self.name)
         return out
 
     # ----- STOW-RS -------------------------------------------------------------------

@@ -159,3 +159,18 @@ def test_https_verifies_the_server_against_the_ca_bundle(orthanc: OrthancServer,
         assert trusting.studies() == []
     finally:
         proxy.close()
+
+
+def test_a_series_over_the_byte_bound_is_refused_and_removed(
+    pacs: Pacs, export: Path, tmp_path: Path, monkeypatch
+) -> None:
+    import registration.io.pacs as pacs_module
+
+    pacs.store(sorted((export / "volume").iterdir()))
+    (study,) = pacs.studies()
+    (series,) = pacs.series(study.study_uid)
+    monkeypatch.setattr(pacs_module, "MAX_SERIES_BYTES", 10_000)  # a few slices of 48x48 int16
+    monkeypatch.setattr(pacs_module.tempfile, "tempdir", str(tmp_path))
+    with pytest.raises(PacsError, match="exceeds 10000 bytes; refused"):
+        pacs.retrieve_series(study.study_uid, series.series_uid)
+    assert list(tmp_path.iterdir()) == []  # the private temporary folder is gone
