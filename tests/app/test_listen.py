@@ -72,11 +72,18 @@ def test_listen_receives_and_registers(tmp_path: Path, small_export: Path) -> No
         assert assoc.is_established
         ds = dicom.read_dataset(small_export / "xa_fluoro.dcm")
         assert assoc.send_c_store(ds).Status == 0x0000
+        # readable the moment the sender sees success (the node answers after the rename)
+        stored = folder / ds.StudyInstanceUID / ds.SeriesInstanceUID / f"{ds.SOPInstanceUID}.dcm"
+        assert dicom.read_xray(stored).geometry == dicom.read_xray(small_export / "xa_fluoro.dcm").geometry
         # a short run (three frames of the same view, 1/15 s apart) is tracked, not registered
         image = dicom.read_xray(small_export / "xa_fluoro.dcm")
         run_file = dicom.write_xray_run([image, image, image], tmp_path / "run.dcm", times_s=[0.0, 1 / 15, 2 / 15])
         assert assoc.send_c_store(dicom.read_dataset(run_file)).Status == 0x0000
         assoc.release()
+        intruder = AE(ae_title="INTRUDER")
+        intruder.add_requested_context(XRayAngiographicImageStorage)
+        refused = intruder.associate("127.0.0.1", port, ae_title="ROADMAP3D")
+        assert refused.is_rejected  # an unknown calling AE title
         path = Path(_read_until(lines, r"received XA from CARM: (\S+)", seen)[1])
         assert path.is_file() and path.is_relative_to(folder)
         result = Path(_read_until(lines, r"registered \S+: .* -> (\S+)$", seen)[1])
