@@ -464,9 +464,11 @@ def main(argv: list[str] | None = None) -> None:
         # Reachable only from a value no check caught (a file or an option): still a message, exit 2.
         if debug:
             raise
-        what = str(exc).strip() or "no details"
-        print(f"error: {type(exc).__name__} on this input ({what}); rerun with ROADMAP3D_DEBUG=1 to see where",
-              file=sys.stderr)  # fmt: skip
+        what = str(exc).strip()[:200] or "no details"
+        given = " ".join(sys.argv[1:] if argv is None else argv)
+        given = given if len(given) <= 300 else given[:297] + "..."
+        print(f"error: {type(exc).__name__} ({what}) on the input of: roadmap3d {given}; rerun with "
+              "ROADMAP3D_DEBUG=1 to see where", file=sys.stderr)  # fmt: skip
         sys.exit(2)
     sys.exit(int(code or 0))
 

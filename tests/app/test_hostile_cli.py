@@ -107,6 +107,7 @@ def test_arithmetic_errors_still_end_in_a_message(monkeypatch, capsys) -> None:
     monkeypatch.setattr(app.commands, "run_info", lambda *a, **k: overflow())
     code, _, err = run(["info", "whatever.dcm"], capsys)
     assert code == 2 and err.startswith("error: OverflowError") and "ROADMAP3D_DEBUG=1" in err
+    assert "on the input of: roadmap3d info whatever.dcm" in err  # names the file given
 
 
 def test_an_all_zero_volume_cannot_be_registered_and_nothing_is_written(tmp_path: Path, capsys) -> None:
