@@ -311,7 +311,10 @@ class Session:
             with self.lock:
                 if run.abandoned:
                     return
-                log.exception("registration failed")
+                if isinstance(exc, ValueError):  # the input's fault (cannot register: ...): no traceback
+                    log.warning("registration refused: %s", exc)
+                else:
+                    log.exception("registration failed")
                 run.error = f"Registration failed: {exc}"
                 run.running = False
                 self._changed()
@@ -322,6 +325,11 @@ class Session:
                 run.result = result
                 if not math.isfinite(result.similarity):
                     run.error = "Registration found no usable overlap between the DRR and the image."
+                elif getattr(result, "at_bounds", ()):  # inputs without information drift there
+                    run.error = (
+                        f"Not registered: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "
+                        "the roadmap keeps its pose."
+                    )
                 else:
                     self.estimate = np.asarray(result.patient_motion, dtype=np.float64)
                 if run.stop_requested_s is not None:

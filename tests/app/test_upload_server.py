@@ -212,3 +212,25 @@ def test_sigterm_ends_a_server_with_a_hung_reader_and_removes_its_folder(tmp_pat
     assert "Traceback" not in output, output
     assert "upload refused: case.zip: the reader ended without an answer" in output
     assert not list(tmp_path.glob("roadmap3d-upload-*")), "the upload folder outlived the server"
+
+
+def test_an_all_zero_uploaded_volume_is_not_registered_in_the_app() -> None:
+    """An all-zero uploaded volume got the "REGISTERED" badge at the search bounds."""
+    import numpy as np
+
+    from app.data import FileData
+    from app.session import Session
+    from registration.core.volume import Volume
+    from tests.registration.io.test_fuzz import _xray
+
+    zeros = Volume(np.zeros((16, 16, 16), np.float32), np.diag([2.0, 2.0, 2.0, 1.0]), label="zeros")
+    session = Session(FileData(zeros, _xray(64), source="upload zeros.zip", config=TEST_CONFIG), TEST_CONFIG)
+    done = threading.Event()
+    assert session.start_registration(on_done=done.set)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and session.run.running:
+        time.sleep(0.05)
+    assert not session.run.running
+    assert session.run.result is None
+    assert "cannot register: the volume 'zeros' is constant" in (session.run.error or "")
+    np.testing.assert_array_equal(session.estimate, np.eye(4))  # the roadmap keeps its pose
