@@ -234,3 +234,27 @@ def test_an_all_zero_uploaded_volume_is_not_registered_in_the_app() -> None:
     assert session.run.result is None
     assert "cannot register: the volume 'zeros' is constant" in (session.run.error or "")
     np.testing.assert_array_equal(session.estimate, np.eye(4))  # the roadmap keeps its pose
+
+
+def test_the_printed_address_is_the_one_listened_on() -> None:
+    """`--host 0.0.0.0` printed http://localhost:PORT while listening on every interface."""
+    from app.main import url_of
+
+    class Server:
+        def __init__(self, host: str) -> None:
+            self.host = host
+
+        def get_host(self) -> str:
+            return self.host
+
+        def get_port(self) -> int:
+            return 8080
+
+    assert url_of(Server("0.0.0.0")) == "http://0.0.0.0:8080"
+    assert url_of(Server("127.0.0.1")) == "http://127.0.0.1:8080"
+    assert url_of(Server("::")) == "http://[::]:8080"
+
+
+def test_an_upload_without_a_volume_says_so_in_plain_words() -> None:
+    with pytest.raises(UploadError, match="case.zip: found no volume; expected"):
+        read_upload("case.zip", _upload(), max_bytes=MB, config=TEST_CONFIG)

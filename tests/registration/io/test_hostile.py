@@ -272,3 +272,57 @@ def test_enhanced_frames_over_the_frame_ceiling_are_refused(tmp_path: Path, monk
     path = _enhanced(tmp_path)
     assert pydicom.dcmread(path).SOPClassUID == EnhancedCTImageStorage
     refused(lambda: dicom.read_volume(path), "NumberOfFrames (0028,0008) 3 is over the limit of 2")
+
+
+# --------------------------------------------------------------------------------------
+# Messages that did not name the file (issue 15), sizes that cannot be (issue 12)
+# --------------------------------------------------------------------------------------
+def test_a_transfer_syntax_uid_that_is_not_one_is_named_with_the_file(tmp_path: Path) -> None:
+    """It was "error: UID is not a transfer syntax." without the file."""
+    path = xa_file(tmp_path / "xa.dcm", ramp((8, 8)))
+    ds = pydicom.dcmread(path)
+    ds.file_meta.TransferSyntaxUID = "1.2.840.1000.1.2.1"
+    ds.save_as(path, enforce_file_format=False)
+    refused(lambda: dicom.read_xray(path), str(path))
+
+
+def test_pixels_that_do_not_fit_the_declared_columns_are_named_with_the_file(tmp_path: Path) -> None:
+    """It was "cannot reshape array of size 65536 ..." without the file."""
+    ds = pydicom.dcmread(_enhanced(tmp_path))
+    ds.Columns = 2  # 3 frames x 4 x 2 declared, 3 x 4 x 5 stored
+    path = tmp_path / "columns.dcm"
+    ds.save_as(path)
+    message, _ = refused(lambda: dicom.read_volume(path), str(path))
+    assert "PixelData" in message
+
+
+@pytest.mark.parametrize("rows", [0, 65535])
+def test_rows_zero_or_all_ones_are_refused(tmp_path: Path, rows: int) -> None:
+    """Rows = -1 stored in an unsigned tag reads as 65535 (or 0 after other tools' clamping)."""
+    path = xa_file(tmp_path / "xa.dcm", ramp((8, 8)))
+    ds = pydicom.dcmread(path)
+    ds.Rows = rows
+    ds.save_as(path)
+    refused(lambda: dicom.read_xray(path), str(path), "Rows (0028,0010)")
+
+
+def test_info_refuses_the_compressed_zeros_npz_without_inflating_it(tmp_path: Path, capsys) -> None:
+    """`roadmap3d info` took 1.35 GB on a 1 MB .npz."""
+    shape = (512, 512, 512)
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": shape})
+    size = int(np.prod(shape)) * 4
+    payload, crc = deflated_zeros(size, header.getvalue())
+    path = tmp_path / "zeros.npz"
+    path.write_bytes(one_member_zip("data.npy", payload, crc, size + len(header.getvalue())))
+    affine = io.BytesIO()
+    np.save(affine, np.eye(4))
+    with zipfile.ZipFile(path, "a") as archive:
+        archive.writestr("index_to_world.npy", affine.getvalue())
+    tracemalloc.start()
+    try:
+        report = dicom.inspect(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert "compressed" in str(report) and peak < REFUSAL_PEAK_BYTES
