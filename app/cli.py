@@ -305,6 +305,8 @@ def app(
     max_upload_mb: float = 512.0,
     open_browser: bool = False,
     pacs: str | None = None,
+    listen_port: int | None = None,
+    allow: tuple[str, ...] = (),
 ) -> int:
     """Start the web app, optionally on your own DICOM data.
 
@@ -319,7 +321,20 @@ def app(
         open_browser: Open the page in the default browser.
         pacs: DICOMweb URL of a PACS for the PACS tab (credentials: ROADMAP3D_PACS_USERNAME/_PASSWORD or the
             config file).
+        listen_port: Also receive images from the C-arm: a DICOM node (AE title ROADMAP3D) on 127.0.0.1 at this port.
+        allow: Calling AE titles the app's DICOM node accepts (needed with --listen-port).
     """
+    if listen_port is not None:
+        from app.pacs_panel import ENV_NODE_ALLOW, ENV_NODE_PORT
+        from registration.io.node import check_ae_title
+
+        if not allow:
+            raise UserError("--listen-port needs --allow AE (the C-arm's AE title)")
+        titles = [check_ae_title(a, "--allow") for a in allow]
+        os.environ[ENV_NODE_PORT] = str(listen_port)
+        os.environ[ENV_NODE_ALLOW] = "\\".join(titles)
+    elif allow:
+        raise UserError("--allow needs --listen-port")
     from app.main import run_app
 
     if pacs is not None:

@@ -57,11 +57,22 @@ class PacsPanel(BasePanel):
             self.load_button = gui.add_button("Load from PACS", icon=viser.Icon.DOWNLOAD, disabled=True)
             self.store_button = gui.add_button("Store result to PACS", icon=viser.Icon.UPLOAD, disabled=True)
             self.status = gui.add_markdown("")
+            self.node_info = gui.add_markdown(
+                "<small>DICOM node: off (`roadmap3d app --listen-port P --allow AE`)</small>"
+            )
+            self.use_received = gui.add_button("Show the received image", icon=viser.Icon.PHOTO, disabled=True)
         self.refresh_button.on_click(ctx.guarded(lambda _e: self._in_background(self.list_studies)))
         self.patient.on_update(ctx.guarded(lambda _e: self._show_studies()))
         self.study.on_update(ctx.guarded(lambda _e: self._in_background(self._list_series)))
         self.load_button.on_click(ctx.guarded(lambda _e: self._in_background(self.load_selected)))
         self.store_button.on_click(ctx.guarded(lambda _e: self._in_background(self.store_result)))
+        self.use_received.on_click(ctx.guarded(lambda _e: self.show_received()))
+        self._node: Any = None
+        self._node_folder: Path | None = None
+        self.received: Any = None
+        node = node_settings_from_env()
+        if node is not None:
+            self.start_node(**node)
 
     # ----- helpers -----------------------------------------------------------------------
     def _server_line(self) -> str:
@@ -239,8 +250,83 @@ class PacsPanel(BasePanel):
             shutil.rmtree(work, ignore_errors=True)
         self._say(f"Stored the registration (REG) and the overlay (Secondary Capture) on {pacs.name}.")
 
+    # ----- the DICOM node (images from the C-arm) -----------------------------------------
+    def start_node(self, *, allowed: tuple[str, ...], port: int = 11112, ae_title: str = "ROADMAP3D") -> int:
+        """Receive images over DICOM (C-STORE) on 127.0.0.1; the port it listens on."""
+        from registration.io.node import DicomNode
+
+        if self._node is not None:
+            raise ValueError("The DICOM node already runs.")
+        folder = Path(tempfile.mkdtemp(prefix="roadmap3d-app-node-"))
+        try:
+            node = DicomNode(folder / "received", allowed=allowed, ae_title=ae_title, port=port,
+                             on_received=self._on_received).start()  # fmt: skip
+        except BaseException:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
+        self._node, self._node_folder = node, folder
+        self.node_info.content = (
+            f"<small>DICOM node: {node.ae_title} on 127.0.0.1:{node.port}, accepting {', '.join(node.allowed)}</small>"
+        )
+        return node.port
+
+    def _on_received(self, item: Any) -> None:
+        """Called by the node before it answers the C-STORE: the page knows when the sender does."""
+        if item.role != "xray":
+            self.node_info.content = (
+                f"<small>Received {item.modality} from {item.calling_ae} (not an X-ray image)</small>"
+            )
+            return
+        self.received = item
+        self.use_received.disabled = False
+        frames = f", {item.frames} frames (the last is shown)" if item.frames > 1 else ""
+        self.node_info.content = f"<small>Received {item.modality} from {item.calling_ae}{frames}</small>"
+        self.ctx.message(f"Received an X-ray image from {item.calling_ae}: **Show the received image** (PACS tab).")
+
+    def show_received(self) -> None:
+        """The received image (a run: its last frame) with the volume now shown."""
+        from app.data import FileData
+        from registration.io import dicom
+
+        item = self.received
+        if item is None:
+            raise ValueError("No image received yet.")
+        session = self.ctx.session
+        volume = session.data.volume(session.settings.volume_format_cm)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            xray = dicom.read_xray(item.path, frame=item.frames - 1 if item.frames > 1 else None)
+        source = f"C-arm {item.calling_ae} (DICOM node) + {volume.label}"
+        session.use_data(FileData(volume, xray, source=source, config=session.config))
+        self.ctx.layout.source.content = f"**Showing:** {source}"
+        self.ctx.layout.phantom_button.visible = True
+        self.ctx.refresh()
+        self._say("Showing the received image. Press **Register**.")
+
     def close(self) -> None:
         with self._lock:
             work, self._work = self._work, None
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
+        if self._node is not None:
+            self._node.stop()
+            self._node = None
+        if self._node_folder is not None:
+            shutil.rmtree(self._node_folder, ignore_errors=True)
+            self._node_folder = None
+
+
+#: Environment set by ``roadmap3d app --listen-port P --allow AE ...`` for the panel's DICOM node.
+ENV_NODE_PORT = "ROADMAP3D_APP_NODE_PORT"
+ENV_NODE_ALLOW = "ROADMAP3D_APP_NODE_ALLOW"
+ENV_NODE_AE = "ROADMAP3D_APP_NODE_AE"
+
+
+def node_settings_from_env() -> dict[str, Any] | None:
+    import os
+
+    port = os.environ.get(ENV_NODE_PORT)
+    if not port:
+        return None
+    allowed = tuple(a for a in os.environ.get(ENV_NODE_ALLOW, "").split("\\") if a)
+    return {"port": int(port), "allowed": allowed, "ae_title": os.environ.get(ENV_NODE_AE) or "ROADMAP3D"}

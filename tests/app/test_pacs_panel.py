@@ -64,3 +64,37 @@ def test_store_needs_data_from_the_pacs(fresh: RoadmapApp) -> None:
     panel.store_button.value = True
     assert panel.wait(10)
     assert "Load a volume and an image from the PACS first" in panel.status.content
+
+
+def test_a_c_store_reaches_the_app(fresh: RoadmapApp, small_export: Path) -> None:
+    """The app's DICOM node: when pynetdicom's StoreSCU sees success, the app already has the image
+    (the node reports before it answers); unknown AE titles are refused; the image can be shown."""
+    from pynetdicom import AE
+    from pynetdicom.sop_class import XRayAngiographicImageStorage  # type: ignore[attr-defined]
+
+    app = fresh
+    (panel,) = [p for p in app.panels if isinstance(p, PacsPanel)]
+    port = panel.start_node(allowed=("CARM",), port=0)
+    try:
+        intruder = AE(ae_title="INTRUDER")
+        intruder.add_requested_context(XRayAngiographicImageStorage)
+        assert intruder.associate("127.0.0.1", port, ae_title="ROADMAP3D").is_rejected
+        assert panel.received is None
+
+        ae = AE(ae_title="CARM")
+        ae.add_requested_context(XRayAngiographicImageStorage)
+        assoc = ae.associate("127.0.0.1", port, ae_title="ROADMAP3D")
+        assert assoc.is_established
+        assert assoc.send_c_store(dicom.read_dataset(small_export / "xa_fluoro.dcm")).Status == 0x0000
+        assoc.release()
+        # no waiting: the app was told before the C-STORE was answered
+        assert panel.received is not None and panel.received.calling_ae == "CARM"
+        assert "Received XA from CARM" in panel.node_info.content and not panel.use_received.disabled
+
+        panel.use_received.value = True
+        sent = dicom.read_xray(small_export / "xa_fluoro.dcm")
+        assert np.array_equal(app.session.data.fixed_xray.image, sent.image)
+        assert app.session.data.source.startswith("C-arm CARM")
+    finally:
+        app.phantom_button.value = True
+        panel.close()  # stops the node, removes its private folder
