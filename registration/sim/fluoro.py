@@ -27,7 +27,7 @@ from registration.sim.phantom import HeadPhantom
 Array = NDArray[np.float64]
 
 #: Phases of the patient's script, as each frame's truth names them.
-PHASES = ("still", "drift", "move", "settled")
+PHASES = ("still", "drift", "move", "settled", "glitch")
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,9 @@ class RunScript:
     catheter: bool = True
     wire_start_mm: float = 120.0
     wire_end_mm: float = 200.0
+    #: Frames that show no anatomy (a detector read-out glitch: a flat field with its noise),
+    #: at these times (s): frames the engine cannot register, whose estimates must be withheld.
+    glitch_times_s: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("duration_s", "fps", "move_s", "max_move_mm", "max_move_deg", "breathing_period_s"):
@@ -292,13 +295,15 @@ def simulate_biplane_run(
         raise ValueError(f"{len(planes)} plane names for {len(geometries)} geometries")
     times, truth, phases = motion_trajectory(script)
     wires = wire_lengths_mm(script)
+    glitches = {int(np.argmin(np.abs(times - t))) for t in script.glitch_times_s}
     runs = []
     total = len(times) * len(geometries)
     for p, geometry in enumerate(geometries):
         params = {
             "phantom": phantom.key,
             "geometry": geometry.to_dict(),
-            "script": script.to_dict(),
+            # glitches are applied to the cached frames (the anatomy's frames do not depend on them)
+            "script": {k: v for k, v in script.to_dict().items() if k != "glitch_times_s"},
             "plane": p,
             "model": "fluoro-run-1",
         }
@@ -325,11 +330,20 @@ def simulate_biplane_run(
                 )
                 frames[i] = img.image
                 mask = img.mask
+
                 if callable(progress):
                     progress(p * len(times) + i + 1, total)
             return {"images": frames, "mask": mask}
 
         arrays = cached_arrays("fluoro-run", params, build, enabled=cache)
+        images = arrays["images"]
+        if glitches:
+            images = images.copy()
+            mask = arrays["mask"].astype(bool)
+            for i in sorted(glitches):
+                rng = np.random.default_rng(_frame_seed(script.seed, p, i) + 1)
+                flat = float(np.median(images[i][mask]))
+                images[i] = np.where(mask, flat + 0.04 * rng.standard_normal(mask.shape), 0.0).astype(np.float32)
         meta = {
             "source": "simulated fluoroscopy run of the analytic phantom (honest image model)",
             "script": script.to_dict(),
@@ -337,12 +351,12 @@ def simulate_biplane_run(
         }
         runs.append(
             FluoroRun(
-                images=arrays["images"],
+                images=images,
                 mask=arrays["mask"].astype(bool),
                 geometry=geometry,
                 times_s=times,
                 truth=truth,
-                phases=phases,
+                phases=tuple("glitch" if i in glitches else ph for i, ph in enumerate(phases)),
                 plane=planes[p],
                 meta=meta,
             )

@@ -55,9 +55,14 @@ class TrackingConfig:
     @classmethod
     def quick_config(cls, seed: int = 0) -> TrackingConfig:
         """About two minutes on 2 cores (the run is simulated once, then cached): one 20 s run
-        at 128 px with two sudden moves, drift, breathing and an advancing guidewire."""
+        at 128 px with two sudden moves, drift, breathing, an advancing guidewire and two
+        frames that show no anatomy (read-out glitches, which must be withheld)."""
         return cls(
-            cases=(TrackingCase("run20s", RunScript(duration_s=20.0, seed=seed, sudden_moves=2)),),
+            cases=(
+                TrackingCase(
+                    "run20s", RunScript(duration_s=20.0, seed=seed, sudden_moves=2, glitch_times_s=(5.0, 15.0))
+                ),
+            ),
             seed=seed,
             quick=True,
         )

@@ -75,3 +75,15 @@ def test_biplane_frames_share_motion_with_own_noise():
     d = run_a.images[1] - run_a.images[0]
     assert 0 < np.abs(d[run_a.mask]).mean() < 0.2
     assert not np.allclose(run_a.images[0], run_b.images[0])
+
+
+def test_glitch_frames_show_no_anatomy():
+    from registration.sim.phantom import make_head_phantom
+
+    anatomy = make_head_phantom(seed=0, contrast=False)
+    script = RunScript(duration_s=0.2, sudden_moves=0, drift=False, catheter=False, glitch_times_s=(1 / 15,))
+    run = simulate_biplane_run(anatomy, [CArm.for_format(27.0, pixels=32)], script, cache=False)[0]
+    assert run.phases == ("still", "glitch", "still")
+    inside = run.mask
+    # the anatomy's frames carry its contrast; the glitch is a flat field with its noise only
+    assert run.images[1][inside].std() < 0.1 < run.images[0][inside].std()
