@@ -134,13 +134,13 @@ class DicomNode:
         port: int = DEFAULT_PORT,
         on_received: Callable[[Received], None] | None = None,
     ) -> None:
-        self.folder = private_folder(folder)
         self.ae_title = check_ae_title(ae_title)
         self.allowed = tuple(check_ae_title(a, "allowed calling AE title") for a in allowed)
         if not self.allowed:
             raise NodeError("no calling AE title is allowed: give the C-arm's AE title (--allow AE)")
         if not 0 <= int(port) <= 65535:
             raise NodeError(f"port {port}: must be 0..65535")
+        self.folder = private_folder(folder)  # last: a refused configuration leaves nothing behind
         self.host = host
         self.requested_port = int(port)
         self.on_received = on_received

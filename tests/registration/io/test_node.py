@@ -74,6 +74,7 @@ def test_unknown_calling_ae_title_is_refused(node: DicomNode, small_export: Path
 def test_configuration_is_checked(tmp_path: Path) -> None:
     with pytest.raises(NodeError, match="--allow"):
         DicomNode(tmp_path / "a", allowed=[])
+    assert not (tmp_path / "a").exists()  # nothing made for a refused configuration
     with pytest.raises(NodeError, match="16 printable"):
         DicomNode(tmp_path / "b", allowed=["A-VERY-LONG-AE-TITLE"])
     shared = tmp_path / "shared"
