@@ -19,10 +19,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from pynetdicom import AE
 from pynetdicom.sop_class import XRayAngiographicImageStorage  # type: ignore[attr-defined]
 
 from registration.io import dicom
+
+#: Registrations of whole commands: seconds each (the newest-releases CI job skips them).
+pytestmark = pytest.mark.slow
 
 #: Bounds a broken run only (the node starts in a few seconds; one small registration ~1-5 s).
 LINE_TIMEOUT_S = 120.0

@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from app.gui import RoadmapApp
 from app.pacs_panel import PacsPanel
@@ -18,6 +19,7 @@ from registration.io.pacs import Pacs, PacsSettings
 from tests.orthanc import OrthancServer
 
 
+@pytest.mark.slow  # a whole registration
 def test_app_lists_loads_registers_and_stores(
     fresh: RoadmapApp, orthanc: OrthancServer, small_export: Path, tmp_path: Path
 ) -> None:

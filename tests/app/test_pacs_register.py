@@ -29,6 +29,7 @@ def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str,
     return int(info.value.code or 0), out, err
 
 
+@pytest.mark.slow  # a whole registration
 def test_register_from_pacs_and_store_back(
     orthanc: OrthancServer, small_export: Path, tmp_path: Path, capsys, monkeypatch
 ) -> None:

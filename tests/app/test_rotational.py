@@ -19,6 +19,9 @@ from app import cli, rotational_commands
 from registration.io import dicom
 from registration.sim.calibration import CalibrationTable
 
+#: Registrations of whole commands: seconds each (the newest-releases CI job skips them).
+pytestmark = pytest.mark.slow
+
 #: A short run (24 projections of 96 px over 200 deg) and a 64^3 FDK 3DRA of the 22 cm format:
 #: the smallest case where registration still reaches < 1 mm (pixel ~1.5 mm at the iso-center).
 RUN = {"pixels": 96, "projections": 24}
