@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app.layout import Layout, format_cm, format_option, offset_limit
+from app.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL, Layout, format_cm, format_option, offset_limit
 from app.session import Session
 from app.upload import limit_uploads
 from registration.core.geometry import clinically_relevant
@@ -147,6 +147,9 @@ class Controller:
             kind=str(ui.kind.value),
             contrast=bool(ui.contrast.value),
             catheter=bool(ui.catheter.value),
+            biplane=bool(ui.biplane.value),
+            primary_b_deg=float(ui.primary_b.value),
+            secondary_b_deg=float(ui.secondary_b.value),
         )
         # The patient stays put in the room: its offsets in the new view frame change.
         self.sync_controls()
@@ -183,9 +186,17 @@ class Controller:
                     (ui.kind, st.kind),
                     (ui.contrast, st.contrast),
                     (ui.catheter, st.catheter),
+                    (ui.biplane, st.biplane),
+                    (ui.primary_b, st.primary_b_deg),
+                    (ui.secondary_b, st.secondary_b_deg),
                 ):
                     if control.value != value:
                         control.value = value
+                biplane = self.session.biplane
+                ui.plane_b_folder.visible = biplane
+                tz_label = TZ_CORRECTED_LABEL if biplane else OFFSET_LABELS["tz"]
+                if ui.offset_sliders[2].label != tz_label:
+                    ui.offset_sliders[2].label = tz_label
             finally:
                 self._sync_depth -= 1
 

@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 import viser
 
-from app.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
+from app.session import PLANE_B_PRIMARY_DEG, ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
 from registration.core.geometry import DEFAULT_SID_MM, IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I
+from registration.sim.biplane import plane_b_spec
 
 #: Widths of the two side panels (pixels).
 VIEW_PANEL_PX = 600
@@ -32,6 +33,8 @@ CONTROL_PANEL_PX = 380
 PLACEHOLDER_SHAPE = (384, 772, 3)
 
 FORMAT_OPTIONS = tuple(f"{f:g} cm" for f in IMAGE_FORMATS_CM)
+#: The tz slider in biplane mode: corrected now (plane B sees plane A's tz in its image plane).
+TZ_CORRECTED_LABEL = "tz (mm) ✓ biplane"
 OFFSET_LABELS = {
     "tx": "tx (mm)",
     "ty": "ty (mm)",
@@ -112,6 +115,12 @@ class Layout:
         self.autocorrect = gui.add_checkbox(
             "Auto-correct", False, hint="Re-register whenever the patient moves, as the product does"
         )
+        self.biplane = gui.add_checkbox(
+            "Biplane",
+            False,
+            hint="Plane B, the lateral C-arm, images the patient at the same moment: registration then "
+            "corrects all six offsets, tz (along plane A's beam) too (its angles: C-arm tab)",
+        )
         self.status = gui.add_markdown("")
         self.control_tabs = tabs = gui.add_tab_group()
         with tabs.add_tab("Patient motion", viser.Icon.USER):
@@ -145,6 +154,19 @@ class Layout:
             self.kind = gui.add_dropdown("Image type", ("fluoro", "exposure"), initial_value="fluoro")
             self.contrast = gui.add_checkbox("Contrast in vessels", True)
             self.catheter = gui.add_checkbox("Catheter", False)
+            spec = plane_b_spec()
+            self.plane_b_folder = gui.add_folder("Plane B (lateral C-arm)", visible=False)
+            with self.plane_b_folder:
+                self.primary_b = gui.add_slider(
+                    "B: LAO/RAO (°)", 45.0, 135.0, 1.0, PLANE_B_PRIMARY_DEG, hint="Plane B's primary angle"
+                )
+                self.secondary_b = gui.add_slider(
+                    "B: CRAN/CAUD (°)", -40.0, 40.0, 1.0, 0.0, hint="Plane B's secondary angle"
+                )
+                gui.add_markdown(
+                    f"<small>Its own machine: SID {spec.sid_mm:g} mm, SOD {spec.sod_mm:g} mm, "
+                    f"{spec.image_format_cm:g} cm format; same image type.</small>"
+                )
         with tabs.add_tab("Data", viser.Icon.DATABASE):
             self.source = gui.add_markdown("")
             self.upload = gui.add_upload_button(
@@ -179,7 +201,7 @@ class Layout:
         #: Disabled during a run, and while the user's file fixes the C-arm.
         self.carm_controls: list[Any] = [
             self.primary, self.secondary, self.sid, self.image_format, self.volume_format,
-            self.kind, self.contrast, self.catheter,
+            self.kind, self.contrast, self.catheter, self.biplane, self.primary_b, self.secondary_b,
         ]  # fmt: skip
         #: Disabled during a run.
         self.motion_controls: list[Any] = [

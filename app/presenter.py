@@ -67,8 +67,8 @@ class Presenter:
         self._last_live = 0.0
         self._mesh_key: tuple | None = None
         self._shown_carm: tuple | None = None
-        self._tiles_of: object = None
-        self._tiles: dict[str, np.ndarray] = {}
+        self._tiles_by_image: dict[int, tuple[Any, dict[str, np.ndarray]]] = {}
+        self._shown_carm_b: tuple | None = None
         self._preview_version = -1
         self._plotted = False
         self._thread = threading.Thread(target=self._loop, name="presenter", daemon=True)
@@ -156,28 +156,33 @@ class Presenter:
         self.tick(now)
 
     def _image_tiles(self, xray: Any) -> dict[str, np.ndarray]:
-        """What depends on the X-ray image only, computed once per image."""
-        if self._tiles_of is not xray:
-            size = self.session.config.display_px
-            mask_u8 = xray.mask.astype(np.uint8)
-            self._tiles = {
-                "fluoro": views.resize(views.to_gray(xray.image, xray.mask), size),
-                "mask": views.resize(mask_u8, size).astype(bool),
-                "mask_half": views.resize(mask_u8, size // 2).astype(bool),
-                "mask_third": views.resize(mask_u8, size // 3).astype(bool),
-                "gradient": views.resize(views.gradient_image(xray.image, xray.mask), size),
-            }
-            self._tiles_of = xray
-        return self._tiles
+        """What depends on the X-ray image only, computed once per image (per plane)."""
+        cached = self._tiles_by_image.get(id(xray))
+        if cached is not None and cached[0] is xray:
+            return cached[1]
+        size = self.session.config.display_px
+        mask_u8 = xray.mask.astype(np.uint8)
+        tiles = {
+            "fluoro": views.resize(views.to_gray(xray.image, xray.mask), size),
+            "mask": views.resize(mask_u8, size).astype(bool),
+            "mask_half": views.resize(mask_u8, size // 2).astype(bool),
+            "mask_third": views.resize(mask_u8, size // 3).astype(bool),
+            "gradient": views.resize(views.gradient_image(xray.image, xray.mask), size),
+        }
+        if len(self._tiles_by_image) >= 4:  # plane A and B, each shown and about to be shown
+            self._tiles_by_image.pop(next(iter(self._tiles_by_image)))
+        self._tiles_by_image[id(xray)] = (xray, tiles)
+        return tiles
 
-    def _show(
-        self, xray: Any, motion: np.ndarray, truth: np.ndarray | None, volume_format: float, *, live: bool
-    ) -> None:
-        s, ui = self.session, self.layout
+    def _plane_pictures(
+        self, xray: Any, motion: np.ndarray, volume_format: float, *, live: bool, plane: str
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One plane's row (fluoro with the roadmap outline | DRR at the estimate), its detector
+        picture for the 3-D scene, and what the gradient row needs (DRR, its mask)."""
+        s = self.session
         size = s.config.display_px
         geometry: CArm = xray.geometry
         tiles = self._image_tiles(xray)
-
         fluoro = views.gray_rgb(tiles["fluoro"])
         meshes = s.data.meshes(volume_format)
         vessels = meshes.get("vessels")
@@ -187,7 +192,8 @@ class Presenter:
                 np.asarray(vessels.vertices), motion, geometry.resized(size, size), spacing
             )
             views.draw_outline(fluoro, silhouette, thickness=1 if size <= 400 else 2)
-        views.label(fluoro, f"{xray.kind.upper()}  {views.angles_text(geometry)}")
+        prefix = f"PLANE {plane}  " if plane else ""
+        views.label(fluoro, f"{prefix}{xray.kind.upper()}  {views.angles_text(geometry)}")
         views.label(fluoro, "red: roadmap at the estimate", corner="bottom-left")
 
         # The DRR thumbnail: coarser while the optimizer runs (it competes for the same cores).
@@ -197,13 +203,28 @@ class Presenter:
         drr_gray = views.resize(views.to_gray(drr, drr_mask), size)
         drr_gray[~tiles["mask"]] = 0
         drr_tile = views.label(views.gray_rgb(drr_gray), "DRR at the estimate")
-        composite = views.side_by_side(fluoro, drr_tile)
+        return views.side_by_side(fluoro, drr_tile), views.resize(fluoro, 256), tiles["gradient"], drr, drr_mask
+
+    def _show(
+        self, xray: Any, motion: np.ndarray, truth: np.ndarray | None, volume_format: float, *, live: bool
+    ) -> None:
+        s, ui = self.session, self.layout
+        size = s.config.display_px
+        geometry: CArm = xray.geometry
+        biplane = s.biplane
+        xray_b = s.xray_b() if biplane else None
+        composite, detector_image, gradient, drr, drr_mask = self._plane_pictures(
+            xray, motion, volume_format, live=live, plane="A" if biplane else ""
+        )
+        if xray_b is not None:
+            row_b, detector_b, _, _, _ = self._plane_pictures(xray_b, motion, volume_format, live=live, plane="B")
+            composite = views.stacked(composite, row_b)
         if ui.show_gradients.value:
-            g1 = views.label(views.gray_rgb(tiles["gradient"]), "gradient: image")
+            g1 = views.label(views.gray_rgb(gradient), "gradient: image")
             g2 = views.label(views.gray_rgb(views.resize(views.gradient_image(drr, drr_mask), size)), "gradient: DRR")
             composite = views.stacked(composite, views.side_by_side(g1, g2))
         carm_key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, round(geometry.field_diameter_mm, 3))
-        detector_image = views.resize(fluoro, 256)
+        carm_b_key = None if xray_b is None else (xray_b.geometry.primary_deg, xray_b.geometry.secondary_deg)
 
         readout, badge_html, details = self._texts(motion, truth)
         with s.lock:
@@ -219,6 +240,14 @@ class Presenter:
                 self.shown_geometry = geometry
             else:
                 self.scene.set_detector_image(detector_image)
+            if carm_b_key != self._shown_carm_b:
+                if xray_b is None:
+                    self.scene.remove_plane_b()
+                else:
+                    self.scene.set_carm(xray_b.geometry, detector_b, plane_b=True)
+                self._shown_carm_b = carm_b_key
+            elif xray_b is not None:
+                self.scene.set_detector_image(detector_b, plane_b=True)
             self.scene.place(motion, truth, show_ghost=bool(ui.show_ghost.value) and not hidden)
             for handle in self.scene.patient:
                 handle.visible = not hidden and ("vessel" in handle.name or bool(ui.show_skull.value))
@@ -255,8 +284,14 @@ class Presenter:
                 f"**Roadmap offset: {o[0]:+.2f}, {o[1]:+.2f}, {o[2]:+.2f} mm; "
                 f"{o[3]:+.2f}, {o[4]:+.2f}, {o[5]:+.2f}°** (no ground truth for your data)"
             )
+        elif s.biplane:  # six offsets: the whole (3-D) translation counts, tz along plane A's beam too
+            readout = (
+                f"**{residual.readout()}** · out-of-plane {abs(residual.outofplane_mm):.2f} mm "
+                "(along plane A's beam, seen by plane B)"
+            )
         else:
             readout = f"**{residual.readout()}**"
+        criterion = "3-D" if s.biplane else ""
         if running:
             badge_html = badge("REGISTERING…", "#1c7ed6")
         elif result is not None and getattr(result, "at_bounds", ()):
@@ -264,9 +299,9 @@ class Presenter:
         elif residual is None:
             badge_html = badge("REGISTERED" if result is not None else "SENSOR ALIGNMENT ONLY", "#495057")
         elif residual.success:
-            badge_html = badge("✓ REGISTERED  (< 1 mm, < 3°)", "#2b8a3e")
+            badge_html = badge(f"✓ REGISTERED  (< 1 mm{' ' + criterion if criterion else ''}, < 3°)", "#2b8a3e")
         else:
-            badge_html = badge("✗ MISALIGNED  (≥ 1 mm or ≥ 3°)", "#c92a2a")
+            badge_html = badge(f"✗ MISALIGNED  (≥ 1 mm{' ' + criterion if criterion else ''} or ≥ 3°)", "#c92a2a")
         lines = []
         if running and progress is not None:
             lines.append(

@@ -23,6 +23,8 @@ VESSEL_RGB = (214, 38, 38)
 GHOST_RGB = (90, 200, 255)
 CARM_RGB = (120, 128, 140)
 SOURCE_RGB = (255, 190, 60)
+#: Plane B's beam and source (biplane mode): its own colour beside plane A's amber.
+PLANE_B_RGB = (190, 120, 255)
 
 
 def pose_of(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,6 +64,8 @@ class Scene:
         self.patient: list = []
         self.ghost: list = []
         self.frustum: viser.CameraFrustumHandle | None = None
+        self.frustum_b: viser.CameraFrustumHandle | None = None
+        self.plane_b_nodes: list = []
 
     # ----- the patient ------------------------------------------------------------------
     def set_anatomy(self, meshes: dict[str, trimesh.Trimesh], *, max_faces: int = 120_000) -> None:
@@ -104,8 +108,10 @@ class Scene:
                 handle.wxyz, handle.position = wxyz_t, pos_t
 
     # ----- the C-arm --------------------------------------------------------------------
-    def set_carm(self, geometry: CArm, image: np.ndarray | None = None) -> None:
-        """Source, detector, frustum (with ``image`` on the detector) and the C arc."""
+    def set_carm(self, geometry: CArm, image: np.ndarray | None = None, *, plane_b: bool = False) -> None:
+        """Source, detector, frustum (with ``image`` on the detector) and the C arc; ``plane_b``:
+        the biplane system's second C-arm (its nodes under ``/carm_b``, its beam in PLANE_B_RGB)."""
+        root, beam_rgb = ("/carm_b", PLANE_B_RGB) if plane_b else ("/carm", SOURCE_RGB)
         sid = geometry.sid_mm * M_PER_MM
         d = geometry.direction
         u, v = geometry.u, geometry.v
@@ -123,21 +129,21 @@ class Scene:
         kwargs: dict = {}
         if image is not None:
             kwargs = {"image": np.ascontiguousarray(image[:, ::-1]), "format": "jpeg", "jpeg_quality": 85}
-        self.frustum = self.scene.add_camera_frustum(
-            "/carm/beam",
+        frustum = self.scene.add_camera_frustum(
+            f"{root}/beam",
             fov=fov,
             aspect=aspect,
             scale=scale,
-            color=SOURCE_RGB,
+            color=beam_rgb,
             thickness=0.0015,
             wxyz=wxyz,
             position=source,
             **kwargs,
         )
-        self.scene.add_icosphere("/carm/source", radius=0.03, color=SOURCE_RGB, position=source)
+        source_node = self.scene.add_icosphere(f"{root}/source", radius=0.03, color=beam_rgb, position=source)
         center = geometry.detector_center_mm * M_PER_MM
-        self.scene.add_box(
-            "/carm/detector",
+        detector = self.scene.add_box(
+            f"{root}/detector",
             dimensions=(2 * half_w * M_PER_MM + 0.06, 2 * half_h * M_PER_MM + 0.06, 0.05),
             color=(70, 74, 82),
             opacity=0.45,  # the image on the detector shows through its housing
@@ -151,8 +157,20 @@ class Scene:
         side = np.cross(d, np.array([0.0, 0.0, 1.0]))
         side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else u
         arc = mid - np.cos(t)[:, None] * d * radius + np.sin(t)[:, None] * side * radius * 0.9
-        self.scene.add_spline_catmull_rom("/carm/arc", arc, thickness=0.03, color=CARM_RGB)
+        arc_node = self.scene.add_spline_catmull_rom(f"{root}/arc", arc, thickness=0.03, color=CARM_RGB)
+        if plane_b:
+            self.frustum_b = frustum
+            self.plane_b_nodes = [frustum, source_node, detector, arc_node]
+        else:
+            self.frustum = frustum
 
-    def set_detector_image(self, image: np.ndarray) -> None:
-        if self.frustum is not None:
-            self.frustum.image = np.ascontiguousarray(image[:, ::-1])
+    def remove_plane_b(self) -> None:
+        """Back to one plane: plane B's C-arm leaves the scene."""
+        for node in self.plane_b_nodes:
+            node.remove()
+        self.plane_b_nodes, self.frustum_b = [], None
+
+    def set_detector_image(self, image: np.ndarray, *, plane_b: bool = False) -> None:
+        frustum = self.frustum_b if plane_b else self.frustum
+        if frustum is not None:
+            frustum.image = np.ascontiguousarray(image[:, ::-1])

@@ -28,6 +28,7 @@ from registration.core.geometry import (
 )
 from registration.core.metrics import Residual, residuals
 from registration.core.register import Progress, RegistrationResult, register
+from registration.sim.biplane import plane_b_spec
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,11 @@ STOP_GRACE_S = 0.3
 #: The ``Random`` button's offsets: translation up to 25 mm, rotation up to 10 degrees.
 RANDOM_MAX_MM = 25.0
 RANDOM_MAX_DEG = 10.0
+#: Plane B's angles when biplane mode starts: lateral (LAO 90), as a neuro suite's plane B.
+PLANE_B_PRIMARY_DEG = 90.0
+#: Plane B's quantum noise is its own stream: the seed is offset by this (the two frames of one
+#: moment, CONVENTIONS §6).
+PLANE_B_NOISE_SEED_OFFSET = 7919
 
 
 @dataclass(frozen=True)
@@ -55,6 +61,20 @@ class CArmSettings:
     kind: str = "fluoro"
     contrast: bool = True
     catheter: bool = False
+    #: Biplane mode: plane B (the lateral C-arm, its own machine: sim.biplane.plane_b_spec)
+    #: images the patient at the same moment; registration then searches all six offsets.
+    biplane: bool = False
+    primary_b_deg: float = PLANE_B_PRIMARY_DEG
+    secondary_b_deg: float = 0.0
+
+    def plane_a(self) -> tuple:
+        """What plane A's image depends on (plane B's controls do not re-form it)."""
+        return (self.primary_deg, self.secondary_deg, self.sid_mm, self.image_format_cm, self.kind, self.contrast,
+                self.catheter)  # fmt: skip
+
+    def geometry_b(self, pixels: int) -> CArm:
+        """Plane B's nominal view: its own SID, SOD and image format (sim.biplane), ``pixels`` square."""
+        return plane_b_spec().nominal(self.primary_b_deg, self.secondary_b_deg, pixels=pixels)
 
     def geometry(self, pixels: int) -> CArm:
         """The nominal view these settings describe (raises ValueError if impossible)."""
@@ -105,6 +125,8 @@ class Session:
         self.version = 0
         self._xray_key: tuple | None = None
         self._xray: XRayImage | None = None
+        self._xray_b_key: tuple | None = None
+        self._xray_b: XRayImage | None = None
         self._xray_lock = threading.Lock()
         self._worker: threading.Thread | None = None
         self._rng = np.random.default_rng(self.config.seed + 1)
@@ -131,24 +153,47 @@ class Session:
             self.run = RunState()
             self._changed()
 
+    @property
+    def biplane(self) -> bool:
+        """Biplane mode is on (never for the user's data: one file, one plane)."""
+        return self.settings.biplane and self.data.fixed_xray is None
+
     def _xray_state(self) -> tuple[CArmSettings, Array, tuple]:
         with self.lock:
             settings, motion = self.settings, self.true_motion.copy()
-        return settings, motion, (settings, motion.tobytes())
+        return settings, motion, (settings.plane_a(), motion.tobytes())
 
-    def _simulate(self, settings: CArmSettings, motion: Array, *, pixels: int, supersample: int) -> XRayImage:
+    def _simulate(
+        self, settings: CArmSettings, motion: Array, *, pixels: int, supersample: int, plane_b: bool = False
+    ) -> XRayImage:
         data = self.data
         if not isinstance(data, PhantomData):  # a source without a phantom brings its own image
             raise ValueError(f"{data.source}: no phantom to form X-ray images from")
+        geometry = settings.geometry_b(pixels) if plane_b else settings.geometry(pixels)
         return simulate_xray(
             data.phantom(settings.contrast),
-            settings.geometry(pixels),
+            geometry,
             motion=motion,
             kind=settings.kind,
             catheter=settings.catheter,
-            seed=self.config.seed,
+            seed=self.config.seed + (PLANE_B_NOISE_SEED_OFFSET if plane_b else 0),
             supersample=supersample,
         )
+
+    def xray_b(self) -> XRayImage:
+        """Plane B's image of the same moment (same patient motion, its own noise), re-formed on change."""
+        with self.lock:
+            settings, motion = self.settings, self.true_motion.copy()
+        key = (settings.plane_a(), settings.primary_b_deg, settings.secondary_b_deg, motion.tobytes())
+        with self._xray_lock:
+            if key != self._xray_b_key or self._xray_b is None:
+                self._xray_b = self._simulate(settings, motion, pixels=self.config.pixels, supersample=2, plane_b=True)
+                self._xray_b_key = key
+            return self._xray_b
+
+    def views(self) -> list[XRayImage]:
+        """What a registration now compares with: plane A's image, and plane B's in biplane mode."""
+        return [self.xray(), self.xray_b()] if self.biplane else [self.xray()]
 
     def xray(self) -> XRayImage:
         """The X-ray image for the current settings and true motion (re-formed on change)."""
@@ -178,7 +223,9 @@ class Session:
             return None
         with self.lock:
             est = self.estimate if estimate is None else estimate
-            return residuals(est, self.true_motion, self.geometry(), self.data.vessel_points_mm())
+            return residuals(
+                est, self.true_motion, self.geometry(), self.data.vessel_points_mm(), optimizes_tz=self.biplane
+            )
 
     # ----- changes ----------------------------------------------------------------------
     def _changed(self) -> None:
@@ -295,11 +342,11 @@ class Session:
             return run.stop.is_set()
 
         try:
-            xray = self.xray()
+            views = self.views()  # biplane: plane A first, offsets in its view frame
             data = self.data
             result = register(
                 data.volume(volume_format),
-                xray,
+                views if len(views) > 1 else views[0],
                 initial_motion=initial,
                 seed=self.config.seed,
                 callback=callback,

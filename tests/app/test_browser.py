@@ -118,3 +118,44 @@ def test_page_renders_and_t4_register_converges(fresh: RoadmapApp, browser) -> N
         page.close()
         if not second.is_closed():
             second.close()
+
+
+def test_biplane_mode_in_the_page(fresh: RoadmapApp, browser) -> None:
+    """Biplane on from the page: plane B's controls, the out-of-plane readout, Register corrects tz."""
+    app = fresh
+    page = browser.new_page(viewport={"width": 1280, "height": 760})
+    out_of_plane = re.compile(r"out-of-plane (\d+\.\d\d) mm")
+    try:
+        page.goto(url_of(app.server))
+        page.get_by_role("button", name="Register").wait_for(timeout=90_000)
+        page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
+        page.get_by_text("Biplane", exact=True).click(force=True, timeout=120_000)  # software WebGL: slow page
+        assert _wait(lambda: app.session.biplane, 30), "the Biplane checkbox did not reach the session"
+        page.get_by_role("tab", name="C-arm").click(force=True, timeout=120_000)
+        page.get_by_text("Plane B (lateral C-arm)").wait_for(timeout=60_000)
+        app.offset_sliders[2].value = 10.0  # the patient moves along plane A's beam (shared session)
+        page.get_by_text(re.compile(r"out-of-plane 10\.00 mm")).wait_for(timeout=60_000)
+        page.get_by_role("button", name="Register").click(force=True)
+        page.get_by_text(re.compile(r"· done")).wait_for(timeout=240_000)
+        deadline = time.monotonic() + 30
+        while True:
+            text = page.get_by_text(out_of_plane).first.inner_text()
+            _, total, rotation = parse_readout(text)
+            if total < 1.0 or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        assert total < 1.0 and rotation < 3.0, text  # CONVENTIONS §6: the 3-D criterion
+        assert float(out_of_plane.search(text)[1]) < 1.0, text
+    finally:
+        page.close()
+        app.session.stop_registration(wait=True)
+        app.biplane.value = False
+
+
+def _wait(predicate, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return predicate()
