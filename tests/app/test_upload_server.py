@@ -258,3 +258,31 @@ def test_the_printed_address_is_the_one_listened_on() -> None:
 def test_an_upload_without_a_volume_says_so_in_plain_words() -> None:
     with pytest.raises(UploadError, match="case.zip: found no volume; expected"):
         read_upload("case.zip", _upload(), max_bytes=MB, config=TEST_CONFIG)
+
+
+def test_the_budget_is_wired_into_viser_s_upload_handlers() -> None:
+    """The 40 unfinished transfers of issue 15, sent as viser messages to a real server."""
+    import asyncio
+
+    import viser
+    from viser import _messages
+
+    from app.upload import limit_uploads
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        button = server.gui.add_upload_button("Upload")
+        refusals: list[str] = []
+        limit_uploads(server, 8 * MB, lambda _client, why: refusals.append(why))
+        states = server.gui._current_file_upload_states  # noqa: SLF001 - what the budget guards
+        for n in range(40):
+            start = _messages.FileTransferStartUpload(
+                source_component_uuid=button._impl.uuid,  # noqa: SLF001
+                transfer_uuid=f"t{n}", filename=f"part{n}.zip", mime_type="application/zip", part_count=8,
+                size_bytes=int(7.5 * MB),
+            )  # fmt: skip
+            asyncio.run(server._websock_server._handle_incoming_message(7, start))  # noqa: SLF001
+        assert list(states) == ["t0"] and len(refusals) == 39
+        assert all("budget of 8 MB" in why for why in refusals)
+    finally:
+        server.stop()
