@@ -52,6 +52,15 @@ STATUSES = ("applied", "withheld", "unchanged")
 PATHS = ("check", "refine", "capture")
 
 
+def light_capture(options: RegistrationOptions | None = None) -> RegistrationOptions:
+    """``options`` (default: register's) with only the first (capture) level and the polish."""
+    from dataclasses import replace
+
+    o = options or RegistrationOptions()
+    margins = None if o.support_margin_mm is None else (o.support_margin_mm[0], o.support_margin_mm[-1])
+    return replace(o, levels=o.levels[:1], support_margin_mm=margins)
+
+
 @dataclass(frozen=True)
 class TrackingOptions:
     """How the tracker detects, refines and captures (defaults: the benchmarked configuration)."""
@@ -99,8 +108,12 @@ class TrackingOptions:
     #: Run the full capture on the first frame (else the run starts registered: the first
     #: frame's pose is the initial pose, as after the roadmap's initial registration).
     register_first: bool = False
-    #: Options of the full capture (None: the defaults of :func:`register`).
-    capture: RegistrationOptions | None = None
+    #: Options of the full capture (None: the defaults of :func:`register`). The default
+    #: keeps register's capture level (four runs at 64 px) and polish but not its 128 px
+    #: annealing level: the tracker refines the result at its own level anyway. Measured on
+    #: the quick run's two moves: 1.5-1.65 s CPU instead of 2.4-2.8 s, residuals 0.31/0.35 mm
+    #: instead of 0.31/0.30 mm.
+    capture: RegistrationOptions | None = field(default_factory=lambda: light_capture())
     #: Threads that render probes side by side (None: one per core, at most 2).
     threads: int | None = None
     rule: ConfidenceRule = DEFAULT_RULE
