@@ -196,6 +196,15 @@ def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
         f"biplane registration    {bi['seconds_median']:.2f} s median over {len(bi['runs'])} moments, "
         f"{100 * bi['success_rate']:.0f} % successful (3-D criterion)"
     )
+    real = out.get("real_volume", {})
+    if "skipped" in real:
+        print(f"real CT                 skipped: {real['skipped']}")
+    elif real:
+        print(
+            f"real CT                 {real['seconds_median']:.2f} s median a registration (volume prepared), "
+            f"{real['prepare_seconds']:.2f} s preparing, {real['register_end_to_end_seconds']:.2f} s end to end, "
+            f"{100 * real['success_rate']:.0f} % successful (images formed from the CT: a best case)"
+        )
     if "reconstruction" in out:
         rec = out["reconstruction"]
         print(

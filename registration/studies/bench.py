@@ -99,6 +99,10 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
         "biplane": biplane,
         "tracking": bench_tracking(seed=seed),
     }
+    from registration.studies.volume import bench_real_volume
+
+    say("registration on the real head CT (../shared) ...")
+    out["real_volume"] = bench_real_volume(seed=seed, cases=2 if quick else 4, log=say)
     if not quick:
         from registration.sim.reconstruct import bench_reconstruction
 

@@ -70,3 +70,22 @@ def test_head_isocenter_is_the_middle_of_the_head() -> None:
     # the head's box is cut at the top of the volume (z <= 148.5): its middle in z sits at
     # (-10 + 130) / 2 = 60 within a voxel; x, y within a voxel of the center
     assert iso == pytest.approx((10.0, -5.0, 60.0), abs=sp)
+
+
+def test_bench_skips_the_real_ct_with_a_note_when_absent(monkeypatch: pytest.MonkeyPatch) -> None:
+    import registration.studies.volume as study
+
+    monkeypatch.setattr(study, "find_real_ct", lambda: None)
+    out = study.bench_real_volume(cases=1)
+    assert set(out) == {"skipped"} and "real CT" in out["skipped"]
+
+
+def test_validate_volume_biplane(phantom_3dra: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["validate", "volume", "--volume", str(phantom_3dra), "--isocenter", "volume-center",
+              "--cases", "1", "--biplane", "--json", "--seed", "1"])  # fmt: skip
+    assert exit_.value.code == 0
+    summary = json.loads(capsys.readouterr().out)
+    # two planes see all six offsets: the 3-D criterion (CONVENTIONS §6) holds for the phantom
+    assert summary["config"]["biplane"] and "3-D" in summary["success_criterion"]
+    assert summary["success_rate"] == 1.0 and summary["translation_residual_mm_median"] < 1.0
