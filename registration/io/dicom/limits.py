@@ -52,6 +52,7 @@ __all__ = [
     "check_dataset_pixels",
     "check_declared_pixels",
     "check_file_size",
+    "check_folder_bytes",
     "check_frame_count",
     "check_npz_member",
     "check_voxels",
@@ -142,6 +143,20 @@ def check_file_size(path: str | os.PathLike[str], size: int, *, limits: ReadLimi
             path,
             f"{_mb(size)} is over the limit of {_mb(limits.max_file_bytes)} for one file "
             f"{RAISE_HINT.format(env=ENV_MAX_FILE_MB)}",
+        )
+
+
+def check_folder_bytes(folder: str | os.PathLike[str], files: list[Path], *, limits: ReadLimits | None = None) -> None:
+    """Refuse a series folder whose files together exceed the pixel ceiling plus headers, before
+    any is read (every slice is held in memory until the stack is checked)."""
+    limits = limits or current_limits()
+    total = sum(file_size(p) for p in files)
+    allowed = limits.max_pixel_bytes + 64 * 1024 * max(1, len(files))  # pixels plus generous headers
+    if total > allowed:
+        raise DicomError(
+            folder,
+            f"its {len(files):,} files hold {_mb(total)}, more than a volume within the limit of "
+            f"{_mb(limits.max_pixel_bytes)} of pixels {RAISE_HINT.format(env=ENV_MAX_PIXEL_MB)}",
         )
 
 

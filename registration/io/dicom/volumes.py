@@ -67,7 +67,13 @@ from registration.io.dicom._files import (
     _atomic_path,
     atomic_folder,
 )
-from registration.io.dicom.limits import check_affine, check_dataset_pixels, check_npz_member, check_voxels
+from registration.io.dicom.limits import (
+    check_affine,
+    check_dataset_pixels,
+    check_folder_bytes,
+    check_npz_member,
+    check_voxels,
+)
 
 
 # --------------------------------------------------------------------------------------
@@ -343,7 +349,9 @@ def read_series(folder: str | os.PathLike[str], *, label: str | None = None) -> 
         raise DicomError(folder, "not a folder")
     datasets: list[tuple[Path, Dataset]] = []
     skipped: list[str] = []
-    for p in _candidate_files(folder):
+    candidates = _candidate_files(folder)
+    check_folder_bytes(folder, candidates)  # before any file is read into memory
+    for p in candidates:
         try:
             ds = read_dataset(p)
         except DicomError as exc:

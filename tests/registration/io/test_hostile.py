@@ -149,13 +149,16 @@ def test_xa_slices_inside_a_ct_series_are_refused(tmp_path: Path) -> None:
     refused(lambda: dicom.read_volume(folder), "Modality (0008,0060)", "CT, XA")
 
 
-@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "1e308"])
 @pytest.mark.parametrize(
-    "keyword", ["DistanceSourceToDetector", "DistanceSourceToPatient", "ImagerPixelSpacing", "PositionerPrimaryAngle"]
+    ("keyword", "value"),
+    [
+        (keyword, value)
+        for keyword in ("DistanceSourceToDetector", "DistanceSourceToPatient", "ImagerPixelSpacing")
+        for value in ("0", "-1", "nan", "inf", "1e308")
+    ]
+    + [("PositionerPrimaryAngle", value) for value in ("nan", "inf", "1e308", "-361")],  # 0 and -1 deg are valid
 )
 def test_xa_geometry_values_out_of_range_are_refused(tmp_path: Path, keyword: str, value: str) -> None:
-    if keyword == "PositionerPrimaryAngle" and value in ("0", "-1"):
-        pytest.skip("0 and -1 deg are valid angles")
     path = xa_file(tmp_path / "xa.dcm", ramp((8, 8)))
     ds = pydicom.dcmread(path)
     ds[keyword].value = [value, value] if keyword == "ImagerPixelSpacing" else value
@@ -326,3 +329,15 @@ def test_info_refuses_the_compressed_zeros_npz_without_inflating_it(tmp_path: Pa
     finally:
         tracemalloc.stop()
     assert "compressed" in str(report) and peak < REFUSAL_PEAK_BYTES
+
+
+def test_a_series_folder_larger_than_the_pixel_ceiling_is_refused_before_reading(tmp_path: Path, monkeypatch) -> None:
+    """Every slice of a folder is held in memory until the stack is checked: its size counts first."""
+    folder = tmp_path / "ct"
+    folder.mkdir()
+    for k in range(3):
+        ct_slice(folder / f"{k}.dcm", ramp((300, 300), k), ipp=(0, 0, 2.0 * k))  # 180 kB each
+    monkeypatch.setenv("ROADMAP3D_MAX_PIXEL_MB", "0.25")
+    refused(lambda: dicom.read_volume(folder), str(folder), "its 3 files hold", "ROADMAP3D_MAX_PIXEL_MB")
+    monkeypatch.setenv("ROADMAP3D_MAX_PIXEL_MB", "1")
+    assert dicom.read_volume(folder).shape == (3, 300, 300)
