@@ -104,7 +104,7 @@ def bench(json: bool = False, quick: bool = False, seed: int = 0) -> int:
 # --------------------------------------------------------------------------------------
 def register(
     volume: Path,
-    image: Path,
+    image: Annotated[list[Path], tyro.conf.UseAppendAction],
     frame: int | None = None,
     initial_motion: Path | None = None,
     truth: Path | None = None,
@@ -123,7 +123,8 @@ def register(
 
     Args:
         volume: DICOM series folder, enhanced multi-frame file, or the project's .npz (with --pacs: a series UID).
-        image: XA/RF DICOM file, single or multi-frame (with --pacs: a series UID).
+        image: XA/RF DICOM file, single or multi-frame (with --pacs: a series UID). Give it twice
+            (--image A.dcm --image B.dcm) for a biplane pair of one moment: six parameters in plane A's frame.
         frame: Frame of a multi-frame image (0-based).
         initial_motion: JSON with "patient_motion" (4x4), or a DICOM Spatial Registration, to start from.
         truth: JSON with the true "patient_motion", or a DICOM Spatial Registration: adds residuals and success.
@@ -147,7 +148,7 @@ def register(
             pacs=pacs,
             study=study,
             volume_series=str(volume),
-            image_series=str(image),
+            image_series=str(_one_image(image, "--pacs")),
             ca_bundle=ca_bundle,
             store=store,
             out_dicom=out_dicom,
@@ -162,6 +163,8 @@ def register(
         )
     if study or store or ca_bundle:
         raise UserError("--study, --store and --ca-bundle need --pacs URL")
+    if len(image) not in (1, 2):
+        raise UserError(f"--image takes one X-ray file, or two (plane A and plane B of one moment); got {len(image)}")
     from app.commands import run_register
 
     return run_register(
@@ -177,6 +180,12 @@ def register(
         sid_mm=sid_mm,
         sod_mm=sod_mm,
     )
+
+
+def _one_image(images: list[Path], flag: str) -> Path:
+    if len(images) != 1:
+        raise UserError(f"{flag} registers one image series; got {len(images)} --image values")
+    return images[0]
 
 
 def info(path: Path, /, json: bool = False, sid_mm: float | None = None, sod_mm: float | None = None) -> int:

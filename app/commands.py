@@ -16,8 +16,9 @@ import tempfile
 import threading
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -34,6 +35,7 @@ if TYPE_CHECKING:
 PHANTOM_VOLUME_DIR = "volume"
 PHANTOM_FLUORO = "xa_fluoro.dcm"
 PHANTOM_EXPOSURE = "xa_exposure.dcm"
+PHANTOM_FLUORO_B = "xa_fluoro_plane_b.dcm"
 PHANTOM_TRUTH = "truth.json"
 #: Long work (building the FDK 3DRA the first time) is announced on stderr once it has taken
 #: this long (seconds); a cached volume loads well within it ...
@@ -223,7 +225,7 @@ def _format_offsets(motion: np.ndarray, geometry: CArm) -> str:
 def run_register(
     *,
     volume: Path,
-    image: Path,
+    image: Path | Sequence[Path],
     frame: int | None = None,
     initial_motion: Path | None = None,
     truth: Path | None = None,
@@ -234,8 +236,11 @@ def run_register(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
 ) -> int:
-    """Register a volume file to an X-ray file, print a summary, optionally write the JSON and
-    the DICOM Spatial Registration object."""
+    """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
+    print a summary, optionally write the JSON and the DICOM Spatial Registration object."""
+    images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
+    if len(images) not in (1, 2):
+        raise ValueError(f"one X-ray image, or two (plane A and plane B of one moment), got {len(images)}")
     if isocenter is not None and isocenter.strip().lower() != VOLUME_CENTER:
         parse_isocenter(isocenter)  # a bad value is refused before any file is read
     for target, flag, kind in ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM")):
@@ -246,8 +251,13 @@ def run_register(
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)
         iso, iso_from = resolve_isocenter(isocenter, vol)
-        xray = dicom.read_xray(image, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
+        views = [dicom.read_xray(p, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm) for p in images]
+        if len(views) == 2:
+            from registration.io.dicom.biplane import pair_views
+
+            views = list(pair_views(views))
     _show_warnings(caught)
+    xray = views[0]
     volume_for = str(vol.meta.get("frame_of_reference_uid") or "") or None
     m_init = None
     if initial_motion is not None:
@@ -270,22 +280,29 @@ def run_register(
         f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels, "
         f"{', '.join(f'{s:.3g}' for s in vol.spacing_mm)} mm"
     )
-    _say(
-        f"image:  {image} frame {xray.meta.get('frame', 0)}: {g.cols}x{g.rows} px, "
-        f"primary {g.primary_deg:+.1f} deg, secondary {g.secondary_deg:+.1f} deg, "
-        f"SID {g.sid_mm:.0f} mm, SOD {g.sod_mm:.0f} mm"
-    )
+    for view in views:
+        gv, plane = view.geometry, view.meta.get("plane") or ("PLANE A" if len(views) == 2 else "")
+        _say(
+            f"image:  {view.meta.get('source', images[0])} frame {view.meta.get('frame', 0)}"
+            f"{f' ({plane})' if plane else ''}: {gv.cols}x{gv.rows} px, "
+            f"primary {gv.primary_deg:+.1f} deg, secondary {gv.secondary_deg:+.1f} deg, "
+            f"SID {gv.sid_mm:.0f} mm, SOD {gv.sod_mm:.0f} mm"
+        )
+    if len(views) == 2:
+        _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
     _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
-    result = register(vol, xray, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points)
+    result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points)
     _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
     if result.residual is not None:
         r = result.residual
         verdict = "success" if r.success else "FAILURE"
         mtre = "" if r.mtre_mm is None else f", mTRE {r.mtre_mm:.2f} mm"
+        criterion = "3-D" if len(views) == 2 else "in-plane"
         _say(
-            f"residual vs truth: {r.inplane_mm:.2f} mm in-plane, {r.translation_mm:.2f} mm total, "
-            f"{r.rotation_deg:.2f} deg{mtre} -> {verdict}"
+            f"residual vs truth: {r.translation_mm:.2f} mm total ({r.inplane_mm:.2f} mm in-plane, "
+            f"{r.outofplane_mm:.2f} mm out-of-plane of plane A), {r.rotation_deg:.2f} deg{mtre} -> {verdict} "
+            f"({criterion} criterion)"
         )
     if result.at_bounds:  # inputs without information drift to the search bounds: not a registration
         print(
@@ -297,7 +314,14 @@ def run_register(
     if out is not None:
         document = result.to_dict()
         document["volume"] = {"path": str(volume), "label": vol.label}
-        document["image"] = {"path": str(image), "frame": xray.meta.get("frame", 0), "kind": xray.kind}
+        described = [
+            {"path": str(v.meta.get("source", p)), "frame": v.meta.get("frame", 0), "kind": v.kind}
+            | ({"plane": v.meta.get("plane") or name} if len(views) == 2 else {})
+            for v, p, name in zip(views, images, ("PLANE A", "PLANE B"), strict=False)
+        ]
+        document["image"] = described[0]
+        if len(views) == 2:
+            document["images"] = described
         document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
         dicom.write_text_atomic(out, dicom.json_dumps(document))
         _say(f"wrote {out}")
@@ -436,6 +460,13 @@ def run_phantom_export(
     )
     fluoro = simulate_xray(phantom, geometry, motion=motion, kind="fluoro", seed=seed)
     exposure = simulate_xray(phantom, geometry, motion=motion, kind="exposure", seed=seed + 1)
+    # Plane B of the biplane system (CONVENTIONS §6): lateral, its own distances and detector,
+    # the same moment as the plane A fluoro frame (same motion, own noise).
+    from registration.sim.biplane import plane_b_spec
+
+    geometry_b = plane_b_spec().nominal(90.0 + primary_deg, secondary_deg, pixels=max(16, 2 * round(0.375 * pixels)))
+    fluoro_b = simulate_xray(phantom, geometry_b, motion=motion, kind="fluoro", seed=seed + 2)
+    moment = datetime.now(UTC)
     uid_seed = f"roadmap3d phantom {seed} {volume_format} {image_format} {voxels} {pixels} {contrast} {volume_source}"
     study_uid = str(dicom.make_uid(uid_seed, "study"))
     vessels = phantom.vessel_centerline_mm()
@@ -443,6 +474,7 @@ def run_phantom_export(
         "patient_motion": motion.tolist(),
         "offset": {"name": offset_name, **dict(zip(OFFSET_NAMES, offsets.tolist(), strict=True))},
         "geometry": geometry.to_dict(),
+        "geometry_plane_b": geometry_b.to_dict(),
         "volume_format_cm": volume_format,
         "image_format_cm": image_format,
         "phantom": {"seed": seed, "contrast": contrast},
@@ -454,6 +486,7 @@ def run_phantom_export(
             "volume": PHANTOM_VOLUME_DIR,
             "fluoro": PHANTOM_FLUORO,
             "exposure": PHANTOM_EXPOSURE,
+            "fluoro_plane_b": PHANTOM_FLUORO_B,
         },
         "vessel_points_mm": np.round(vessels[:: max(1, len(vessels) // 200)], 3).tolist(),
         "conventions": "shared/CONVENTIONS.md §4: anatomy the volume shows at X is at M @ X in the images",
@@ -462,7 +495,10 @@ def run_phantom_export(
         dicom.write_series(
             volume, tmp / PHANTOM_VOLUME_DIR, description=description, study_uid=study_uid, uid_seed=uid_seed
         )
-        dicom.write_xray(fluoro, tmp / PHANTOM_FLUORO, study_uid=study_uid, uid_seed=uid_seed)
+        dicom.write_xray(fluoro, tmp / PHANTOM_FLUORO, study_uid=study_uid, uid_seed=uid_seed, plane="PLANE A",
+                         acquired_at=moment)  # fmt: skip
+        dicom.write_xray(fluoro_b, tmp / PHANTOM_FLUORO_B, study_uid=study_uid, uid_seed=f"{uid_seed} plane B",
+                         plane="PLANE B", acquired_at=moment)  # fmt: skip
         dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed)
         if volume_source == "fdk":  # the run the 3DRA was reconstructed from (validate rotational-run)
             from app.rotational_commands import export_phantom_run
@@ -481,6 +517,10 @@ def run_phantom_export(
     )
     _say(f"  {PHANTOM_FLUORO}    XA fluoroscopy, {pixels}x{pixels} px, {image_format:g} cm format")
     _say(f"  {PHANTOM_EXPOSURE}  XA exposure")
+    _say(
+        f"  {PHANTOM_FLUORO_B}  XA fluoroscopy of plane B (lateral, same moment as {PHANTOM_FLUORO}), "
+        f"{geometry_b.cols}x{geometry_b.rows} px"
+    )
     if "rotational_run_file" in truth["files"]:
         _say("  rotational_run.dcm  the 3DRA's rotational run (multi-frame XA, per-frame angles) + its calibration")
     _say(f"  {PHANTOM_TRUTH}      patient motion {offset_name}: {_format_offsets(motion, geometry)}")
@@ -488,6 +528,7 @@ def run_phantom_export(
         f"try: roadmap3d register --volume {out / PHANTOM_VOLUME_DIR} --image {out / PHANTOM_FLUORO} "
         f"--truth {out / PHANTOM_TRUTH}"
     )
+    _say(f"biplane: add --image {out / PHANTOM_FLUORO_B}")
     return 0
 
 

@@ -109,6 +109,11 @@ class SearchSpace:
         rot = rotation_z(o[5]) @ rotation_y(o[4]) @ rotation_x(o[3])
         return world_from_view @ rigid(rot, o[:3]) @ view_from_world @ self.initial_motion
 
+    def from_offsets(self, offsets: ArrayLike) -> Array:
+        """The parameter vector of six view-frame offsets (tz dropped by a five-parameter space)."""
+        o = np.asarray(offsets, dtype=np.float64).reshape(6)
+        return o.copy() if self.optimizes_tz else o[[0, 1, 3, 4, 5]].copy()
+
     def as_dict(self, x: ArrayLike) -> dict[str, float]:
         """The parameter vector by name (the JSON form of a result's offsets)."""
         return dict(zip(self.names, np.asarray(x, dtype=np.float64).tolist(), strict=True))

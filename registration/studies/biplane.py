@@ -49,7 +49,7 @@ class BiplaneConfig:
     """What the biplane study registers."""
 
     #: (phantom seed, volume format cm) of each virtual patient's 3DRA; ignored for a CT.
-    patients: tuple[tuple[int, float], ...] = ((0, 27.0), (0, 22.0))
+    patients: tuple[tuple[int, float], ...] = ((0, 27.0), (0, 48.0))
     registrations_per_patient: int = 50
     plane_a_pixels: int = 512
     plane_b_pixels: int = 384
@@ -164,9 +164,19 @@ def centred_ct(path: str) -> Volume:
     the top :data:`HEAD_TOP_MM` of the scan lies at the world origin (the iso-center).
     """
     from registration.core.volume import Volume
+    from registration.io.cache import cached_arrays
     from registration.io.dicom import read_volume
 
-    volume = read_volume(Path(path))
+    folder = Path(path)
+    files = sorted(folder.iterdir()) if folder.is_dir() else [folder]
+    stamp = [[f.name, f.stat().st_size, int(f.stat().st_mtime)] for f in files[:2000]]
+
+    def build() -> dict[str, np.ndarray]:  # reading a large series is slow: once per machine
+        v = read_volume(folder)
+        return {"data": v.data, "index_to_world": v.index_to_world, "label": np.array(v.label)}
+
+    arrays = cached_arrays("ct-volume", {"path": str(folder.resolve()), "files": stamp}, build)
+    volume = Volume(arrays["data"], arrays["index_to_world"], label=str(arrays["label"]), meta={"source": str(folder)})
     k, j, i = np.nonzero(volume.data > BODY_HU)
     if k.size == 0:
         raise ValueError(f"{path}: no voxel above {BODY_HU:g} HU: is this a CT of a head?")

@@ -169,6 +169,46 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     assert reg.moving_uids == [volume.meta["frame_of_reference_uid"]]
 
 
+def test_biplane_register_from_exported_files(exported: Path, tmp_path: Path, capsys) -> None:
+    """Plane B is written beside plane A (same moment); two --image register biplane (six
+    parameters); the residual is 3-D; frames of two moments are refused with exit code 2."""
+    plane_b = dicom.read_xray(exported / cli_io.PHANTOM_FLUORO_B)
+    assert plane_b.meta["plane"] == "PLANE B" and abs(plane_b.geometry.primary_deg - 110.0) < 1e-9
+    assert dicom.read_xray(exported / cli_io.PHANTOM_FLUORO).meta["plane"] == "PLANE A"
+    result_path = tmp_path / "biplane.json"
+    code, out, _ = run(
+        [
+            "register",
+            "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
+            "--image", str(exported / cli_io.PHANTOM_FLUORO_B),
+            "--image", str(exported / cli_io.PHANTOM_FLUORO),
+            "--truth", str(exported / cli_io.PHANTOM_TRUTH),
+            "--out", str(result_path),
+        ],
+        capsys,
+    )  # fmt: skip
+    assert code == 0 and "out-of-plane" in out and "3-D criterion" in out
+    result = json.loads(result_path.read_text())
+    assert set(result["offsets"]) == {"tx", "ty", "tz", "rx", "ry", "rz"}
+    assert [i["plane"] for i in result["images"]] == ["PLANE A", "PLANE B"]
+    truth = json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())
+    residual = residuals(
+        np.asarray(result["patient_motion"]), np.asarray(truth["patient_motion"]), CArm.from_dict(result["geometry"])
+    )
+    # The whole 3-D residual at the iso-center (128 px images of ~1.4 mm at the iso-center).
+    assert residual.translation_mm < 1.0 and residual.rotation_deg < 3.0, residual
+    code, _, err = run(
+        [
+            "register",
+            "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
+            "--image", str(exported / cli_io.PHANTOM_FLUORO),
+            "--image", str(exported / cli_io.PHANTOM_EXPOSURE),
+        ],
+        capsys,
+    )  # fmt: skip
+    assert code == 2 and "two different moments" in err
+
+
 def test_phantom_export_refuses_a_non_empty_folder(tmp_path: Path, capsys) -> None:
     (tmp_path / "keep.txt").write_text("mine")
     code, _, err = run(["phantom", "--out", str(tmp_path), *SMALL], capsys)

@@ -129,6 +129,8 @@ def _inspect_xray(
         "intensity": f"{image.meta.get('pixel_intensity_relationship')}, sign {sign:+d}",
         "attenuation_range": [round(v, 4) for v in _range(image.image[image.mask])],
         "decoder": image.meta.get("decoder", ""),
+        "plane": image.meta.get("plane") or "not stated (PlaneIdentification 0018,9457 absent)",
+        "acquired": image.meta.get("acquisition_datetime") or "not stated",
         **{k: image.meta[k] for k in _GEOMETRY_SOURCES if k in image.meta},
     }
     if frames > 1:

@@ -498,6 +498,16 @@ def frame_plane(path: Path, ds: Dataset, frame: int) -> str:
     return text
 
 
+def frame_acquisition_datetime(ds: Dataset, frame: int) -> str:
+    """When ``frame`` was taken, as DICOM DT text ("" when the file does not say):
+    FrameAcquisitionDateTime (0018,9074), else AcquisitionDateTime (0008,002A), else
+    AcquisitionDate + AcquisitionTime."""
+    value = lookup(ds, "FrameAcquisitionDateTime", frame) or lookup(ds, "AcquisitionDateTime", frame)
+    if not value and ds.get("AcquisitionDate") and ds.get("AcquisitionTime"):
+        value = f"{ds.AcquisitionDate}{ds.AcquisitionTime}"
+    return str(value or "").strip()
+
+
 def _image_references(ds: Dataset) -> dict[str, str]:
     """The UIDs and patient of an X-ray image (for the Spatial Registration object)."""
     return {
@@ -575,6 +585,7 @@ def _xray_frame(
         "mask_from": mask_source,
         "decoder": pixel_decoder(ds)[1],
         "plane": frame_plane(path, ds, frame),
+        "acquisition_datetime": frame_acquisition_datetime(ds, frame),
         **_image_references(ds),
         **geo_info,
         **intensity,
@@ -653,6 +664,7 @@ def write_xray(
     times_s: ArrayLike | None = None,
     plane: str | None = None,
     transfer_syntax: str | None = None,
+    acquired_at: datetime | None = None,
 ) -> Path:
     """Write one XA image, or a multi-frame XA run (per-frame angles), per the module docstring.
 
@@ -665,7 +677,9 @@ def write_xray(
     ``times_s`` (one per frame, seconds from the first frame, non-decreasing; default
     ``DEFAULT_FRAME_TIME_MS`` apart) become FrameTime (0018,1063) when evenly spaced, else
     FrameTimeVector (0018,1065) (CONVENTIONS §7). ``plane`` ("MONOPLANE", "PLANE A", "PLANE B")
-    is written as PlaneIdentification (0018,9457). ``transfer_syntax`` (a UID, e.g. RLE
+    is written as PlaneIdentification (0018,9457) and ImageType (BIPLANE A / BIPLANE B);
+    ``acquired_at`` (default: now, UTC) as AcquisitionDateTime, so the two planes of one
+    moment can be written with the same time. ``transfer_syntax`` (a UID, e.g. RLE
     Lossless or JPEG 2000 Lossless; default Explicit VR Little Endian) compresses the pixels
     losslessly. :func:`registration.io.dicom.write_xray_run` is the run-facing entry point.
     """
@@ -700,13 +714,14 @@ def write_xray(
         patient_name=patient_name,
         patient_id=patient_id,
     )
-    ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
+    biplane_type = {"PLANE A": "BIPLANE A", "PLANE B": "BIPLANE B"}
+    ds.ImageType = ["ORIGINAL", "PRIMARY", biplane_type.get(plane or "", "SINGLE PLANE")]
     ds.InstanceNumber = 1
     ds.ImageComments = (
         f"roadmap3d {kind}: attenuation line integral = (65535 - {LOG_ZERO_VALUE} - stored value) / "
         f"{LOG_UNITS_PER_ATTENUATION:g} (LOG, sign +1); {NO_SIGNAL_VALUE} outside the field"
     )
-    ds.AcquisitionDateTime = datetime.now(UTC).strftime("%Y%m%d%H%M%S")
+    ds.AcquisitionDateTime = (acquired_at or datetime.now(UTC)).strftime("%Y%m%d%H%M%S.%f")
     ds.KVP = "80"
     ds.RadiationSetting = "SC" if kind == "fluoro" else "GR"
     ds.PositionerPrimaryAngle = _ds_number(g0.primary_deg)
