@@ -233,6 +233,8 @@ class Tracker:
         #: coarse level's bias sits on the volume's side
         self._bias = np.eye(4)
         self._cpu_start = time.process_time()
+        #: Biplane: each plane's own level.
+        self.plane_levels: list[float] | None = None
 
     @property
     def shown_pose(self) -> Array:
@@ -352,7 +354,8 @@ class Tracker:
         o = self.options
         drrs0 = self.renderer.count
         levels = self._levels(views)
-        f0 = self._evaluate(levels, [self.pose])[0]
+        f0_planes = self._per_plane(levels, self.pose)
+        f0 = float(np.mean(f0_planes))
         self.frames_processed += 1
         self._since_refine += 1
         first = self.level is None
@@ -364,6 +367,7 @@ class Tracker:
             self._bias = invert_rigid(tracked) @ self.pose
             self.pose = tracked
             self.level = f_ref
+            self.plane_levels = self._per_plane(levels, tracked)
             return self._result(frame, t_s, "unchanged", None, "check", None, "", start, f_ref, 0.0, drrs0, {})
         if first:
             self.level = f0
@@ -372,7 +376,7 @@ class Tracker:
         relative_drop = (self.level - f0) / max(abs(self.level), 1e-12)
         significant = drop > o.detect_sigmas and relative_drop > o.detect_relative
         if not first and not significant and drop <= o.suspect_sigmas and self._since_refine < o.probe_every:
-            self._learn(f0)
+            self._learn(f0, f0_planes)
             return self._result(frame, t_s, "unchanged", None, "check", None, "", start, f0, drop, drrs0, {})
         path = "refine"
         estimate, f_est, margin = self.pose, f0, 0.0
@@ -387,7 +391,7 @@ class Tracker:
             if small or (not significant and gain <= o.suspect_sigmas):
                 # a probe that found no better pose (or one within the tracking level's own
                 # jitter): the patient did not move, whatever else changed in the image
-                self._learn(f0)
+                self._learn(f0, f0_planes)
                 return self._result(frame, t_s, "unchanged", None, "refine", None, "", start, f0, drop, drrs0, {})
             capture = not (
                 (self.level - f_est) / scale <= o.recover_sigmas
@@ -423,6 +427,13 @@ class Tracker:
             deficit = (self.level - f_est) / max(o.capture_tolerance * abs(self.level), scale)
         elif (self.level - f_est) / max(abs(self.level), 1e-12) <= o.detect_relative:
             deficit = min(deficit, o.rule.deficit_free)  # within the level's own drift
+        if len(levels) > 1 and self.plane_levels is not None:
+            # Biplane: each plane must recover its own level (the planes agree on the estimate).
+            f_planes = self._per_plane(levels, estimate)
+            tolerance = o.capture_tolerance if path == "capture" else o.noise_floor_relative * o.noise_ceiling_floors
+            worst = max((lv - f) / max(tolerance * abs(lv), 1e-12) for lv, f in zip(self.plane_levels, f_planes,
+                                                                                   strict=True))  # fmt: skip
+            deficit = max(deficit, worst)
         evidence = Evidence(
             deficit=float(deficit),
             margin=float(margin),
@@ -434,6 +445,8 @@ class Tracker:
         if assessment.applied:
             self.pose = estimate
             self.level = f_est
+            if len(levels) > 1:
+                self.plane_levels = self._per_plane(levels, estimate)
             # the compared pixels follow the patient after a large move
             if path == "capture" and self._moved_mm(estimate, self._mask_pose, views[0].geometry) > 5.0:
                 self._mask_pose = estimate.copy()
@@ -469,10 +482,21 @@ class Tracker:
         err = a @ invert_rigid(b)
         return float(np.linalg.norm(apply(err, iso) - iso)) + rotation_angle_deg(err)
 
-    def _learn(self, f: float) -> None:
+    def _per_plane(self, levels: list[_Level], motion: Array) -> list[float]:
+        """Each view's measure at ``motion`` (one view: the measure itself)."""
+        return [
+            lv.measures[0](
+                self.renderer.render(lv.geometry, motion, level=self.volume_level, mask=lv.mask, parallel=False)
+            )
+            for lv in levels
+        ]
+
+    def _learn(self, f: float, planes: list[float] | None = None) -> None:
         """Follow the level and its noise on a frame without motion."""
         assert self.level is not None
         m = self.options.level_memory
+        if planes is not None and self.plane_levels is not None and len(planes) == len(self.plane_levels):
+            self.plane_levels = [m * lv + (1 - m) * p for lv, p in zip(self.plane_levels, planes, strict=True)]
         dev = f - self.level
         var = dev * dev if self.noise is None else m * self.noise**2 + (1 - m) * dev * dev
         self.noise = math.sqrt(var)
