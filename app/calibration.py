@@ -9,7 +9,7 @@ checkbox is ticked. Then
 - the panel shows its simulated X-ray image at the current C-arm angles (the true, bent
   geometry) with the detected spheres circled, the projections the angle sensors predict
   (nominal) and those of the fitted geometry, and the errors in mm at the iso-center region
-  (:func:`registration.sim.calibration.machine_based_error_mm`);
+  (:func:`registration.sim.bending.machine_based_error_mm`);
 - a frame slider steps through a rotational run of the head phantom (from the cache, or
   simulated at low resolution on demand with progress).
 
@@ -35,14 +35,9 @@ from app.data import PhantomData
 from app.panels import PanelContext
 from app.scene import M_PER_MM
 from registration.core.geometry import CArm
-from registration.sim.calibration import (
-    CalibrationShot,
-    Dodecahedron,
-    calibration_shot,
-    default_bending,
-    machine_based_error_mm,
-    machine_based_geometry,
-)
+from registration.sim.bending import default_bending, machine_based_error_mm
+from registration.sim.calibration import machine_based_geometry
+from registration.sim.dodecahedron import CalibrationShot, Dodecahedron, calibration_shot
 from registration.sim.rotational_run import RUN_ARC_DEG, RunRecipe, RunStopped
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,9 @@ and saves that too.
         [--calibration /tmp/calibration.png] [--playback /tmp/playback.png]
 
 ``--playback PATH`` then opens the Play run tab, presses Play and saves the run as it plays
-(after a sudden move has been corrected, or after ``--playback-seconds``).
+(after a sudden move has been corrected, or after ``--playback-seconds``). ``--biplane PATH``
+at last turns Biplane on, moves the patient 10 mm along plane A's beam on top of T4, registers
+both planes and saves that screen.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ def main() -> int:
     parser.add_argument("--calibration", type=Path, default=None, help="also save the calibration view here")
     parser.add_argument("--playback", type=Path, default=None, help="also save the Play run tab here")
     parser.add_argument("--playback-seconds", type=float, default=14.0)
+    parser.add_argument("--biplane", type=Path, default=None, help="also save biplane mode, registered, here")
     args = parser.parse_args()
     if not Path(args.chromium).exists():
         print(f"error: {args.chromium} not found (apt-get install chromium)", file=sys.stderr)
@@ -88,6 +91,24 @@ def main() -> int:
                 dismiss_notifications(page)
                 page.screenshot(path=str(args.playback), timeout=180_000)
                 print(f"wrote {args.playback}")
+            if args.biplane is not None:
+                page.get_by_text("Biplane", exact=True).click(force=True)
+                page.get_by_role("tab", name="C-arm").click(force=True)
+                page.get_by_text(re.compile(r"out-of-plane [0-9.]+ mm")).wait_for(timeout=120_000)
+                app.session.stop_registration(wait=True)
+                app.offset_sliders[2].value = 10.0  # T4's offsets plus 10 mm along plane A's beam
+                deadline = time.monotonic() + 120
+                while app.presenter.shown_version != app.session.version and time.monotonic() < deadline:
+                    time.sleep(0.2)
+                page.get_by_role("button", name="Register").click(force=True)
+                deadline = time.monotonic() + 60
+                while not app.session.running and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                app.session.wait(240)
+                time.sleep(3.0)  # the presenter's last frame and the 3D view settle
+                dismiss_notifications(page)
+                page.screenshot(path=str(args.biplane), timeout=180_000)
+                print(f"wrote {args.biplane}")
             browser.close()
     finally:
         app.close()

@@ -37,7 +37,7 @@ from scipy import fft as sfft
 
 from registration.core.geometry import CArm
 from registration.core.volume import MU_WATER_PER_MM, Volume, format_grid
-from registration.sim.calibration import default_bending
+from registration.sim.bending import default_bending
 from registration.sim.rotational_run import (
     RUN_ARC_DEG,
     RUN_PROJECTIONS,
@@ -498,7 +498,7 @@ def bench_reconstruction(*, projections: int = 120, pixels: int = 512, voxels: i
 
     Returns ``{"seconds", "cpu_seconds", "projections", "volume_px", "pixels", "threads"}``.
     """
-    from registration.sim.calibration import SpherePhantom, simulate_sphere_image
+    from registration.sim.dodecahedron import SpherePhantom, simulate_sphere_image
 
     spheres = SpherePhantom(
         np.array([[0.0, 0.0, 0.0], [20.0, -10.0, 5.0]]), np.array([60.0, 5.0]), [MU_WATER_PER_MM, 0.01]

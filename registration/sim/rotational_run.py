@@ -2,9 +2,9 @@
 
 The primary angle sweeps ~200 degrees (secondary 0) over ~120 projections. The images are
 formed with the *true* (bent) geometry of each view
-(:class:`registration.sim.calibration.BendingModel`); the geometry a reconstruction may use is
+(:class:`registration.sim.bending.BendingModel`); the geometry a reconstruction may use is
 the one *calibrated* from a dodecahedron run with the same angles
-(:func:`registration.sim.calibration.calibrate_true_view`), as on a real system. The FDK
+(:func:`registration.sim.dodecahedron.calibrate_true_view`), as on a real system. The FDK
 reconstruction of a run is :mod:`registration.sim.reconstruct`.
 
 :class:`RunRecipe` names a simulated run of the head phantom completely and caches its
@@ -22,13 +22,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.core.geometry import CArm
-from registration.sim.calibration import (
-    BendingModel,
-    calibrate_true_view,
-    calibration_geometry,
-    default_bending,
-    with_deviation,
-)
+from registration.sim.bending import BendingModel, default_bending, with_deviation
+from registration.sim.dodecahedron import calibrate_true_view, calibration_geometry
 
 Array = NDArray[np.float64]
 
@@ -100,7 +95,7 @@ def calibrate_protocol(
     As on a real system the calibration run has the protocol's angles and is made once per
     system and protocol (here: cached by bending seed, angles and noise seed), then used for
     every 3D acquisition with that protocol. Each view is imaged with the true geometry and
-    calibrated from its image alone (:func:`registration.sim.calibration.calibrate_true_view`).
+    calibrated from its image alone (:func:`registration.sim.dodecahedron.calibrate_true_view`).
     """
     from registration.io.cache import cached_arrays
 
