@@ -405,6 +405,9 @@ def write_biplane_report(records: list[dict], summary: dict, out: Path) -> dict[
     out = Path(out)
     png = biplane_histograms(records, out / "biplane_histograms.png")
     md = biplane_report_md(records, summary, png.name)
+    from registration.studies.report import confidence_section
+
+    md += confidence_section(records, out, {}, "biplane study: confidence of the registrations (3-D criterion)")
     (out / "report.md").write_text(md)
     (out / "report.html").write_text(markdown_to_html(md, "Biplane validation"))
     return {"histograms": str(png), "report": str(out / "report.md")}
