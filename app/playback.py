@@ -9,7 +9,10 @@ a strip chart shows the estimated (shown) and true motion and the per-frame late
 that arrive while the engine is busy are skipped (the picture always shows the newest frame).
 
 Play, Pause and Stop control one shared playback: every browser tab watches the same run
-(the panel's widgets are server-level). The work runs on the panel's own thread.
+(the panel's widgets are server-level). The work runs on the panel's own thread. "Upload a
+run (.dcm)" plays the user's multi-frame XA/RF run (read with its frame times by
+:func:`registration.io.dicom.read_xray_run`, then the temporary file is deleted) against the
+session's current volume; it has no truth, so the strip chart shows the roadmap's motion only.
 """
 
 from __future__ import annotations
@@ -63,6 +66,21 @@ def draw_message(rgb: np.ndarray, text: str, color: tuple[int, int, int]) -> np.
     return rgb
 
 
+class UploadedRun:
+    """A run read from the user's file: its frames, times and geometry (no truth)."""
+
+    truth = None
+
+    def __init__(self, frames: list, times_s: np.ndarray, geometry: CArm, name: str) -> None:
+        self.frames, self.times_s, self.geometry, self.name = frames, times_s, geometry, name
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, n: int) -> Any:
+        return self.frames[n]
+
+
 class PlaybackPanel(BasePanel):
     """The Play run tab (left) with its controls."""
 
@@ -77,6 +95,12 @@ class PlaybackPanel(BasePanel):
                 self.play_button = gui.add_button("Play", color="green", icon=viser.Icon.PLAYER_PLAY)
                 self.pause_button = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True)
                 self.stop_button = gui.add_button("Stop", color="red", icon=viser.Icon.PLAYER_STOP, disabled=True)
+                self.run_upload = gui.add_upload_button(
+                    "Upload a run (.dcm)",
+                    icon=viser.Icon.UPLOAD,
+                    hint="A multi-frame XA/RF run with frame times, tracked against the current volume (no truth)",
+                )
+                self.phantom_run_button = gui.add_button("Back to the phantom's run", visible=False)
             self.stats = gui.add_markdown("")
             self.chart = gui.add_uplot(
                 data=(np.zeros(1), *(np.full(1, np.nan) for _ in range(5))),
@@ -86,8 +110,14 @@ class PlaybackPanel(BasePanel):
                     {"label": "roadmap tx", "stroke": "#1c7ed6", "width": 2, "scale": "mm"},
                     {"label": "true ty", "stroke": "#ffa8a8", "width": 1, "scale": "mm"},
                     {"label": "roadmap ty", "stroke": "#e03131", "width": 2, "scale": "mm"},
-                    {"label": "latency (ms)", "stroke": "#ffd43b", "width": 1, "scale": "ms", "paths": None,
-                     "points": {"show": True, "size": 3}},
+                    {
+                        "label": "latency (ms)",
+                        "stroke": "#ffd43b",
+                        "width": 1,
+                        "scale": "ms",
+                        "paths": None,
+                        "points": {"show": True, "size": 3},
+                    },
                 ),  # fmt: skip
                 scales={"x": {"time": False}, "mm": {"auto": True}, "ms": {"auto": True, "distr": 3}},
                 axes=(
@@ -101,6 +131,11 @@ class PlaybackPanel(BasePanel):
         self.play_button.on_click(ctx.guarded(lambda _e: self.play()))
         self.pause_button.on_click(ctx.guarded(lambda _e: self.toggle_pause()))
         self.stop_button.on_click(ctx.guarded(lambda _e: self.stop()))
+        self.run_upload.on_upload(ctx.guarded(lambda _e: self.load_run(self.run_upload.value.name,
+                                                                        self.run_upload.value.content)))  # fmt: skip
+        self.phantom_run_button.on_click(ctx.guarded(lambda _e: self.use_phantom_run()))
+        #: An uploaded run (frames decoded, times, label) played instead of the phantom's.
+        self.user_run: UploadedRun | None = None
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -171,6 +206,13 @@ class PlaybackPanel(BasePanel):
         """The run (simulated once, cached on disk), the volume, its renderer, vessel vertices."""
         from registration.studies.tracking import case_runs
 
+        if self.user_run is not None:
+            data = self.ctx.session.data
+            fmt = self.ctx.session.settings.volume_format_cm
+            vessels = data.meshes(fmt).get("vessels")
+            vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
+            run: Any = self.user_run
+            return run, data.volume(fmt), data.renderer(fmt), vertices, data.mesh_spacing_mm(fmt)
         case = self.case
         start = time.perf_counter()
 
@@ -188,6 +230,45 @@ class PlaybackPanel(BasePanel):
         vessels = phantom.meshes(case.volume_format_cm).get("vessels")
         vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
         return run, volume, renderer, vertices, phantom.mesh_spacing_mm(case.volume_format_cm)
+
+    def load_run(self, name: str, content: bytes) -> bool:
+        """Read an uploaded run (multi-frame XA/RF with frame times); a refusal is a message."""
+        import os
+        import tempfile
+        from pathlib import Path
+
+        from registration.io import dicom
+
+        if self.playing:
+            raise ValueError("stop the run playing first")
+        fd, tmp = tempfile.mkstemp(prefix="roadmap3d-run-", suffix=".dcm")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(content)
+            run = dicom.read_xray_run(Path(tmp))
+            if len(run) < 2:
+                raise ValueError(f"{name}: one frame, not a run")
+            frames = run.frames()
+        except ValueError as exc:
+            self.message.content = f"**{name}**: {exc}".replace(tmp, name)
+            return False
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+        self.user_run = UploadedRun(frames, np.asarray(run.times_s), frames[0].geometry, name)
+        span = float(run.times_s[-1] - run.times_s[0])
+        self.message.content = (
+            f"Run **{name}**: {len(frames)} frames over {span:.1f} s ({run.times_from}); tracked against the "
+            "current volume, no truth. Press **Play**."
+        )
+        self.phantom_run_button.visible = True
+        return True
+
+    def use_phantom_run(self) -> None:
+        if self.playing:
+            raise ValueError("stop the run playing first")
+        self.user_run = None
+        self.phantom_run_button.visible = False
+        self.message.content = "The phantom's 20 s run: press **Play**."
 
     def _run_guarded(self) -> None:
         try:
@@ -234,7 +315,8 @@ class PlaybackPanel(BasePanel):
                 text, color = motion_message(est, shown, geometry)
                 shown = est.patient_motion
                 self._show_frame(run, i, est, text, color, vertices, spacing)
-                true_xy = matrix_to_offsets(run.truth[i], geometry)[:2]
+                truth = getattr(run, "truth", None)
+                true_xy = matrix_to_offsets(truth[i], geometry)[:2] if truth is not None else (np.nan, np.nan)
                 shown_xy = matrix_to_offsets(shown, geometry)[:2]
                 for key, value in zip(chart, (est.t_s, true_xy[0], shown_xy[0], true_xy[1], shown_xy[1],
                                               est.latency_ms), strict=True):  # fmt: skip

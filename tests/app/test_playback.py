@@ -71,3 +71,23 @@ def test_motion_message() -> None:
     assert motion_message(est("applied", moved), np.eye(4), g)[0] == "motion corrected 3.0 mm, 0.0°"
     assert motion_message(est("withheld", np.eye(4)), np.eye(4), g)[0] == "motion detected, correction withheld"
     assert motion_message(est("unchanged", np.eye(4)), np.eye(4), g)[0] == "no motion"
+
+
+def test_uploaded_run_plays_without_truth(fresh, tmp_path) -> None:
+    from registration.io import dicom
+    from registration.studies.tracking import case_runs
+
+    panel = fresh.playback
+    run = case_runs(SHORT)[0]
+    path = dicom.write_xray_run(list(run), tmp_path / "run.dcm", times_s=run.times_s)
+    assert not panel.load_run("junk.dcm", b"not dicom")
+    assert "junk.dcm" in panel.message.content
+    assert panel.load_run("run.dcm", path.read_bytes())
+    assert "45 frames" in panel.message.content and panel.phantom_run_button.visible
+    panel.play_button.value = True
+    assert wait_until(lambda: panel.finished.is_set() and not panel.playing, 240.0)
+    assert panel.frames_shown + panel.skipped == len(run)
+    assert np.all(np.isnan(panel.chart.data[1]))  # no truth: the true series stays empty
+    assert np.all(np.isfinite(panel.chart.data[2]))
+    panel.phantom_run_button.value = True
+    assert panel.user_run is None and not panel.phantom_run_button.visible
