@@ -157,6 +157,13 @@ HEAD_TOP_MM = 180.0
 BODY_HU = -300.0
 
 
+#: Where the real-CT study's images come from (said in every record and report).
+CT_IMAGES = (
+    "X-ray images formed from the same CT (trilinear line integrals through it, Beer-Lambert, Poisson noise, "
+    "blur, collimation; no catheter): a best case, not a real X-ray"
+)
+
+
 def centred_ct(path: str) -> Volume:
     """Read a CT folder (the normal DICOM volume path) and place the iso-center in its head.
 
@@ -203,9 +210,9 @@ def case_views(case: BiplaneCase, volume: Volume, motion: np.ndarray) -> tuple[A
         anatomy: Any = _phantom(case.phantom_seed, False, True)
         source = "analytic phantom line integrals (honest simulation)"
     else:
-        from registration.sim.volume_xray import IMAGES_FROM_VOLUME, VolumeAttenuator
+        from registration.sim.volume_xray import VolumeAttenuator
 
-        anatomy, source = VolumeAttenuator(volume), IMAGES_FROM_VOLUME
+        anatomy, source = VolumeAttenuator(volume), CT_IMAGES
     shot = simulate_biplane(anatomy, case.angles_deg, motion=motion, kind=case.kind, seed=case.seed, pixels=case.pixels)
     return shot.views, source
 
