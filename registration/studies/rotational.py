@@ -32,6 +32,7 @@ from registration.studies.runs import (
     CLINICAL_MAX_ROTATION_DEG,
     CLINICAL_MAX_TRANSLATION_MM,
     axis_angle_matrix,
+    offset_record,
     random_unit_vector,
 )
 
@@ -106,12 +107,9 @@ def run_rotational_case(
     offset[:3, 3] = t
     offset = offset @ axis_angle_matrix(case.rotation_axis, case.rotation_deg)
     result = register(volume, xray, initial_motion=offset, truth=np.eye(4), seed=case.seed, options=options)
-    res = result.residual
-    assert res is not None
     c = np.asarray(geometry.isocenter_mm, dtype=np.float64)
     # the offset's translation at the iso-center (the rotation is about the world origin)
     shift = offset[:3, :3] @ c + offset[:3, 3] - c
-    t_out = float(shift @ geometry.direction)
     return {
         "case_id": f"rotational-run/r{case.number}/f{case.frame}",
         "patient": 0,
@@ -121,25 +119,9 @@ def run_rotational_case(
         "frame": case.frame,
         "primary_deg": geometry.primary_deg,
         "secondary_deg": geometry.secondary_deg,
-        "offset_translation_mm": float(np.linalg.norm(shift)),
-        "offset_inplane_mm": float(np.linalg.norm(shift - t_out * geometry.direction)),
-        "offset_outofplane_mm": abs(t_out),
-        "offset_rotation_deg": case.rotation_deg,
+        **offset_record(result, geometry, shift, case.rotation_axis, case.rotation_deg, case.seed),
+        # the offset as drawn (its translation at the world origin), beside its value at the iso-center
         "offset_vector_mm": [float(v) for v in t],
-        "offset_axis": list(case.rotation_axis),
-        "seed": case.seed,
-        "translation_residual_mm": res.translation_mm,
-        "inplane_residual_mm": res.inplane_mm,
-        "outofplane_residual_mm": res.outofplane_mm,
-        "rotation_residual_deg": res.rotation_deg,
-        "translation_success": bool(res.inplane_mm < 1.0),
-        "rotation_success": bool(res.rotation_deg < 3.0),
-        "success": bool(res.success),
-        "success_total": bool(res.success_total),
-        "seconds": result.seconds,
-        "drr_count": result.drr_count,
-        "similarity": result.similarity,
-        "volume_label": result.volume_label,
         "run": run_label,
         "image_pixels": int(geometry.cols),
         "volume_voxels": int(max(volume.shape)),

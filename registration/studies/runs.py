@@ -404,6 +404,47 @@ def axis_angle_matrix(axis: Sequence[float], angle_deg: float) -> NDArray[np.flo
     return rigid(r, None)
 
 
+
+def offset_record(
+    result: Any,
+    geometry: CArm,
+    shift_mm: NDArray[np.float64],
+    rotation_axis: Sequence[float],
+    rotation_deg: float,
+    seed: int,
+) -> dict:
+    """The fields every random-offset record shares (clinical study, rotational-run validation):
+    the offset (``shift_mm``: its translation at the iso-center; its in-plane and out-of-plane
+    parts along ``geometry``'s beam), the residuals and successes of ``result`` (a
+    :class:`~registration.core.register.RegistrationResult` with a truth), its cost."""
+    res = result.residual
+    if res is None:
+        raise ValueError("the result has no residual: register with a truth")
+    t = np.asarray(shift_mm, dtype=np.float64)
+    t_out = float(t @ geometry.direction)
+    return {
+        "offset_translation_mm": float(np.linalg.norm(t)),
+        "offset_inplane_mm": float(np.linalg.norm(t - t_out * geometry.direction)),
+        "offset_outofplane_mm": abs(t_out),
+        "offset_rotation_deg": rotation_deg,
+        "offset_vector_mm": [float(v) for v in t],
+        "offset_axis": list(rotation_axis),
+        "seed": seed,
+        "translation_residual_mm": res.translation_mm,
+        "inplane_residual_mm": res.inplane_mm,
+        "outofplane_residual_mm": res.outofplane_mm,
+        "rotation_residual_deg": res.rotation_deg,
+        "translation_success": bool(res.inplane_mm < 1.0),
+        "rotation_success": bool(res.rotation_deg < 3.0),
+        "success": bool(res.success),
+        "success_total": bool(res.success_total),
+        "seconds": result.seconds,
+        "drr_count": result.drr_count,
+        "similarity": result.similarity,
+        "volume_label": result.volume_label,
+    }
+
+
 def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None = None) -> dict:
     """Register one projection of the patient's run to the run's reconstruction, from a pose
     offset by the case's translation and rotation. Truth: the identity in the calibrated
@@ -427,10 +468,6 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
     result = register(
         data.volume, xray, initial_motion=offset, truth=np.eye(4), seed=case.seed, options=options, renderer=renderer
     )
-    res = result.residual
-    assert res is not None
-    t = np.asarray(case.translation_mm)
-    t_out = float(t @ geometry.direction)
     return {
         "patient": case.patient,
         "phantom_seed": case.phantom_seed,
@@ -438,25 +475,9 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
         "contrast": case.contrast,
         "frame": case.frame,
         "primary_deg": geometry.primary_deg,
-        "offset_translation_mm": float(np.linalg.norm(t)),
-        "offset_inplane_mm": float(np.linalg.norm(t - t_out * geometry.direction)),
-        "offset_outofplane_mm": abs(t_out),
-        "offset_rotation_deg": case.rotation_deg,
-        "offset_vector_mm": [float(v) for v in t],
-        "offset_axis": list(case.rotation_axis),
-        "seed": case.seed,
-        "translation_residual_mm": res.translation_mm,
-        "inplane_residual_mm": res.inplane_mm,
-        "outofplane_residual_mm": res.outofplane_mm,
-        "rotation_residual_deg": res.rotation_deg,
-        "translation_success": bool(res.inplane_mm < 1.0),
-        "rotation_success": bool(res.rotation_deg < 3.0),
-        "success": bool(res.success),
-        "success_total": bool(res.success_total),
-        "seconds": result.seconds,
-        "drr_count": result.drr_count,
-        "similarity": result.similarity,
-        "volume_label": result.volume_label,
+        **offset_record(
+            result, geometry, np.asarray(case.translation_mm), case.rotation_axis, case.rotation_deg, case.seed
+        ),
         "image_pixels": case.run_pixels,
         "volume_voxels": case.volume_voxels,
         "projections": case.projections,
