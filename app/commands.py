@@ -498,7 +498,7 @@ def run_phantom_export(
         dicom.write_xray(fluoro, tmp / PHANTOM_FLUORO, study_uid=study_uid, uid_seed=uid_seed, plane="PLANE A",
                          acquired_at=moment)  # fmt: skip
         dicom.write_xray(fluoro_b, tmp / PHANTOM_FLUORO_B, study_uid=study_uid, uid_seed=f"{uid_seed} plane B",
-                         plane="PLANE B", acquired_at=moment)  # fmt: skip
+                         plane="PLANE B", acquired_at=moment, description="roadmap3d fluoro, plane B")  # fmt: skip
         dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed)
         if volume_source == "fdk":  # the run the 3DRA was reconstructed from (validate rotational-run)
             from app.rotational_commands import export_phantom_run

@@ -34,7 +34,8 @@ def test_app_lists_loads_registers_and_stores(
         assert panel.wait(30)
         assert panel.patient.value.endswith("(ROADMAP3D)") and len(panel.study.options) == 1
         assert any("CT" in o for o in panel.volume_series.options)
-        panel.image_series.value = next(o for o in panel.image_series.options if "fluoro" in o)
+        # plane A's fluoro (plane B's is in the export too, described as such)
+        panel.image_series.value = next(o for o in panel.image_series.options if "fluoro" in o and "plane B" not in o)
         panel.load_button.value = True
         assert panel.wait(60), "loading did not finish"
         assert app.session.data.source.startswith("PACS ") and "Error" not in panel.status.content

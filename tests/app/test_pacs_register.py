@@ -39,7 +39,10 @@ def test_register_from_pacs_and_store_back(
     (study,) = pacs.studies()
     series = pacs.series(study.study_uid)
     volume = next(s for s in series if s.role == "volume")
-    fluoro = next(s for s in series if s.role == "xray" and "fluoro" in s.description)
+    # plane A's fluoro (the export also holds plane B's, described as such, and the exposure)
+    fluoro = next(
+        s for s in series if s.role == "xray" and "fluoro" in s.description and "plane b" not in s.description.lower()
+    )
 
     # credentials only through the environment
     monkeypatch.setenv("ROADMAP3D_PACS_USERNAME", orthanc.username)
@@ -99,7 +102,10 @@ def test_track_from_pacs(orthanc: OrthancServer, small_export: Path, tmp_path: P
     (study,) = pacs.studies()
     series = pacs.series(study.study_uid)
     volume = next(s for s in series if s.role == "volume")
-    fluoro = next(s for s in series if s.role == "xray" and "fluoro" in s.description)
+    # plane A's fluoro (the export also holds plane B's, described as such, and the exposure)
+    fluoro = next(
+        s for s in series if s.role == "xray" and "fluoro" in s.description and "plane b" not in s.description.lower()
+    )
     monkeypatch.setenv("ROADMAP3D_PACS_USERNAME", orthanc.username)
     monkeypatch.setenv("ROADMAP3D_PACS_PASSWORD", orthanc.password)
     out = tmp_path / "track.json"

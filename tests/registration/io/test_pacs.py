@@ -97,7 +97,8 @@ def test_store_list_retrieve_round_trip(pacs: Pacs, export: Path, tmp_path: Path
     assert volume_series is not None and volume_series.modality == "CT"
     assert volume_series.instances == len(_files(export / "volume"))
     xrays = [s for s in series if s.role == "xray"]
-    assert len(xrays) == 2  # fluoro and exposure
+    assert len(xrays) == 3  # plane A's fluoro and exposure, plane B's fluoro
+    assert sum("plane b" in s.description.lower() for s in xrays) == 1
 
     folder = pacs.retrieve_series(studies[0].study_uid, volume_series.series_uid, tmp_path / "vol")
     assert (folder.stat().st_mode & 0o777) == 0o700
@@ -108,7 +109,7 @@ def test_store_list_retrieve_round_trip(pacs: Pacs, export: Path, tmp_path: Path
     assert np.array_equal(got.data, want.data)
     assert np.allclose(got.index_to_world, want.index_to_world, atol=1e-9)
 
-    fluoro = next(s for s in xrays if "fluoro" in s.description)
+    fluoro = next(s for s in xrays if "fluoro" in s.description and "plane b" not in s.description.lower())
     xfolder = pacs.retrieve_series(studies[0].study_uid, fluoro.series_uid)
     try:
         (image_file,) = list(xfolder.iterdir())
