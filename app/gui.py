@@ -92,9 +92,17 @@ class RoadmapApp:
             guarded=self.controller.guarded,
         )
         self.panels: list[Panel] = mount(tuple(panels), context)
+        self._wire_panels()
         self.controller.panels = self.panels
         self.presenter.panels = self.panels
         self.controller.bind()
+
+    def _wire_panels(self) -> None:
+        """A run the PACS tab's DICOM node receives becomes the Play run panel's run."""
+        pacs = [p for p in self.panels if isinstance(p, PacsPanel)]
+        playback = [p for p in self.panels if isinstance(p, PlaybackPanel)]
+        if pacs and playback:
+            pacs[0].run_receivers.append(playback[0].load_run_file)
 
     def __getattr__(self, name: str) -> Any:
         # Only reached for names not set on the app itself: the layout's widget handles.

@@ -15,6 +15,7 @@ import shutil
 import tempfile
 import threading
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -70,6 +71,9 @@ class PacsPanel(BasePanel):
         self._node: Any = None
         self._node_folder: Path | None = None
         self.received: Any = None
+        #: Called with (path, name) when the node receives a multi-frame run (the app wires the
+        #: Play run panel's :meth:`~app.playback.PlaybackPanel.load_run_file` here).
+        self.run_receivers: list[Callable[[Path, str], bool]] = []
         node = node_settings_from_env()
         if node is not None:
             self.start_node(**node)
@@ -281,7 +285,24 @@ class PacsPanel(BasePanel):
         self.use_received.disabled = False
         frames = f", {item.frames} frames (the last is shown)" if item.frames > 1 else ""
         self.node_info.content = f"<small>Received {item.modality} from {item.calling_ae}{frames}</small>"
+        if item.frames > 1 and self.run_receivers:
+            self._feed_run(item)
+            return
         self.ctx.message(f"Received an X-ray image from {item.calling_ae}: **Show the received image** (PACS tab).")
+
+    def _feed_run(self, item: Any) -> None:
+        """A received run becomes the Play run panel's run (unless one is playing: then a message)."""
+        name = f"{item.modality} run from {item.calling_ae}"
+        try:
+            loaded = all([receiver(item.path, name) for receiver in self.run_receivers])
+        except ValueError as exc:
+            self.ctx.message(f"Received a run from {item.calling_ae}, not loaded into Play run: {exc}.", error=True)
+            return
+        if loaded:
+            self.ctx.message(f"Received a run from {item.calling_ae} ({item.frames} frames): **Play** it (Play run).")
+        else:
+            self.ctx.message(f"Received a run from {item.calling_ae} that Play run cannot play (see its tab).",
+                             error=True)  # fmt: skip
 
     def show_received(self) -> None:
         """The received image (a run: its last frame) with the volume now shown."""

@@ -13,6 +13,8 @@ Play, Pause and Stop control one shared playback: every browser tab watches the 
 run (.dcm)" plays the user's multi-frame XA/RF run (read with its frame times by
 :func:`registration.io.dicom.read_xray_run`, then the temporary file is deleted) against the
 session's current volume; it has no truth, so the strip chart shows the roadmap's motion only.
+A multi-frame run the app's DICOM node receives (``roadmap3d app --listen-port P --allow AE``)
+becomes the run to play the same way (:meth:`PlaybackPanel.load_run_file`, wired in :mod:`app.gui`).
 """
 
 from __future__ import annotations
@@ -237,23 +239,31 @@ class PlaybackPanel(BasePanel):
         import tempfile
         from pathlib import Path
 
-        from registration.io import dicom
-
         if self.playing:
             raise ValueError("stop the run playing first")
         fd, tmp = tempfile.mkstemp(prefix="roadmap3d-run-", suffix=".dcm")
         try:
             with os.fdopen(fd, "wb") as fh:
                 fh.write(content)
-            run = dicom.read_xray_run(Path(tmp))
+            return self.load_run_file(Path(tmp), name)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+
+    def load_run_file(self, path: Any, name: str) -> bool:
+        """Read a run from a file (an upload's temporary copy, or a run the app's DICOM node received)
+        as the run to play; a refusal is a message in the page."""
+        from registration.io import dicom
+
+        if self.playing:
+            raise ValueError("stop the run playing first")
+        try:
+            run = dicom.read_xray_run(path)
             if len(run) < 2:
                 raise ValueError(f"{name}: one frame, not a run")
             frames = run.frames()
         except ValueError as exc:
-            self.message.content = f"**{name}**: {exc}".replace(tmp, name)
+            self.message.content = f"**{name}**: {exc}".replace(str(path), name)
             return False
-        finally:
-            Path(tmp).unlink(missing_ok=True)
         self.user_run = UploadedRun(frames, np.asarray(run.times_s), frames[0].geometry, name)
         span = float(run.times_s[-1] - run.times_s[0])
         self.message.content = (

@@ -101,3 +101,35 @@ def test_a_c_store_reaches_the_app(fresh: RoadmapApp, small_export: Path) -> Non
     finally:
         app.phantom_button.value = True
         panel.close()  # stops the node, removes its private folder
+
+
+def test_a_received_run_goes_to_play_run(fresh: RoadmapApp, small_export: Path, tmp_path: Path) -> None:
+    """A multi-frame run C-STOREd to the app's node becomes the Play run panel's run (frames, times)."""
+    from pynetdicom import AE
+    from pynetdicom.sop_class import XRayAngiographicImageStorage  # type: ignore[attr-defined]
+
+    app = fresh
+    (panel,) = [p for p in app.panels if isinstance(p, PacsPanel)]
+    playback = app.playback
+    image = dicom.read_xray(small_export / "xa_fluoro.dcm")
+    times_s = [0.0, 1 / 15, 2 / 15, 3 / 15]
+    run_file = dicom.write_xray_run([image] * 4, tmp_path / "run.dcm", times_s=times_s)
+    port = panel.start_node(allowed=("CARM",), port=0)
+    try:
+        ae = AE(ae_title="CARM")
+        ae.add_requested_context(XRayAngiographicImageStorage)
+        assoc = ae.associate("127.0.0.1", port, ae_title="ROADMAP3D")
+        assert assoc.is_established
+        assert assoc.send_c_store(dicom.read_dataset(run_file)).Status == 0x0000
+        assoc.release()
+        # the node reports before it answers: the run is loaded when the sender sees success
+        run = playback.user_run
+        assert run is not None and len(run) == 4 and "from CARM" in run.name
+        # frame times as sent (DICOM stores them in ms: a few decimals)
+        assert np.allclose(run.times_s - run.times_s[0], times_s, atol=1e-3)
+        assert np.array_equal(run[2].image, image.image)
+        assert "4 frames" in playback.message.content and playback.phantom_run_button.visible
+    finally:
+        playback.use_phantom_run()
+        app.phantom_button.value = True
+        panel.close()
