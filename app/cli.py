@@ -272,6 +272,8 @@ def listen(
     host: str = "127.0.0.1",
     folder: Path | None = None,
     volume: Path | None = None,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
 ) -> int:
     """Receive images from the C-arm: a DICOM node (C-ECHO, C-STORE SCP) until Ctrl-C.
 
@@ -282,10 +284,13 @@ def listen(
         host: Interface to bind; 127.0.0.1 keeps the node on this machine.
         folder: Private folder (0700) for received files (default: the user data dir's roadmap3d/received).
         volume: Register every received XA/RF image to this 3DRA/CT, and track every received run (CONVENTIONS §7).
+        sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
+        sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
     """
     from app.net_commands import run_listen
 
-    return run_listen(ae_title=ae_title, port=port, host=host, allow=allow, folder=folder, volume=volume)
+    return run_listen(ae_title=ae_title, port=port, host=host, allow=allow, folder=folder, volume=volume,
+                      sid_mm=sid_mm, sod_mm=sod_mm)  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------
@@ -316,6 +321,8 @@ def app(
     pacs: str | None = None,
     listen_port: int | None = None,
     allow: tuple[str, ...] = (),
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
 ) -> int:
     """Start the web app, optionally on your own DICOM data.
 
@@ -332,6 +339,8 @@ def app(
             config file).
         listen_port: Also receive images from the C-arm: a DICOM node (AE title ROADMAP3D) on 127.0.0.1 at this port.
         allow: Calling AE titles the app's DICOM node accepts (needed with --listen-port).
+        sid_mm: Source-detector distance for an --image without DistanceSourceToDetector (0018,1110).
+        sod_mm: Source-iso-center distance for an --image without DistanceSourceToPatient (0018,1111).
     """
     if listen_port is not None:
         from app.pacs_panel import ENV_NODE_ALLOW, ENV_NODE_PORT
@@ -360,6 +369,8 @@ def app(
         allow_share=allow_share,
         max_upload_mb=max_upload_mb,
         open_browser=open_browser,
+        sid_mm=sid_mm,
+        sod_mm=sod_mm,
     )
 
 

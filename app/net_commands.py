@@ -40,7 +40,10 @@ class _Registrar:
     """Registers received X-ray images (tracks received runs) against one volume on a worker
     thread, in arrival order."""
 
-    def __init__(self, volume_path: Path, results: Path) -> None:
+    def __init__(self, volume_path: Path, results: Path, *, sid_mm: float | None = None,
+                 sod_mm: float | None = None) -> None:  # fmt: skip
+        #: The distances of received images that lack them (``--sid-mm``/``--sod-mm``).
+        self.distances_mm = {"sid_mm": sid_mm, "sod_mm": sod_mm}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.volume = dicom.read_volume(volume_path)
@@ -65,12 +68,23 @@ class _Registrar:
         dicom.write_text_atomic(out, dicom.json_dumps(document))
         return out
 
+    def _open_run(self, item: Received) -> dicom.XRayRun:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return dicom.read_xray_run(item.path, **self.distances_mm)
+
+    def read(self, item: Received) -> list[Any]:
+        """The received image (a run: all its frames), with ``--sid-mm``/``--sod-mm`` where the file lacks them."""
+        if item.frames > 1:
+            return self._open_run(item).frames()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return [dicom.read_xray(item.path, **self.distances_mm)]
+
     def _register(self, item: Received) -> None:
         from registration.core.register import register
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            xray = dicom.read_xray(item.path)
+        (xray,) = self.read(item)
         result = register(self.volume, xray)
         m = result.patient_motion
         document = result.to_dict()
@@ -86,10 +100,8 @@ class _Registrar:
         """A received run: tracked frame by frame (CONVENTIONS §7), every frame (a replay)."""
         from registration.core.tracking import track_run
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            run = dicom.read_xray_run(item.path)
-            frames = run.frames()
+        run = self._open_run(item)
+        frames = run.frames()
         result = track_run(self.volume, [frames], run.times_s, realtime=False)
         document = result.to_dict()
         document["run"] = {"path": str(item.path), "frames": len(frames)}
@@ -114,10 +126,14 @@ def run_listen(
     allow: tuple[str, ...],
     folder: Path | None,
     volume: Path | None,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
 ) -> int:
     """Run the DICOM node until interrupted; print each received instance (and its registration)."""
+    if volume is None and (sid_mm is not None or sod_mm is not None):
+        raise ValueError("--sid-mm/--sod-mm apply to the images registered with --volume")
     folder = Path(folder) if folder is not None else default_received_folder()
-    registrar = _Registrar(volume, folder / "results") if volume is not None else None
+    registrar = _Registrar(volume, folder / "results", sid_mm=sid_mm, sod_mm=sod_mm) if volume is not None else None
 
     def received(item: Received) -> None:
         _say(

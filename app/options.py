@@ -113,6 +113,10 @@ class RotationalRunStudy:
     """CA certificates (PEM) to verify an https:// PACS against."""
     calibration: Path | None = None
     """C-arm calibration table JSON (per-angle deviations) that refines each frame's geometry."""
+    sid_mm: float | None = None
+    """Source-detector distance for runs without DistanceSourceToDetector (0018,1110)."""
+    sod_mm: float | None = None
+    """Source-iso-center distance for runs without DistanceSourceToPatient (0018,1111)."""
     cases: int = 20
     """Number of random registrations."""
     contrast: bool | None = None

@@ -157,7 +157,7 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             volume = dicom.read_volume(volume_path)
-            run = dicom.read_xray_run(run_path)
+            run = dicom.read_xray_run(run_path, sid_mm=args.sid_mm, sod_mm=args.sod_mm)
         if len(run) < 2:
             raise ValueError(f"{run_path}: a rotational run has many frames; this file holds {len(run)}")
         geometry_of = table.geometry if table is not None else None
