@@ -212,19 +212,33 @@ def overlay_rgb(volume: Any, xray: Any, patient_motion: Any) -> Any:
     return np.round(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
 
 
+def _study_series(client: Any, study: str | None, wanted: tuple[tuple[str, str], ...]) -> dict[str, Any]:
+    """The study's series by UID, after checking that each wanted (series UID, flag) is there."""
+    if not study:
+        flags = "/".join(flag for _, flag in wanted)
+        raise ValueError(f"--pacs needs --study UID (and {flags} as Series Instance UIDs of that study)")
+    known = {s.series_uid: s for s in client.series(study)}
+    if not known:
+        raise ValueError(f"PACS {client.name}: study {study} not found or empty")
+    for uid, flag in wanted:
+        if uid not in known:
+            raise ValueError(f"PACS {client.name}: study {study} has no series {uid} ({flag})")
+    return known
+
+
+def retrieve_volume(client: Any, study: str | None, volume_series: str, work: Path) -> Path:
+    """Retrieve a study's volume series (WADO-RS) into ``work``; the folder. Errors as :func:`retrieve_pair`."""
+    known = _study_series(client, study, ((volume_series, "--volume"),))
+    _err(f"retrieving {known[volume_series].label()} from {client.name}")
+    return client.retrieve_series(study, volume_series, work / "volume")
+
+
 def retrieve_pair(
     client: Any, study: str | None, volume_series: str, image_series: str, work: Path, *, image_flag: str
 ) -> tuple[Path, Path]:
     """Retrieve a study's volume series and its one-instance X-ray series (image or run) into
     ``work``; (volume folder, image file). Errors name the PACS, the study and the series."""
-    if not study:
-        raise ValueError(f"--pacs needs --study UID (and --volume/{image_flag} as Series Instance UIDs of that study)")
-    known = {s.series_uid: s for s in client.series(study)}
-    if not known:
-        raise ValueError(f"PACS {client.name}: study {study} not found or empty")
-    for uid, flag in ((volume_series, "--volume"), (image_series, image_flag)):
-        if uid not in known:
-            raise ValueError(f"PACS {client.name}: study {study} has no series {uid} ({flag})")
+    known = _study_series(client, study, ((volume_series, "--volume"), (image_series, image_flag)))
     _err(f"retrieving {known[volume_series].label()} and {known[image_series].label()} from {client.name}")
     volume_folder = client.retrieve_series(study, volume_series, work / "volume")
     image_files = sorted(client.retrieve_series(study, image_series, work / "image").iterdir())

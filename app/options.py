@@ -134,7 +134,14 @@ class VolumeStudy:
     from the volume (a best case: the images come from the same volume)."""
 
     volume: Path
-    """The CT or 3DRA: DICOM series folder, enhanced multi-frame file, or the project's .npz."""
+    """The CT or 3DRA: DICOM series folder, enhanced multi-frame file, or the project's .npz (--pacs: a series UID)."""
+    pacs: str | None = None
+    """DICOMweb base URL of a PACS to load --volume from (credentials: ROADMAP3D_PACS_USERNAME/_PASSWORD or the config
+    file)."""
+    study: str | None = None
+    """Study Instance UID on the PACS holding the --volume series."""
+    ca_bundle: Path | None = None
+    """CA certificates (PEM) to verify an https:// PACS against."""
     isocenter: str | None = None
     """Iso-center "x,y,z" in mm or "volume-center" (default: IsocenterPosition from the files, else the origin)."""
     cases: int = 20

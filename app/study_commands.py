@@ -13,6 +13,7 @@ import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -256,13 +257,34 @@ def run_tracking_study(args: TrackingStudy) -> int:
     return 0
 
 
+def _read_study_volume(args: VolumeStudy) -> Any:
+    """The volume from its file or folder, or with --pacs retrieved (WADO-RS) into a private temporary folder."""
+    from registration.io import dicom
+
+    if not args.pacs:
+        if args.study:
+            raise ValueError("--study applies to --pacs only")
+        return dicom.read_volume(args.volume)
+    import shutil
+    import tempfile
+
+    from app.net_commands import retrieve_volume
+    from registration.io.pacs import Pacs, PacsSettings
+
+    client = Pacs(PacsSettings.resolve(args.pacs, ca_bundle=args.ca_bundle))
+    work = Path(tempfile.mkdtemp(prefix="roadmap3d-validate-volume-"))
+    try:
+        return dicom.read_volume(retrieve_volume(client, args.study, str(args.volume), work))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def run_volume_validation(args: VolumeStudy) -> int:
     """``roadmap3d validate volume``: random views and offsets on the user's volume, a table or
     one JSON object with ``--json``; ``--out`` keeps results.jsonl, summary.json and report.md."""
     import warnings
 
     from app.commands import resolve_isocenter
-    from registration.io import dicom
     from registration.studies.volume import SUMMARY_KEYS, VolumeStudyConfig, report_markdown, run_volume_study
 
     config = VolumeStudyConfig(
@@ -270,7 +292,7 @@ def run_volume_validation(args: VolumeStudy) -> int:
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        volume = dicom.read_volume(args.volume)
+        volume = _read_study_volume(args)
     for message in dict.fromkeys(str(w.message) for w in caught):
         _stderr(f"warning: {message}")
     iso, iso_from = resolve_isocenter(args.isocenter, volume)

@@ -118,3 +118,34 @@ def test_track_from_pacs(orthanc: OrthancServer, small_export: Path, tmp_path: P
     code, _, err = _run(["track", "--pacs", orthanc.dicomweb_url, "--study", study.study_uid, "--volume",
                          volume.series_uid, "--run", "1.2.3.4"], capsys)  # fmt: skip
     assert code == 2 and "has no series 1.2.3.4 (--run)" in err
+
+
+@pytest.mark.slow  # two small volume studies of one case each
+def test_validate_volume_from_pacs(orthanc: OrthancServer, small_export: Path, tmp_path: Path, capsys,
+                                   monkeypatch) -> None:  # fmt: skip
+    """``validate volume --pacs URL --study UID --volume SERIES``: the series retrieved over WADO-RS
+    gives the same study as the export's folder (same seed: the same volume gives the same numbers)."""
+    orthanc.clear()
+    pacs = Pacs(PacsSettings(orthanc.dicomweb_url, username=orthanc.username, password=orthanc.password))
+    pacs.store(sorted((small_export / "volume").rglob("*.dcm")))
+    (study,) = pacs.studies()
+    (volume,) = [s for s in pacs.series(study.study_uid) if s.role == "volume"]
+    monkeypatch.setenv("ROADMAP3D_PACS_USERNAME", orthanc.username)
+    monkeypatch.setenv("ROADMAP3D_PACS_PASSWORD", orthanc.password)
+    monkeypatch.setenv("ROADMAP3D_PACS_CONFIG", str(tmp_path / "no-config.json"))
+    common = ["--isocenter", "volume-center", "--cases", "1", "--json", "--seed", "3"]
+    code, out, err = _run(["validate", "volume", "--volume", str(small_export / "volume"), *common], capsys)
+    assert code == 0, err
+    local = json.loads(out)
+    pacs_args = ["validate", "volume", "--pacs", orthanc.dicomweb_url, "--study", study.study_uid]
+    code, out, err = _run([*pacs_args, "--volume", volume.series_uid, *common], capsys)
+    assert code == 0, err
+    assert "retrieving" in err and orthanc.password not in out + err
+    remote = json.loads(out)
+    assert remote["runs"] == local["runs"] == 1
+    for key in ("inplane_residual_mm_median", "rotation_residual_deg_median", "success_rate"):
+        assert remote[key] == local[key], key
+    code, _, err = _run([*pacs_args, "--volume", "1.2.3.4", *common], capsys)
+    assert code == 2 and "has no series 1.2.3.4 (--volume)" in err
+    code, _, err = _run(["validate", "volume", "--volume", str(small_export / "volume"), "--study", "1.2"], capsys)
+    assert code == 2 and "--study applies to --pacs only" in err
