@@ -136,8 +136,7 @@ class VolumeStudy:
     volume: Path
     """The CT or 3DRA: DICOM series folder, enhanced multi-frame file, or the project's .npz (--pacs: a series UID)."""
     pacs: str | None = None
-    """DICOMweb base URL of a PACS to load --volume from (credentials: ROADMAP3D_PACS_USERNAME/_PASSWORD or the config
-    file)."""
+    """DICOMweb base URL of a PACS (credentials: ROADMAP3D_PACS_USERNAME/_PASSWORD or the config file)."""
     study: str | None = None
     """Study Instance UID on the PACS holding the --volume series."""
     ca_bundle: Path | None = None
