@@ -314,10 +314,16 @@ class Session:
             volume_format = self.settings.volume_format_cm
             run = self.run
             self._changed()
-        self._worker = threading.Thread(
-            target=self._register, args=(run, initial, truth, volume_format, on_done), name="registration", daemon=True
-        )
-        self._worker.start()
+            # Started under the lock: whoever sees ``running`` and calls wait() gets this worker,
+            # never the previous one or one not yet started.
+            worker = threading.Thread(
+                target=self._register,
+                args=(run, initial, truth, volume_format, on_done),
+                name="registration",
+                daemon=True,
+            )
+            worker.start()
+            self._worker = worker
         return True
 
     def _register(
@@ -413,7 +419,8 @@ class Session:
 
     def wait(self, timeout: float = 60.0) -> bool:
         """Wait for the running registration to end; True if it did."""
-        worker = self._worker
+        with self.lock:
+            worker = self._worker
         if worker is None:
             return True
         worker.join(timeout)
