@@ -90,6 +90,7 @@ class RoadmapApp:
             message=self.controller.message,
             refresh=self.presenter.force_refresh,
             guarded=self.controller.guarded,
+            max_upload_bytes=self.max_upload_bytes,
         )
         self.panels: list[Panel] = mount(tuple(panels), context)
         self._wire_panels()

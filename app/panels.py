@@ -86,6 +86,8 @@ class PanelContext:
     refresh: Callable[[], None]
     #: Wrap a callback: a ValueError becomes a message, anything else a logged error message.
     guarded: Callable[[Callable[..., None]], Callable[..., None]]
+    #: The limit of one browser upload (bytes); every transfer is also held to the app's budget.
+    max_upload_bytes: int = 512_000_000
 
 
 PanelFactory = Callable[[PanelContext], Panel]

@@ -14,7 +14,8 @@ run (.dcm)" plays the user's multi-frame XA/RF run (read with its frame times by
 :func:`registration.io.dicom.read_xray_run`, then the temporary file is deleted) against the
 session's current volume; it has no truth, so the strip chart shows the roadmap's motion only.
 A multi-frame run the app's DICOM node receives (``roadmap3d app --listen-port P --allow AE``)
-becomes the run to play the same way (:meth:`PlaybackPanel.load_run_file`, wired in :mod:`app.gui`).
+becomes the run to play the same way, read in the same sandbox (:meth:`PlaybackPanel.load_run_file`, wired
+in :mod:`app.gui`).
 """
 
 from __future__ import annotations
@@ -234,37 +235,34 @@ class PlaybackPanel(BasePanel):
         return run, volume, renderer, vertices, phantom.mesh_spacing_mm(case.volume_format_cm)
 
     def load_run(self, name: str, content: bytes) -> bool:
-        """Read an uploaded run (multi-frame XA/RF with frame times); a refusal is a message."""
-        import os
-        import tempfile
-        from pathlib import Path
-
-        if self.playing:
-            raise ValueError("stop the run playing first")
-        fd, tmp = tempfile.mkstemp(prefix="roadmap3d-run-", suffix=".dcm")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(content)
-            return self.load_run_file(Path(tmp), name)
-        finally:
-            Path(tmp).unlink(missing_ok=True)
+        """Read an uploaded run (multi-frame XA/RF with frame times) in the upload sandbox (a
+        separate process with capped memory and a time limit, as the Data tab's uploads); a
+        refusal is a message in the page naming the file."""
+        return self._read(name, content=content)
 
     def load_run_file(self, path: Any, name: str) -> bool:
-        """Read a run from a file (an upload's temporary copy, or a run the app's DICOM node received)
-        as the run to play; a refusal is a message in the page."""
-        from registration.io import dicom
+        """Read a run from a file (one the app's DICOM node received) as the run to play, in the
+        upload sandbox; a refusal is a message in the page."""
+        from pathlib import Path
+
+        return self._read(name, path=Path(path))
+
+    def _read(self, name: str, *, content: bytes | None = None, path: Any = None) -> bool:
+        from app.upload import read_run_upload
 
         if self.playing:
             raise ValueError("stop the run playing first")
+        size = f" ({len(content) / 1e6:.1f} MB)" if content is not None else ""
+        self.message.content = f"Reading the run **{name}**{size}…"
         try:
-            run = dicom.read_xray_run(path)
-            if len(run) < 2:
-                raise ValueError(f"{name}: one frame, not a run")
-            frames = run.frames()
-        except ValueError as exc:
-            self.message.content = f"**{name}**: {exc}".replace(str(path), name)
+            run = read_run_upload(name, content=content, path=path, max_bytes=self.ctx.max_upload_bytes)
+        except ValueError as exc:  # UploadError, DicomError: named, the run shown before stays
+            text = str(exc) if str(exc).startswith(name) else f"{name}: {exc}"
+            self.message.content = f"⚠ Run refused: {text}"
+            self.ctx.message(f"Run refused: {text}", error=True)
             return False
-        self.user_run = UploadedRun(frames, np.asarray(run.times_s), frames[0].geometry, name)
+        frames = run.frames
+        self.user_run = UploadedRun(frames, run.times_s, frames[0].geometry, name)
         span = float(run.times_s[-1] - run.times_s[0])
         self.message.content = (
             f"Run **{name}**: {len(frames)} frames over {span:.1f} s ({run.times_from}); tracked against the "

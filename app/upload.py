@@ -26,10 +26,12 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import viser
 from viser import _messages
 
@@ -206,10 +208,11 @@ def _env_float(name: str, default: float) -> float:
 
 def _read_in_child(
     zip_path: str, folder: str, name: str, max_bytes: int, memory_bytes: int, conn: Connection,
-    reader: Callable[[Path, Path, str, int], tuple[Any, Any]] | None = None,
+    reader: Callable[[Path, Path, str, int], Any] | None = None,
     distances_mm: tuple[float | None, float | None] = (None, None),
 ) -> None:  # fmt: skip
-    """The reading process: unpack, find and read the volume and the image, send them back."""
+    """The reading process: ``reader(path, folder, name, max_bytes)`` (default: unpack the zip,
+    find and read the volume and the image), its result sent back."""
     try:
         import resource
 
@@ -219,16 +222,16 @@ def _read_in_child(
     try:
         if reader is None:
             sid_mm, sod_mm = distances_mm
-            volume, xray = _unpack_and_read(Path(zip_path), Path(folder), name, max_bytes, sid_mm=sid_mm, sod_mm=sod_mm)
+            result = _unpack_and_read(Path(zip_path), Path(folder), name, max_bytes, sid_mm=sid_mm, sod_mm=sod_mm)
         else:
-            volume, xray = reader(Path(zip_path), Path(folder), name, max_bytes)
-        conn.send(("ok", volume, xray))
-    except ValueError as exc:  # UploadError, DicomError: the message for the page
-        conn.send(("refused", str(exc), None))
+            result = reader(Path(zip_path), Path(folder), name, max_bytes)
+        conn.send(("ok", result))
+    except ValueError as exc:  # UploadError, DicomError: the message for the page (named, not the temporary path)
+        conn.send(("refused", str(exc).replace(zip_path, name)))
     except MemoryError:
-        conn.send(("refused", f"{name}: reading it needs more than {memory_bytes / 1e9:.1f} GB of memory", None))
+        conn.send(("refused", f"{name}: reading it needs more than {memory_bytes / 1e9:.1f} GB of memory"))
     except BaseException as exc:  # a reader bug: still a message, never a hung page
-        conn.send(("refused", f"{name}: cannot read it ({type(exc).__name__}: {str(exc)[:200]})", None))
+        conn.send(("refused", f"{name}: cannot read it ({type(exc).__name__}: {str(exc)[:200]})"))
     finally:
         conn.close()
 
@@ -298,8 +301,38 @@ def read_upload(
 
     if not name.lower().endswith(".zip"):
         raise UploadError(f"{name}: expected {EXPECTED}")
-    if len(content) > max_bytes:
-        raise UploadError(f"{name}: upload of {len(content)} bytes exceeds the limit of {max_bytes} bytes")
+    _check_size(name, len(content), max_bytes)
+    volume, xray = read_sandboxed(
+        name, content=content, max_bytes=max_bytes, timeout_s=timeout_s, memory_bytes=memory_bytes, reader=reader,
+        distances_mm=(sid_mm, sod_mm), file_name="upload.zip",
+    )  # fmt: skip
+    return FileData(volume, xray, source=f"upload {name}", config=config)
+
+
+def _check_size(name: str, size: int, max_bytes: int) -> None:
+    from registration.io.dicom import UploadError
+
+    if size > max_bytes:
+        raise UploadError(f"{name}: upload of {size} bytes exceeds the limit of {max_bytes} bytes")
+
+
+def read_sandboxed(
+    name: str, *, content: bytes | None = None, path: Path | None = None, max_bytes: int,
+    reader: Callable[[Path, Path, str, int], Any] | None, timeout_s: float | None = None,
+    memory_bytes: int | None = None, distances_mm: tuple[float | None, float | None] = (None, None),
+    file_name: str = "upload.bin",
+) -> Any:  # fmt: skip
+    """``reader(file, folder, name, max_bytes)`` run in a separate process on ``content`` (written
+    to a private temporary folder as ``file_name``) or on ``path`` (a file already on disk, e.g.
+    one the DICOM node received), within ``timeout_s`` and ``memory_bytes`` (defaults as for
+    :func:`read_upload`); its result, or UploadError naming ``name`` and the problem (refused,
+    abandoned after the time budget, or a reader that died). ``reader=None`` unpacks and reads
+    an uploaded zip (volume, image). Every reader process and folder is ended by
+    :func:`shutdown_readers`."""
+    from registration.io.dicom import UploadError
+
+    if (content is None) == (path is None):
+        raise ValueError("read_sandboxed needs content or path, not both")
     timeout_s = _env_float("ROADMAP3D_UPLOAD_READ_S", READ_TIMEOUT_S) if timeout_s is None else float(timeout_s)
     if memory_bytes is None:
         memory_bytes = int(_env_float("ROADMAP3D_UPLOAD_READ_MB", READER_MEMORY_BYTES / 1024**2) * 1024**2)
@@ -308,13 +341,16 @@ def read_upload(
         _ACTIVE_FOLDERS.add(tmp)
     process = None
     try:
-        zip_path = tmp / "upload.zip"
-        zip_path.write_bytes(content)
+        if content is not None:
+            file_path = tmp / file_name
+            file_path.write_bytes(content)
+        else:
+            file_path = Path(path)  # type: ignore[arg-type]
         ctx = _context()
         receiver, sender = ctx.Pipe(duplex=False)
         process = ctx.Process(
             target=_read_in_child,
-            args=(str(zip_path), str(tmp / "files"), name, max_bytes, memory_bytes, sender, reader, (sid_mm, sod_mm)),
+            args=(str(file_path), str(tmp / "files"), name, max_bytes, memory_bytes, sender, reader, distances_mm),
             name="roadmap3d-upload-reader",
             daemon=True,
         )
@@ -337,18 +373,67 @@ def read_upload(
                 f"{name}: reading took longer than {timeout_s:g} s and was abandoned (a damaged or hostile file?); "
                 "the app goes on with what it showed"
             )
-        status, first, second = reply
+        status, result = reply
         if status != "ok":
-            raise UploadError(first)
-        data = FileData(first, second, source=f"upload {name}", config=config)
-        return data
+            raise UploadError(result)
+        return result
     finally:
-        if process is not None:
+        if process is not None and process.pid is not None:  # started (a start that failed has no pid)
             if process.is_alive():
                 process.kill()
             process.join(5.0)
-            with _ACTIVE_LOCK:
-                _ACTIVE_PROCESSES.discard(process)
+        with _ACTIVE_LOCK:
+            _ACTIVE_PROCESSES.discard(process)
         shutil.rmtree(tmp, ignore_errors=True)  # nothing of the patient's stays on disk
         with _ACTIVE_LOCK:
             _ACTIVE_FOLDERS.discard(tmp)
+
+
+# --------------------------------------------------------------------------------------
+# Runs for the Play run panel
+# --------------------------------------------------------------------------------------
+#: Decoded frames of a run sent back to the server (bytes: float32 image + mask per pixel).
+MAX_RUN_DECODED_BYTES = 1536 * 1024**2
+
+
+@dataclass(frozen=True)
+class ReadRun:
+    """A run read for playing: every frame decoded (XRayImage, with its geometry), its times."""
+
+    frames: list
+    times_s: np.ndarray
+    times_from: str
+
+
+def _read_run(path: Path, _folder: Path, name: str, _max_bytes: int) -> ReadRun:
+    """The reading process's work for a run (module level: called there)."""
+    from registration.io import dicom
+
+    run = dicom.read_xray_run(path)
+    if len(run) < 2:
+        raise dicom.UploadError(f"{name}: one frame, not a run")
+    first = run.geometries[0]
+    decoded = len(run) * first.rows * first.cols * 5  # float32 attenuation + bool mask
+    if decoded > MAX_RUN_DECODED_BYTES:
+        raise dicom.UploadError(
+            f"{name}: {len(run)} frames of {first.rows} x {first.cols} pixels decode to {decoded / 1024**2:.0f} MB, "
+            f"over Play run's limit of {MAX_RUN_DECODED_BYTES / 1024**2:.0f} MB"
+        )
+    return ReadRun(run.frames(), np.asarray(run.times_s, np.float64), run.times_from)
+
+
+def read_run_upload(
+    name: str, *, content: bytes | None = None, path: Path | None = None, max_bytes: int,
+    timeout_s: float | None = None, memory_bytes: int | None = None,
+    reader: Callable[[Path, Path, str, int], ReadRun] | None = None,
+) -> ReadRun:  # fmt: skip
+    """A multi-frame XA/RF run (uploaded ``content``, or a received file at ``path``) read with
+    its frame times by :func:`registration.io.dicom.read_xray_run` in the upload sandbox (a
+    separate process, capped memory, a time limit: :func:`read_sandboxed`); UploadError naming
+    ``name`` and the problem. ``reader`` replaces the reading (tests hang it)."""
+    if content is not None:
+        _check_size(name, len(content), max_bytes)
+    return read_sandboxed(
+        name, content=content, path=path, max_bytes=max_bytes, reader=reader or _read_run, timeout_s=timeout_s,
+        memory_bytes=memory_bytes, file_name="run.dcm",
+    )  # fmt: skip
