@@ -61,6 +61,13 @@ class Presenter:
         self.shown_geometry: CArm | None = None
         self.frames_shown = 0
         self.live_updates: deque[float] = deque(maxlen=10_000)  # times of live frames (tests, measurements)
+        #: Which of the run's progress reports (1-based, the session's ``run.iterations``) each live
+        #: frame showed, and how many reports no frame showed: the newest is drawn, older ones are
+        #: skipped and counted, never queued (a slow browser or a busy machine costs frames, not lag).
+        self.live_reports: deque[int] = deque(maxlen=10_000)
+        self.live_skipped = 0
+        self._live_run: object = None
+        self._live_last_report = 0
         self._quit = threading.Event()
         self._wake = threading.Event()
         self._shown_progress: object = None
@@ -145,6 +152,8 @@ class Presenter:
             run = s.run
             progress = run.progress
             running = run.running
+            reports = len(run.iterations or ())  # the progress read above is the newest of these
+        live = running and progress is not None and progress is not self._shown_progress  # a new report is drawn
         shown = progress.best_motion if running and progress is not None else estimate
         self._show(xray, np.asarray(shown, np.float64), truth, settings.volume_format_cm, live=running)
         if not is_preview:
@@ -153,7 +162,15 @@ class Presenter:
         if live:
             self._last_live = now
             self.live_updates.append(now)
+            self._count_live(run, reports)
         self.tick(now)
+
+    def _count_live(self, run: object, reports: int) -> None:
+        if run is not self._live_run:  # a new registration: its reports count from 1
+            self._live_run, self._live_last_report = run, 0
+        self.live_skipped += max(0, reports - self._live_last_report - 1)
+        self._live_last_report = reports
+        self.live_reports.append(reports)
 
     def _image_tiles(self, xray: Any) -> dict[str, np.ndarray]:
         """What depends on the X-ray image only, computed once per image (per plane)."""

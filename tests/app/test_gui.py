@@ -25,6 +25,7 @@ def test_t4_then_register_reaches_sub_millimetre(fresh: RoadmapApp) -> None:
     inplane_before, _, _ = parse_readout(app.readout.content)
     assert inplane_before > 3.0  # T4 moves the head 5.7 mm in-plane
 
+    drawn_before, skipped_before = len(app.presenter.live_reports), app.presenter.live_skipped
     app.register_button.value = True
     assert app.session.running
     # Conflicting controls are disabled for the run, Stop is enabled.
@@ -40,11 +41,63 @@ def test_t4_then_register_reaches_sub_millimetre(fresh: RoadmapApp) -> None:
     assert rotation < 3.0, app.readout.content
     assert "REGISTERED" in app.badge.content
     assert "DRRs" in app.details.content and "done" in app.details.content
-    # The overlay and readout were refreshed live (>= 5 per second) while it ran.
-    live = [t for t in app.live_updates if start <= t <= start + duration]
-    if duration > 2.0:
-        assert len(live) / duration >= 5.0, f"{len(live)} live updates in {duration:.1f} s"
+    # The overlay and readout were refreshed live while it ran, each time with the newest of the
+    # optimizer's reports: the numbers shown only grow, and every report was drawn or counted as
+    # skipped (none queued). How many frames fit depends on the machine, so no rate is asserted
+    # (test_live_frames_show_the_newest_report_and_count_the_skipped_ones measures the behaviour).
+    reports = list(app.presenter.live_reports)[drawn_before:]
+    total = len(app.session.run.iterations or [])
+    if duration > 1.0:  # the presenter wakes every 0.1 s: a run of a second is drawn live at least once
+        assert reports, "no live frame while the registration ran"
+    assert all(b > a for a, b in zip(reports, reports[1:], strict=False)), reports
+    assert not reports or reports[-1] <= total
+    assert not reports or len(reports) + app.presenter.live_skipped - skipped_before == reports[-1]
     assert not any(c.disabled for c in app.carm_controls + app.motion_controls)
+
+
+def test_live_frames_show_the_newest_report_and_count_the_skipped_ones(app: RoadmapApp) -> None:
+    """Reports that arrive while the presenter is busy are not queued: its next frame draws the
+    newest one and counts the others as skipped, however fast or slow the machine is."""
+    from app.main import make_server
+    from app.session import RunState, Session
+    from registration.core.register import Progress
+
+    server = make_server("127.0.0.1", 0)
+    session = Session(app._phantom_data, app.session.config)  # noqa: SLF001 - the data is built already
+    built = RoadmapApp(server, session)  # not started: the test is the presenter's clock
+    presenter = built.presenter
+
+    def report(n: int) -> None:  # what the registration's callback does for its n-th report
+        motion = np.eye(4)
+        motion[:3, 3] = (0.5 * n, -0.25 * n, 0.1 * n)
+        with session.lock:
+            session.run.iterations.append(n)
+            session.run.similarity.append(0.1 * n)
+            session.run.temperature.append(1.0)
+            session.run.progress = Progress(n, 1, 1.0, motion, motion, 0.1 * n, 0.1 * n, 10 * n, 0.1 * n)
+
+    try:
+        presenter.present()  # the first frame, before any run
+        with session.lock:
+            session.run = RunState(running=True, iterations=[], similarity=[], temperature=[])
+        for n in range(1, 8):  # seven reports while the presenter is busy elsewhere
+            report(n)
+        presenter.present()
+        assert list(presenter.live_reports) == [7] and presenter.live_skipped == 6  # one frame: the newest
+        # the scene shows report 7's pose (metres; exact: the same float64 numbers, scaled)
+        np.testing.assert_allclose(built.scene.patient[0].position, np.array([3.5, -1.75, 0.7]) * 1e-3, atol=1e-12)
+        time.sleep(0.1)  # past the presenter's pacing (0.8 / LIVE_HZ): a sleep never makes it sooner
+        presenter.present()
+        assert list(presenter.live_reports) == [7]  # nothing new: nothing drawn as live
+        for n in range(8, 10):
+            report(n)
+        time.sleep(0.1)
+        presenter.present()
+        assert list(presenter.live_reports) == [7, 9] and presenter.live_skipped == 7
+        assert presenter.live_skipped + len(presenter.live_reports) == 9  # every report drawn or counted
+    finally:
+        built.close()
+        server.stop()
 
 
 def test_stop_cancels_quickly(fresh: RoadmapApp) -> None:
