@@ -91,6 +91,7 @@ class RoadmapApp:
             refresh=self.presenter.force_refresh,
             guarded=self.controller.guarded,
             max_upload_bytes=self.max_upload_bytes,
+            follow=self.presenter.follow,
         )
         self.panels: list[Panel] = mount(tuple(panels), context)
         self._wire_panels()

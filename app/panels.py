@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import viser
 
@@ -71,6 +71,10 @@ class BasePanel:
         return None
 
 
+def _ignore(_pose: Any) -> None:
+    return None
+
+
 @dataclass(frozen=True)
 class PanelContext:
     """What the app hands a panel's constructor."""
@@ -88,6 +92,9 @@ class PanelContext:
     guarded: Callable[[Callable[..., None]], Callable[..., None]]
     #: The limit of one browser upload (bytes); every transfer is also held to the app's budget.
     max_upload_bytes: int = 512_000_000
+    #: Let the 3-D scene follow a played run (an :class:`app.presenter.FollowedPose`; None: back
+    #: to the session). The presenter draws it at its next frame.
+    follow: Callable[[Any], None] = _ignore
 
 
 PanelFactory = Callable[[PanelContext], Panel]

@@ -4,9 +4,11 @@ A simulated run of the phantom (:mod:`registration.sim.fluoro`: still periods, d
 moves, breathing, a guidewire advancing; honest images) is played at its real frame times while
 the tracker (:class:`registration.core.tracking.Tracker`) follows the patient. Each shown frame
 carries the roadmap (the vessel outline at the last applied pose) and the product's message on
-top of the image ("motion corrected 3.2 mm, 1.1°", "motion detected, correction withheld");
-a strip chart shows the estimated (shown) and true motion and the per-frame latency. Frames
-that arrive while the engine is busy are skipped (the picture always shows the newest frame).
+top of the image ("motion corrected 3.2 mm, 1.1°", "motion detected, correction withheld"), and
+the 3-D scene follows it (the volume's surfaces at that pose, the run's C-arm with the frame on
+its detector, the true pose as the ghost: :class:`app.presenter.FollowedPose`); a strip chart
+shows the estimated (shown) and true motion and the per-frame latency. Frames that arrive
+while the engine is busy are skipped (the picture always shows the newest frame).
 
 Play, Pause and Stop control one shared playback: every browser tab watches the same run
 (the panel's widgets are server-level). The work runs on the panel's own thread. "Upload a
@@ -20,6 +22,7 @@ in :mod:`app.gui`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -31,6 +34,7 @@ import viser
 
 from app import views
 from app.panels import BasePanel, PanelContext
+from app.presenter import FollowedPose
 from registration.core.geometry import CArm, apply, invert_rigid, matrix_to_offsets, rotation_angle_deg
 
 if TYPE_CHECKING:
@@ -42,6 +46,8 @@ log = logging.getLogger(__name__)
 #: Size of the shown frame (pixels) and how often the strip chart is redrawn (Hz).
 DISPLAY_PX = 384
 CHART_HZ = 5.0
+#: Size of the frame on the 3-D scene's detector (pixels, as the Roadmap tab's).
+DETECTOR_PX = 256
 #: Message colours (as the Roadmap tab's badge).
 GREEN, ORANGE, GRAY = (64, 192, 87), (253, 126, 20), (134, 142, 150)
 
@@ -155,6 +161,8 @@ class PlaybackPanel(BasePanel):
         self.estimates: list[FrameEstimate] = []
         self.last_message = ""
         self.finished = threading.Event()
+        self._source: tuple[Any, float] = (ctx.phantom, self.case.volume_format_cm)
+        self._followed: FollowedPose | None = None  # what the 3-D scene was last asked to show
 
     # ----- controls ---------------------------------------------------------------------
     @property
@@ -206,7 +214,8 @@ class PlaybackPanel(BasePanel):
 
     # ----- the run ----------------------------------------------------------------------
     def _load(self) -> tuple[FluoroRun, Any, Any, np.ndarray, float]:
-        """The run (simulated once, cached on disk), the volume, its renderer, vessel vertices."""
+        """The run (simulated once, cached on disk), the volume, its renderer, vessel vertices and
+        their spacing; ``self._source`` becomes the data source and volume format they come from."""
         from registration.studies.tracking import case_runs
 
         if self.user_run is not None:
@@ -215,6 +224,7 @@ class PlaybackPanel(BasePanel):
             vessels = data.meshes(fmt).get("vessels")
             vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
             run: Any = self.user_run
+            self._source = (data, fmt)
             return run, data.volume(fmt), data.renderer(fmt), vertices, data.mesh_spacing_mm(fmt)
         case = self.case
         start = time.perf_counter()
@@ -232,6 +242,7 @@ class PlaybackPanel(BasePanel):
         renderer = phantom.renderer(case.volume_format_cm)
         vessels = phantom.meshes(case.volume_format_cm).get("vessels")
         vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
+        self._source = (phantom, case.volume_format_cm)
         return run, volume, renderer, vertices, phantom.mesh_spacing_mm(case.volume_format_cm)
 
     def load_run(self, name: str, content: bytes) -> bool:
@@ -285,6 +296,9 @@ class PlaybackPanel(BasePanel):
             log.exception("play run failed")
             self.ctx.message(f"Play run failed: {exc}", error=True)
         finally:
+            last = self._followed
+            # the 3-D scene keeps the run's last frame until the session changes
+            self.ctx.follow(None if last is None else dataclasses.replace(last, playing=False))
             self._buttons(playing=False)
             self.finished.set()
 
@@ -296,6 +310,7 @@ class PlaybackPanel(BasePanel):
         times = run.times_s
         n = len(run)
         self.frames_shown, self.skipped, self.estimates = 0, 0, []
+        self._followed = None
         chart: dict[str, list[float]] = {k: [] for k in ("t", "true_x", "shown_x", "true_y", "shown_y", "ms")}
         last_chart = 0.0
         with Tracker(volume, renderer=renderer) as tracker:
@@ -354,6 +369,16 @@ class PlaybackPanel(BasePanel):
         draw_message(rgb, text, color)
         views.label(rgb, f"t = {est.t_s:5.2f} s  frame {i}  {est.latency_ms:.0f} ms", corner="bottom-left")
         self.image.image = rgb
+        # The 3-D scene follows: the volume's surfaces at the pose the roadmap shows (the last
+        # applied one), the run's C-arm with this frame on its detector, the true pose as the ghost.
+        truth = getattr(run, "truth", None)
+        data, fmt = self._source
+        self._followed = FollowedPose(
+                frame=i, patient_motion=np.array(est.patient_motion, np.float64),
+                truth=None if truth is None else np.array(truth[i], np.float64), geometry=image.geometry,
+                detector_image=views.resize(rgb, DETECTOR_PX), data=data, volume_format_cm=fmt,
+        )  # fmt: skip
+        self.ctx.follow(self._followed)
         self.last_message = text
         self.message.content = (
             f"**{text}** · frame {i}/{len(run) - 1} at {est.t_s:.2f} s · {est.path} {est.latency_ms:.0f} ms"

@@ -14,6 +14,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -27,12 +28,33 @@ from registration.core.geometry import CArm, matrix_to_offsets
 if TYPE_CHECKING:
     import viser
 
+    from app.data import DataSource
     from app.panels import Panel
 
 log = logging.getLogger(__name__)
 
 #: Live updates during a run (the issue asks for at least 5 per second).
 LIVE_HZ = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class FollowedPose:
+    """What the 3-D scene shows while a fluoroscopy run plays (the Play run panel), instead of the
+    session: the anatomy of the volume the run is tracked against, at the pose the roadmap shows
+    for the newest frame (the last applied one: a withheld frame changes nothing), the run's
+    C-arm with that frame on its detector, and the frame's true pose as the ghost (None: no truth).
+    After the run (``playing`` False) the scene keeps its last frame until the session changes.
+    """
+
+    frame: int
+    patient_motion: np.ndarray
+    truth: np.ndarray | None
+    geometry: CArm
+    detector_image: np.ndarray | None
+    data: DataSource
+    volume_format_cm: float
+    #: False once the run ended: the scene keeps this frame until the session changes.
+    playing: bool = True
 
 
 class Presenter:
@@ -78,6 +100,11 @@ class Presenter:
         self._shown_carm_b: tuple | None = None
         self._preview_version = -1
         self._plotted = False
+        self._followed: FollowedPose | None = None
+        self._followed_version = -1
+        self._shown_followed: FollowedPose | None = None
+        #: (frame, 4x4 pose) of every followed frame the scene showed (tests, measurements).
+        self.followed_frames: deque[tuple[int, np.ndarray]] = deque(maxlen=10_000)
         self._thread = threading.Thread(target=self._loop, name="presenter", daemon=True)
 
     # ----- control --------------------------------------------------------------------------
@@ -88,6 +115,18 @@ class Presenter:
         """Redraw at the next frame even if the session did not change."""
         self.shown_version = -1
         self._wake.set()
+
+    def follow(self, pose: FollowedPose | None) -> None:
+        """Let the scene follow a played run's newest frame (None: back to the session). Drawn at
+        the next frame (<= LIVE_HZ): a pose that is replaced before then is never drawn."""
+        with self.session.lock:
+            self._followed_version = self.session.version
+        if pose is None and self._followed is not None:
+            self._shown_carm = None  # the session's C-arm comes back
+            self._followed = None
+            self.force_refresh()
+        else:
+            self._followed = pose
 
     def start(self) -> None:
         self.present()  # first frame before the loop starts (and before the URL is used)
@@ -126,18 +165,18 @@ class Presenter:
             settings = s.settings
         now = time.monotonic()
         live = running and progress is not None and progress is not self._shown_progress
+        followed = self._followed
+        if followed is not None and not followed.playing and version != self._followed_version:
+            self.follow(None)  # the run ended and the session changed since: the scene shows the session
+            followed = None
         if version == self.shown_version and not (live and now - self._last_live >= 0.8 / LIVE_HZ):  # timer jitter
+            if followed is not None and followed is not self._shown_followed:
+                with self.server.atomic():
+                    self._show_followed(followed)
             self.tick(now)
             return
-        mesh_key = (id(s.data), settings.volume_format_cm)
-        if mesh_key != self._mesh_key:
-            before = self.layout.status.content
-            self.message("Loading the volume and its surfaces…")
-            self.scene.set_anatomy(s.data.meshes(settings.volume_format_cm))
-            if self.layout.status.content.startswith("Loading the volume"):
-                self.layout.status.content = before  # the status stayed on "Loading…" after an upload
-            self._mesh_key = mesh_key
-            self.show_source()
+        if followed is None:
+            self._show_anatomy(s.data, settings.volume_format_cm)
         is_preview = not s.xray_ready() and self._preview_version != version
         if is_preview:
             # Forming the full image takes a moment: show a quick one first, then come back.
@@ -164,6 +203,35 @@ class Presenter:
             self.live_updates.append(now)
             self._count_live(run, reports)
         self.tick(now)
+
+    def _show_anatomy(self, data: DataSource, volume_format_cm: float) -> None:
+        mesh_key = (id(data), volume_format_cm)
+        if mesh_key != self._mesh_key:
+            before = self.layout.status.content
+            self.message("Loading the volume and its surfaces…")
+            self.scene.set_anatomy(data.meshes(volume_format_cm))
+            if self.layout.status.content.startswith("Loading the volume"):
+                self.layout.status.content = before  # the status stayed on "Loading…" after an upload
+            self._mesh_key = mesh_key
+            self.show_source()
+
+    def _show_followed(self, followed: FollowedPose) -> None:
+        """The scene at a played run's frame (inside the caller's ``server.atomic()``)."""
+        self._show_anatomy(followed.data, followed.volume_format_cm)
+        g = followed.geometry
+        carm_key = ("run", g.primary_deg, g.secondary_deg, g.sid_mm, round(g.field_diameter_mm, 3))
+        if self._shown_carm != carm_key:
+            self.scene.set_carm(g, followed.detector_image)
+            self._shown_carm = carm_key
+        elif followed.detector_image is not None:
+            self.scene.set_detector_image(followed.detector_image)
+        hidden = any(panel.hides_patient for panel in self.panels)
+        self.scene.place(followed.patient_motion, followed.truth,
+                         show_ghost=bool(self.layout.show_ghost.value) and not hidden)  # fmt: skip
+        for handle in self.scene.patient:
+            handle.visible = not hidden and ("vessel" in handle.name or bool(self.layout.show_skull.value))
+        self._shown_followed = followed
+        self.followed_frames.append((followed.frame, followed.patient_motion))
 
     def _count_live(self, run: object, reports: int) -> None:
         if run is not self._live_run:  # a new registration: its reports count from 1
@@ -250,8 +318,11 @@ class Presenter:
             sim = list(run.similarity or [])
             temp = list(run.temperature or [])
         hidden = any(panel.hides_patient for panel in self.panels)  # e.g. the dodecahedron is imaged on its own
+        followed = self._followed
         with self.server.atomic():
-            if self._shown_carm != carm_key:
+            if followed is not None:  # a played run owns the scene (plane B's C-arm stays the session's)
+                self._show_followed(followed)
+            elif self._shown_carm != carm_key:
                 self.scene.set_carm(geometry, detector_image)
                 self._shown_carm = carm_key
                 self.shown_geometry = geometry
@@ -265,9 +336,10 @@ class Presenter:
                 self._shown_carm_b = carm_b_key
             elif xray_b is not None:
                 self.scene.set_detector_image(detector_b, plane_b=True)
-            self.scene.place(motion, truth, show_ghost=bool(ui.show_ghost.value) and not hidden)
-            for handle in self.scene.patient:
-                handle.visible = not hidden and ("vessel" in handle.name or bool(ui.show_skull.value))
+            if followed is None:
+                self.scene.place(motion, truth, show_ghost=bool(ui.show_ghost.value) and not hidden)
+                for handle in self.scene.patient:
+                    handle.visible = not hidden and ("vessel" in handle.name or bool(ui.show_skull.value))
             ui.images.image = composite
             ui.readout.content = readout
             ui.badge.content = badge_html

@@ -43,6 +43,70 @@ def test_play_run_shows_every_frame_or_skips_it(fresh) -> None:
     assert not panel.play_button.disabled and panel.stop_button.disabled
 
 
+#: SHORT with a read-out glitch in its still start: a frame the tracker must withhold.
+GLITCHED = TrackingCase(
+    "short-glitched", RunScript(duration_s=3.0, seed=11, still_start_s=1.0, sudden_moves=1, min_move_mm=6.0,
+                                max_move_mm=10.0, min_move_deg=2.0, max_move_deg=4.0, drift=False, breathing_mm=0.0,
+                                glitch_times_s=(0.4,)),
+    pixels=64,
+)  # fmt: skip
+
+
+def scene_pose(fresh) -> np.ndarray:
+    """The 4x4 pose (mm) the 3-D scene shows the patient's vessels at."""
+    import viser.transforms as vtf
+
+    handle = next(h for h in fresh.scene.patient if "vessel" in h.name)
+    pose = np.eye(4)
+    pose[:3, :3] = vtf.SO3(np.asarray(handle.wxyz, np.float64)).as_matrix()
+    pose[:3, 3] = np.asarray(handle.position, np.float64) / 1e-3  # the scene is in metres
+    return pose
+
+
+def assert_same_pose(shown: np.ndarray, expected: np.ndarray) -> None:
+    # Tolerance: the pose goes 4x4 -> quaternion + metres -> 4x4 in float64 (~1e-15 relative);
+    # 1e-9 (rotation entries) and 1e-9 mm are far below anything a viewer could see.
+    np.testing.assert_allclose(shown[:3, :3], expected[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(shown[:3, 3], expected[:3, 3], atol=1e-9)
+
+
+def test_the_scene_follows_the_played_run(fresh) -> None:
+    panel, presenter = fresh.playback, fresh.presenter
+    panel.case = GLITCHED
+    drawn_before = len(presenter.followed_frames)
+    panel.play_button.value = True
+    assert wait_until(lambda: panel.finished.is_set() and not panel.playing, 240.0)
+    estimates = panel.estimates
+    # the run over, the scene keeps its last frame (drawn at the presenter's next frame, <= 0.1 s)
+    assert wait_until(lambda: presenter.followed_frames[-1][0] == estimates[-1].frame, 5.0)
+    by_frame = {e.frame: e for e in estimates}
+    drawn = list(presenter.followed_frames)[drawn_before:]
+    assert drawn and all(frame in by_frame for frame, _ in drawn)
+    for frame, pose in drawn:  # every pose the scene showed is the roadmap's (applied) pose of that frame
+        np.testing.assert_array_equal(pose, by_frame[frame].patient_motion)
+    # withheld (and unchanged) frames show nothing new: the last applied pose stays
+    applied_pose = np.eye(4)
+    withheld = 0
+    for e in estimates:
+        if e.status == "applied":
+            applied_pose = e.patient_motion
+        else:
+            np.testing.assert_allclose(e.patient_motion, applied_pose, atol=1e-12)
+            withheld += e.status == "withheld"
+    assert withheld >= 1, [e.status for e in estimates]  # the glitch frame
+    # the vessels' nodes are at the last frame's pose ...
+    assert_same_pose(scene_pose(fresh), estimates[-1].patient_motion)
+    assert fresh.scene.frustum is not None
+    # ... until the session changes: then it shows the session (its estimate) again
+    fresh.offset_sliders[0].value = 1.0
+    assert wait_until(lambda: np.allclose(scene_pose(fresh), fresh.session.estimate, atol=1e-9), 10.0)
+    assert fresh._shown_geometry is not None  # noqa: SLF001 - the session's C-arm is drawn again
+    statuses = [e.status for e in estimates]
+    if "applied" in statuses:  # a correction moved the roadmap: the scene followed it off the start
+        moved = estimates[statuses.index("applied")]
+        assert any(frame >= moved.frame and not np.allclose(pose, np.eye(4)) for frame, pose in drawn)
+
+
 def test_pause_holds_and_stop_ends(fresh) -> None:
     panel = fresh.playback
     panel.case = SHORT
