@@ -398,13 +398,13 @@ def track(
     Args:
         volume: DICOM series folder, enhanced multi-frame file, or the project's .npz.
         run: Multi-frame XA/RF run with its frame times (plane A for a biplane pair).
-        run_b: Plane B's run of a biplane pair (same frame times).
+        run_b: Plane B's run of a biplane pair (same frame times; with --pacs: a series UID of --study).
         out: Write the per-frame list (frame, t_s, patient_motion, status, latency_ms, confidence) here.
         truth: run_truth.json with each frame's true patient_motion (adds errors, precision, recall).
         isocenter: Iso-center "x,y,z" mm or "volume-center" (default: IsocenterPosition of the volume, else the origin).
         seed: Seed of the full captures.
         every_frame: Process every frame (a replay) instead of skipping the frames that arrive while busy.
-        pacs: DICOMweb URL of a PACS: --volume and --run are then Series Instance UIDs of --study.
+        pacs: DICOMweb URL of a PACS: --volume, --run (and --run-b) are then Series Instance UIDs of --study.
         study: Study Instance UID on the PACS.
         ca_bundle: CA certificates (PEM) to verify an https:// PACS against.
         sid_mm: Source-detector distance for runs without DistanceSourceToDetector (0018,1110).
@@ -416,7 +416,8 @@ def track(
 
         return run_track_pacs(
             pacs=pacs, study=study, volume_series=str(volume), run_series=str(run), ca_bundle=ca_bundle,
-            run_b=run_b, out=out, truth=truth, isocenter=isocenter, seed=seed, every_frame=every_frame,
+            run_b_series=None if run_b is None else str(run_b), out=out, truth=truth, isocenter=isocenter,
+            seed=seed, every_frame=every_frame, sid_mm=sid_mm, sod_mm=sod_mm, frame_time_ms=frame_time_ms,
         )  # fmt: skip
     if study or ca_bundle:
         raise UserError("--study and --ca-bundle need --pacs URL")

@@ -241,33 +241,48 @@ def retrieve_pair(
     known = _study_series(client, study, ((volume_series, "--volume"), (image_series, image_flag)))
     _err(f"retrieving {known[volume_series].label()} and {known[image_series].label()} from {client.name}")
     volume_folder = client.retrieve_series(study, volume_series, work / "volume")
-    image_files = sorted(client.retrieve_series(study, image_series, work / "image").iterdir())
-    if len(image_files) != 1:
+    return volume_folder, _retrieve_instance(client, study, image_series, work / "image")
+
+
+def _retrieve_instance(client: Any, study: str | None, series: str, folder: Path) -> Path:
+    """The one instance of an X-ray series (an image or a run), retrieved into ``folder``."""
+    files = sorted(client.retrieve_series(study, series, folder).iterdir())
+    if len(files) != 1:
         raise ValueError(
-            f"PACS {client.name}: series {image_series} holds {len(image_files)} instances; expected one XA/RF "
+            f"PACS {client.name}: series {series} holds {len(files)} instances; expected one XA/RF "
             "image or run (a series of single images: pick one, or store them as one run)"
         )
-    return volume_folder, image_files[0]
+    return files[0]
 
 
 def run_track_pacs(
     *, pacs: str | None, study: str | None, volume_series: str, run_series: str, ca_bundle: Path | None,
-    **track_args: Any,
+    run_b_series: str | None = None, **track_args: Any,
 ) -> int:  # fmt: skip
-    """``track --pacs``: retrieve the volume and the run (WADO-RS) into a private folder, track."""
+    """``track --pacs``: retrieve the volume and the run (WADO-RS) into a private folder, track.
+    ``run_b_series``: plane B's run of a biplane pair, a series of the same study (both planes
+    tracked together, as ``track --run A --run-b B`` does with files)."""
     import shutil
     import tempfile
 
     from app.track_commands import run_track
     from registration.io.pacs import Pacs, PacsSettings
 
-    if track_args.get("run_b") is not None:
-        raise ValueError("track --pacs takes one run (plane A); a biplane pair from a PACS is not supported yet")
+    if run_b_series is not None and str(run_b_series) == str(run_series):
+        raise ValueError(f"--run and --run-b are the same series {run_series}: a biplane pair needs both planes' runs")
     client = Pacs(PacsSettings.resolve(pacs, ca_bundle=ca_bundle))
     work = Path(tempfile.mkdtemp(prefix="roadmap3d-track-"))
     try:
-        volume_folder, run_file = retrieve_pair(client, study, volume_series, run_series, work, image_flag="--run")
-        return run_track(volume=volume_folder, run=run_file, **track_args)
+        if run_b_series is None:
+            volume_folder, run_file = retrieve_pair(client, study, volume_series, run_series, work, image_flag="--run")
+            return run_track(volume=volume_folder, run=run_file, **track_args)
+        wanted = ((volume_series, "--volume"), (run_series, "--run"), (str(run_b_series), "--run-b"))
+        known = _study_series(client, study, wanted)
+        _err(f"retrieving {', '.join(known[uid].label() for uid, _ in wanted)} from {client.name}")
+        volume_folder = client.retrieve_series(study, volume_series, work / "volume")
+        run_file = _retrieve_instance(client, study, run_series, work / "run")
+        run_b_file = _retrieve_instance(client, study, str(run_b_series), work / "run_b")
+        return run_track(volume=volume_folder, run=run_file, run_b=run_b_file, **track_args)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

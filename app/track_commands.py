@@ -87,6 +87,15 @@ def run_track(
     for w in caught:
         _err(f"warning: {w.message}")
     if len(runs) == 2:
+        names = [run, run_b]
+        planes = [r.planes[0] if r.planes else "" for r in runs]
+        if planes[0] == planes[1] and planes[0] in ("PLANE A", "PLANE B"):
+            raise ValueError(f"{run} and {run_b} are both {planes[0]} (0018,9457): a biplane pair needs plane A and B")
+        if planes[0] == "PLANE B" or planes[1] == "PLANE A":  # given the other way round: plane A goes first
+            _err(f"note: {run_b} is plane A by its Plane Identification (0018,9457): tracked as plane A, {run} as B")
+            runs.reverse()
+            names.reverse()
+            run, run_b = names
         if len(runs[0]) != len(runs[1]):
             raise ValueError(f"{run} has {len(runs[0])} frames but {run_b} has {len(runs[1])}: not one biplane run")
         if not np.allclose(runs[0].times_s, runs[1].times_s, atol=1e-3):

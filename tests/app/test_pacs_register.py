@@ -149,3 +149,65 @@ def test_validate_volume_from_pacs(orthanc: OrthancServer, small_export: Path, t
     assert code == 2 and "has no series 1.2.3.4 (--volume)" in err
     code, _, err = _run(["validate", "volume", "--volume", str(small_export / "volume"), "--study", "1.2"], capsys)
     assert code == 2 and "--study applies to --pacs only" in err
+
+
+@pytest.fixture(scope="module")
+def biplane_run_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``roadmap3d phantom-run --biplane``: 2 s at 64 px, both planes' runs and the 3DRA series."""
+    out = tmp_path_factory.mktemp("biplane-run") / "phantom-run"
+    with pytest.raises(SystemExit) as info:
+        cli.main(["phantom-run", "--out", str(out), "--biplane", "--pixels", "64", "--voxels", "128",
+                  "--volume-source", "resampled", "--seconds", "2", "--sudden-moves", "1"])  # fmt: skip
+    assert info.value.code == 0
+    return out
+
+
+def test_track_a_biplane_pair_from_pacs(
+    orthanc: OrthancServer, biplane_run_export: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """``track --pacs --run A --run-b B``: both planes' runs retrieved from the study and tracked
+    together, frame for frame what the same files give from disk (the same bytes, the same seed)."""
+    from app import track_commands as tc
+
+    export = biplane_run_export
+    orthanc.clear()
+    pacs = Pacs(PacsSettings(orthanc.dicomweb_url, username=orthanc.username, password=orthanc.password))
+    pacs.store(sorted(export.rglob("*.dcm")))
+    (study,) = pacs.studies()
+    series = pacs.series(study.study_uid)
+    volume = next(s for s in series if s.role == "volume")
+    plane = {s.description.split()[-1]: s for s in series if "fluoro run" in s.description}
+    assert sorted(plane) == ["A", "B"], [s.description for s in series]
+    monkeypatch.setenv("ROADMAP3D_PACS_USERNAME", orthanc.username)
+    monkeypatch.setenv("ROADMAP3D_PACS_PASSWORD", orthanc.password)
+    monkeypatch.setenv("ROADMAP3D_PACS_CONFIG", str(tmp_path / "no-config.json"))
+    common = ["--truth", str(export / tc.RUN_TRUTH), "--every-frame", "--seed", "1"]
+
+    code, _, err = _run(["track", "--volume", str(export / tc.RUN_VOLUME_DIR), "--run", str(export / tc.RUN_FILE),
+                         "--run-b", str(export / tc.RUN_B_FILE), "--out", str(tmp_path / "local.json"), *common],
+                        capsys)  # fmt: skip
+    assert code == 0, err
+    pacs_args = ["track", "--pacs", orthanc.dicomweb_url, "--study", study.study_uid, "--volume", volume.series_uid]
+    code, out, err = _run([*pacs_args, "--run", plane["A"].series_uid, "--run-b", plane["B"].series_uid,
+                           "--out", str(tmp_path / "pacs.json"), *common], capsys)  # fmt: skip
+    assert code == 0, err
+    assert orthanc.password not in out + err
+    local = json.loads((tmp_path / "local.json").read_text())
+    remote = json.loads((tmp_path / "pacs.json").read_text())
+    assert len(remote["runs"]) == 2 and len(remote["frames"]) == len(local["frames"]) == 30
+    for a, b in zip(local["frames"], remote["frames"], strict=True):
+        assert (a["frame"], a["status"]) == (b["frame"], b["status"])
+        np.testing.assert_array_equal(a["patient_motion"], b["patient_motion"])  # same files, same seed: exact
+    assert remote["summary"]["tracking_error_mm_median"] is not None  # scored against the truth (3-D: biplane)
+
+    # the planes given the other way round: plane A by its Plane Identification goes first
+    code, _, err = _run([*pacs_args, "--run", plane["B"].series_uid, "--run-b", plane["A"].series_uid,
+                         "--out", str(tmp_path / "swapped.json"), *common], capsys)  # fmt: skip
+    assert code == 0 and "is plane A by its Plane Identification" in err, err
+    swapped = json.loads((tmp_path / "swapped.json").read_text())
+    assert [f["status"] for f in swapped["frames"]] == [f["status"] for f in local["frames"]]
+
+    code, _, err = _run([*pacs_args, "--run", plane["A"].series_uid, "--run-b", plane["A"].series_uid], capsys)
+    assert code == 2 and "the same series" in err
+    code, _, err = _run([*pacs_args, "--run", plane["A"].series_uid, "--run-b", "1.2.3.4"], capsys)
+    assert code == 2 and "has no series 1.2.3.4 (--run-b)" in err
