@@ -48,6 +48,8 @@ class ClinicalStudy:
     seed: int = 0
     jobs: int | None = None
     scheduler: str | None = None
+    registrations: int | None = None
+    """Registrations per patient (default: 100; quick 20, its 2 patients): the first N draws of the seed."""
 
 
 @dataclass

@@ -94,6 +94,10 @@ def run_clinical_study(args: ClinicalStudy) -> int:
     from registration.studies.report import clinical_summary, write_clinical_report
 
     config = ClinicalConfig.quick_config(args.seed) if args.quick else ClinicalConfig(seed=args.seed)
+    if args.registrations is not None:
+        if args.registrations < 1:
+            raise ValueError(f"--registrations must be >= 1, got {args.registrations}")
+        config = replace(config, registrations_per_patient=int(args.registrations))
     tasks = runs.clinical_tasks(config)
     log = None if args.json else _stderr
     records, wall = runs.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)

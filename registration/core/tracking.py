@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.core.confidence import DEFAULT_RULE, Assessment, ConfidenceRule, Evidence, edge_fraction
+from registration.core.depth import DepthProbe
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, apply, check_rigid, invert_rigid, offsets_to_matrix, rotation_angle_deg
 from registration.core.images import XRayImage
@@ -673,15 +674,20 @@ def registration_evidence(
     image_px: int = 128,
     volume_voxels: int = 128,
     support_margin_mm: float = 4.0,
+    depth: DepthProbe | None = None,
 ) -> Evidence:
     """What the engine can tell about one registration result without a run around it.
 
     ``margin``: the measure's mean margin at ``motion`` over poses perturbed by PERTURB_MM /
     PERTURB_DEG along each of the five parameters (10 DRRs at about ``image_px`` pixels),
-    relative to the measure; ``edges``: the field's edge fraction; ``agreement``: the capture
-    runs' agreement with the result (when ``capture_motions`` are given).
+    relative to the measure; ``rotation_margin``: the smaller margin over the out-of-plane
+    rotations (rx, ry) perturbed by ROTATION_PROBE_DEG (4 DRRs); ``edges``: the field's edge
+    fraction; ``agreement``: the capture runs' agreement with the result (when
+    ``capture_motions`` are given); ``depth``: a
+    :class:`~registration.core.depth.DepthProbe` of the result (its ``shift_mm`` becomes the
+    evidence ``depth_shift_mm``).
     """
-    from registration.core.confidence import PERTURB_DEG, PERTURB_MM, capture_agreement
+    from registration.core.confidence import PERTURB_DEG, PERTURB_MM, ROTATION_PROBE_DEG, capture_agreement
 
     m = check_rigid(motion, name="motion")
     if renderer is None:
@@ -707,11 +713,23 @@ def registration_evidence(
             o[slot] = sign * step
             worst = max(worst, f(offsets_to_matrix(o, geometry) @ m))
         margins.append(f_est - worst)
+    # the out-of-plane rotations (about the view's x and y axes), which one view sees least,
+    # at ROTATION_PROBE_DEG: a wrong local optimum of rx / ry is flat there
+    rotation_margins = []
+    for slot in (3, 4):
+        worst = -math.inf
+        for sign in (1.0, -1.0):
+            o = np.zeros(6)
+            o[slot] = sign * ROTATION_PROBE_DEG
+            worst = max(worst, f(offsets_to_matrix(o, geometry) @ m))
+        rotation_margins.append(f_est - worst)
     agreement = None
     if capture_motions:
         agreement = capture_agreement([np.asarray(c) for c in capture_motions], m, geometry.isocenter_mm)
     return Evidence(
         margin=float(np.mean(margins)) / max(abs(f_est), 1e-12),
+        rotation_margin=float(min(rotation_margins)) / max(abs(f_est), 1e-12),
         agreement=agreement,
         edges=edge_fraction(lv.image, lv.mask),
+        depth_shift_mm=None if depth is None else float(depth.shift_mm),
     )

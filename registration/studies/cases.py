@@ -146,7 +146,10 @@ def confidence_fields(
 
     ``xray``: the view, or the views of a biplane registration (margins and edges averaged
     over the planes); ``single_plane_motion``: plane A's own single-view estimate, whose
-    in-plane disagreement with the biplane estimate is the planes' agreement.
+    in-plane disagreement with the biplane estimate is the planes' agreement. A single-plane
+    (five-parameter) result is also probed along the beam
+    (:func:`registration.core.depth.depth_probe`); the probe's outcome is the field
+    ``depth_probe`` (its pose is not applied: the studies score it beside the result).
     """
     from dataclasses import replace as _replace
 
@@ -159,6 +162,13 @@ def confidence_fields(
     start = time.perf_counter()
     views = list(xray) if isinstance(xray, (list, tuple)) else [xray]
     motion = result.patient_motion  # type: ignore[attr-defined]
+    probe = None
+    if len(views) == 1 and "tz" not in tuple(getattr(result, "parameters", ()) or ()):
+        from registration.core.depth import depth_probe
+        from registration.core.drr import DRRRenderer as _Renderer
+
+        renderer = renderer if renderer is not None else _Renderer(volume, levels=3)
+        probe = depth_probe(renderer, views[0], _np.asarray(motion))  # type: ignore[arg-type]
     per_view = [
         registration_evidence(
             volume,
@@ -166,12 +176,16 @@ def confidence_fields(
             motion,
             renderer=renderer,
             capture_motions=getattr(result, "capture_motions", None),
+            depth=probe,
         )
         for v in views
     ]
     evidence = _replace(
         per_view[0],
         margin=float(_np.mean([e.margin for e in per_view])),
+        # calibrated on single-plane registrations only (two views see the out-of-plane
+        # rotations of each other's frame)
+        rotation_margin=per_view[0].rotation_margin if len(per_view) == 1 else None,
         edges=float(_np.mean([e.edges for e in per_view])),
     )
     if single_plane_motion is not None:
@@ -187,6 +201,7 @@ def confidence_fields(
         "withheld_reason": assessment.reason,
         "confidence_evidence": evidence.to_dict(),
         "confidence_seconds": time.perf_counter() - start,
+        **({"depth_probe": probe.to_dict()} if probe is not None else {}),
     }
 
 

@@ -468,6 +468,7 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
     result = register(
         data.volume, xray, initial_motion=offset, truth=np.eye(4), seed=case.seed, options=options, renderer=renderer
     )
+    confidence = confidence_fields(data.volume, xray, result, renderer)
     return {
         "patient": case.patient,
         "phantom_seed": case.phantom_seed,
@@ -482,7 +483,27 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
         "volume_voxels": case.volume_voxels,
         "projections": case.projections,
         "version": __version__,
-        **confidence_fields(data.volume, xray, result, renderer),
+        "patient_motion": np.asarray(result.patient_motion).tolist(),
+        **confidence,
+        **depth_fields(confidence, np.eye(4), geometry),
+    }
+
+
+def depth_fields(confidence: dict, truth: NDArray[np.float64], geometry: CArm) -> dict:
+    """The depth probe's pose (six parameters, from the five-parameter result) scored against the
+    truth like the result: what a single-plane registration that ends by letting tz move would
+    give (``depth_*`` residuals; the record's own success stays the result's)."""
+    from registration.core.metrics import residuals
+
+    probe = confidence.get("depth_probe")
+    if probe is None:
+        return {}
+    r = residuals(np.asarray(probe["motion"]), truth, geometry)
+    return {
+        "depth_inplane_residual_mm": r.inplane_mm,
+        "depth_outofplane_residual_mm": r.outofplane_mm,
+        "depth_rotation_residual_deg": r.rotation_deg,
+        "depth_success": bool(r.inplane_mm < 1.0 and r.rotation_deg < 3.0),
     }
 
 
