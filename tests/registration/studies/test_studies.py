@@ -271,3 +271,28 @@ def test_cli_quick_json(tmp_path: Path, monkeypatch, capsys):
     assert summary["runs"] == 1 and summary["seed"] == 5
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1  # resumed: nothing ran
     assert (tmp_path / "report.html").exists()
+
+
+def test_confidence_section_counts_decisions_reasons_and_the_depth_probe(tmp_path: Path):
+    from registration.studies.report import applied_summary, confidence_section
+
+    # (in-plane mm, rotation deg, applied, reason, probe's in-plane mm)
+    rows = [(0.2, 0.5, True, "", 0.1), (0.4, 0.3, True, "", 0.9), (1.2, 0.4, True, "", 0.3),
+            (0.5, 5.0, False, "flat", 0.5), (0.9, 0.2, False, "beam", 1.1), (2.5, 0.1, False, "beam", 0.4)]  # fmt: skip
+    records = [
+        {"case_id": f"c{i}", "inplane_residual_mm": e, "rotation_residual_deg": d, "success": e < 1 and d < 3,
+         "applied": a, "confidence": 0.9 if a else 0.1, "withheld_reason": why, "depth_inplane_residual_mm": p,
+         "depth_success": p < 1 and d < 3}
+        for i, (e, d, a, why, p) in enumerate(rows)
+    ]  # fmt: skip
+    s = applied_summary(records)
+    # 3 applied, 2 of them right; 3 right in all (c0, c1, c4), 2 of them applied
+    assert s["applied_precision"] == pytest.approx(2 / 3) and s["applied_recall"] == pytest.approx(2 / 3)
+    assert s["applied_wrong"] == ["c2"] and s["max_inplane_error_applied_mm"] == pytest.approx(1.2)
+    assert s["applied_worse_than_2mm"] == 0
+    md = confidence_section(records, tmp_path, {}, "test")
+    assert "| c2 | 1.20 | 0.40 | 0.90 |" in md  # the applied miss, listed
+    assert "| beam | 2 | 1 |" in md and "| flat | 1 | 0 |" in md  # reasons: estimates, of them right
+    # the probe's pose: c2 and c5 fixed (0.3, 0.4 mm), c4 broken (1.1 mm): 4 of 6 succeed against 3
+    assert "66.7 % successful against 50.0 % (2 failures it would fix, 1 successes it would break)" in md
+    assert (tmp_path / "roc.png").stat().st_size > 0
