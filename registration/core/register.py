@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from registration.core.anneal import AnnealResult, AnnealState, PolishState, Schedule, anneal, polish
 from registration.core.checks import check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import CArm, check_rigid
+from registration.core.geometry import CArm, check_rigid, invert_rigid, rotation_angle_deg
 from registration.core.images import XRayImage
 from registration.core.metrics import Residual, residuals
 from registration.core.prepare import Reach, prepare_volume
@@ -120,6 +120,30 @@ class RegistrationOptions:
     #: offset along plane B's beam (tx 24 mm off with two and with four capture runs).
     #: Progress then numbers that capture level 0 and the levels after it from 1.
     plane_a_capture: bool = True
+    #: With two or more views (six parameters): each of the first two planes first runs its own
+    #: single-plane capture (five parameters in its own view frame, the first level), both side
+    #: by side on the cores; plane B's in-plane estimate holds plane A's tz and plane A's holds
+    #: plane B's, so the two combine geometrically into a six-parameter start (each plane's
+    #: estimate counts for what its image shows: translation across its beam, rotation about
+    #: it; :func:`combine_plane_estimates`). ``plane_capture_runs`` capture runs per plane;
+    #: every pairing of a plane A and a plane B run is scored on both planes and the best one
+    #: starts the pair's levels (``pair_levels``). Where the two planes' estimates disagree on
+    #: what both see (:data:`PLANES_AGREE_MM`, :data:`PLANES_AGREE_DEG`: one capture traded a
+    #: rotation for a translation, e.g. plane A 12 deg and 35 mm off on a 25 mm moment) the
+    #: pair's own capture level runs instead, from the best pairing and from each plane's
+    #: estimate alone, then ``levels[1:]``. Replaces ``plane_a_capture`` when True: 950 DRRs
+    #: for a pair whose planes agree (1,940 before), 2,358 when they do not.
+    plane_captures: bool = True
+    plane_capture_runs: int = 2
+    #: With ``plane_captures`` and agreeing planes: the pair's levels after the capture (None:
+    #: ``levels[1:]``; each with the support margin of the level after the capture) and the
+    #: pair's polish budget (None: ``polish_evaluations``). By default the combined start goes
+    #: straight to the polish: it lies within about 1 mm and 1 deg (two planes, each across
+    #: the other's beam), which Powell's 60 evaluations close (the 27 cm study's moments 1-6:
+    #: 0.05-0.44 mm, 0.06-0.34 deg, as with the 128 px annealing level between, 178 DRRs
+    #: more); a 40-45 evaluation polish left up to 0.6-1.1 deg.
+    pair_levels: tuple[Level, ...] | None = ()
+    pair_polish_evaluations: int | None = None
 
     def __post_init__(self) -> None:
         if not self.levels:
@@ -138,6 +162,8 @@ class RegistrationOptions:
                 raise ValueError("support_margin_mm needs one margin per level plus one for the polish")
             if any(not math.isfinite(m) or m < 0 for m in self.support_margin_mm):
                 raise ValueError(f"support margins must be >= 0 mm, got {self.support_margin_mm}")
+        if self.plane_capture_runs < 1:
+            raise ValueError(f"plane_capture_runs must be >= 1, got {self.plane_capture_runs}")
         if self.multi_view_restarts is not None and self.multi_view_restarts < 1:
             raise ValueError(f"multi_view_restarts must be >= 1, got {self.multi_view_restarts}")
         if not self.polish_step_mm > 0 or not self.polish_step_deg > 0:
@@ -324,9 +350,13 @@ class _Monitor:
             return True
 
     def report(
-        self, level: int, temperature: float, x: Array, f: float, best_x: Array, best_f: float, chain: int
-    ) -> bool:
-        """One iteration of one run; True when the registration is to stop."""
+        self, level: int, temperature: float, x: Array, f: float, best_x: Array, best_f: float, chain: int,
+        space: SearchSpace | None = None,
+    ) -> bool:  # fmt: skip
+        """One iteration of one run (in ``space``, the monitor's by default); True to stop."""
+        if space is not None and space is not self.space:
+            # a single-plane capture run in another plane's frame: shown in the monitor's space
+            x, best_x = self.space.from_motion(space.motion(x)), self.space.from_motion(space.motion(best_x))
         with self.lock:
             if self._level != level:
                 self._level, self._best, self._temperatures = level, None, {}
@@ -376,12 +406,14 @@ def _anneal_level(
     space: SearchSpace,
     level: Level,
     stage: int,
-    x_start: Array,
+    x_start: Array | list[Array],
     rng: np.random.Generator,
     monitor: _Monitor,
     threads: int | None,
 ) -> AnnealResult:
-    """The level's capture runs from ``x_start``; the best of them."""
+    """The level's capture runs from ``x_start`` (or run ``c`` from ``x_start[c % len]``); the
+    best of them."""
+    starts = x_start if isinstance(x_start, list) else [x_start]
     bounds = space.bounds
     schedule = replace(level.schedule, step=tuple(space.per_parameter(level.schedule.step)))
 
@@ -390,7 +422,8 @@ def _anneal_level(
             return monitor.report(stage, s.temperature, s.x, s.fun, s.best_x, s.best_fun, chain)
 
         cost = _cost(problem, space, monitor, parallel)
-        return anneal(cost, x_start, bounds, rng=chain_rng, schedule=schedule, callback=on_iteration)
+        x0 = starts[chain % len(starts)]
+        return anneal(cost, x0, bounds, rng=chain_rng, schedule=schedule, callback=on_iteration)
 
     if level.restarts == 1:
         return run(0, rng, None)
@@ -433,6 +466,143 @@ def _plane_a_capture(
     finally:
         monitor.space = space
     return space.from_offsets(five.offsets(best.x)), math.inf
+
+
+def _plane_captures(
+    inputs: Inputs, space: SearchSpace, options: RegistrationOptions, rng: np.random.Generator, monitor: _Monitor
+) -> tuple[list[Array], float]:
+    """Each of the first two planes' own single-plane capture, side by side, combined into the
+    start of the pair's six-parameter search (:attr:`RegistrationOptions.plane_captures`) and its
+    cost. When the planes disagree (:func:`plane_disagreement`) the starts of the pair's capture
+    level instead (three: the best pairing, each plane's estimate alone)."""
+    level = options.levels[0]
+    runs = options.plane_capture_runs
+    planes = inputs.views[:2]
+    spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg)
+              for v in planes]  # fmt: skip
+    problems = [
+        LevelProblem.prepare(inputs.renderer, (v,), image_px=level.image_px, volume_level=level.volume_level,
+                             motion=inputs.initial_motion, margin_mm=options.margin_mm(0))  # fmt: skip
+        for v in planes
+    ]
+    jobs = [(p, c) for p in range(len(planes)) for c in range(runs)]
+    streams = rng.spawn(len(jobs))
+
+    def run(job: int) -> AnnealResult:
+        plane, _ = jobs[job]
+        sp = spaces[plane]
+        schedule = replace(level.schedule, step=tuple(sp.per_parameter(level.schedule.step)))
+
+        def on_iteration(s: AnnealState) -> bool:
+            return monitor.report(0, s.temperature, s.x, s.fun, s.best_x, s.best_fun, job, sp)
+
+        cost = _cost(problems[plane], sp, monitor, False)
+        return anneal(cost, sp.start(), sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
+
+    workers = max(1, min(len(jobs), options.threads or os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(run, range(len(jobs))))
+    if monitor.stopped:
+        return [space.start()], math.inf
+    ends = [spaces[plane].motion(r.x) for (plane, _), r in zip(jobs, results, strict=True)]
+    per_plane = [[m for (plane, _), m in zip(jobs, ends, strict=True) if plane == p] for p in range(len(planes))]
+    geometries = (planes[0].geometry, planes[1].geometry)
+    pairs = [(a, b) for a in per_plane[0] for b in per_plane[1]]
+    candidates = [combine_plane_estimates(inputs.initial_motion, ab, geometries) for ab in pairs]
+    # Every pairing scored on both planes at the capture's resolution; the best starts the pair.
+    pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
+                                volume_level=level.volume_level, motion=inputs.initial_motion,
+                                margin_mm=options.margin_mm(0))  # fmt: skip
+    cost = _cost(pair, space, monitor, None)
+    xs = [space.from_motion(m) for m in candidates]
+    xs = [np.clip(x, space.bounds[:, 0], space.bounds[:, 1]) for x in xs]
+    fs = [cost(x) for x in xs]
+    monitor.captures = [space.motion(x) for x in xs]
+    best = int(np.argmin(fs))
+    shared_mm, rotation_deg = plane_disagreement(pairs[best], geometries)
+    if shared_mm <= PLANES_AGREE_MM and rotation_deg <= PLANES_AGREE_DEG:
+        return [xs[best]], fs[best]
+    # One plane's capture failed, and which one cannot be told: the pair's capture runs start
+    # from the best pairing and from each plane's own estimate alone (the other plane's
+    # out-of-plane offset at the initial pose), one run each.
+    alone = [np.clip(space.from_motion(m), space.bounds[:, 0], space.bounds[:, 1]) for m in pairs[best]]
+    return [xs[best], *alone], fs[best]
+
+
+#: The two planes' captures agree when their estimates of the displacement both images show
+#: (across both beams) differ by at most this (mm) and their rotations by at most this (deg);
+#: otherwise one capture failed and the pair's own capture level runs.
+PLANES_AGREE_MM = 3.0
+PLANES_AGREE_DEG = 4.0
+
+
+def plane_disagreement(motions: tuple[Array, Array], geometries: tuple[CArm, CArm]) -> tuple[float, float]:
+    """How far two planes' single-plane estimates of one moment disagree on what both can see:
+    the iso-center's displacement across both beams (mm) and the rotation between them (deg)."""
+    iso = np.asarray(geometries[0].isocenter_mm, dtype=np.float64)
+    a, b = (np.asarray(m, dtype=np.float64) for m in motions)
+    shared = np.cross(geometries[0].direction, geometries[1].direction)
+    norm = float(np.linalg.norm(shared))
+    diff = (a[:3, :3] @ iso + a[:3, 3]) - (b[:3, :3] @ iso + b[:3, 3])
+    shared_mm = abs(float(diff @ shared)) / norm if norm > 1e-9 else float(np.linalg.norm(diff))
+    return shared_mm, rotation_angle_deg(a @ invert_rigid(b))
+
+
+def combine_plane_estimates(
+    initial_motion: Array, motions: tuple[Array, Array], geometries: tuple[CArm, CArm]
+) -> Array:
+    """One patient motion from two single-plane (five-parameter) estimates of one moment.
+
+    Each plane's estimate is trusted for what its image shows: the iso-center's displacement
+    across its beam (along the beam it kept the initial pose), the rotation about its beam
+    fully and the rotations about axes across it at half weight (a view sees those only as
+    perspective changes). The iso-center's displacement solves
+    ``(P_a + P_b) t = P_a e_a + P_b e_b`` (``P`` the projection across a beam, ``e`` a plane's
+    displacement): exact when the beams are not parallel. The rotation vectors combine by the
+    same weighted least squares. Rotation is about the iso-center (both planes share it).
+    """
+    iso = np.asarray(geometries[0].isocenter_mm, dtype=np.float64)
+    inv0 = invert_rigid(initial_motion)
+    lhs_t, rhs_t, lhs_r, rhs_r = np.zeros((3, 3)), np.zeros(3), np.zeros((3, 3)), np.zeros(3)
+    for motion, geometry in zip(motions, geometries, strict=True):
+        delta = np.asarray(motion, dtype=np.float64) @ inv0
+        d = np.asarray(geometry.direction, dtype=np.float64)
+        across = np.eye(3) - np.outer(d, d)
+        e = delta[:3, :3] @ iso + delta[:3, 3] - iso
+        lhs_t += across
+        rhs_t += across @ e
+        weight = np.outer(d, d) + ROTATION_ACROSS_WEIGHT * across
+        lhs_r += weight
+        rhs_r += weight @ _rotation_vector(delta[:3, :3])
+    t = np.linalg.solve(lhs_t, rhs_t)
+    rot = _rotation_matrix(np.linalg.solve(lhs_r, rhs_r))
+    delta = np.eye(4)
+    delta[:3, :3] = rot
+    delta[:3, 3] = iso + t - rot @ iso
+    return delta @ np.asarray(initial_motion, dtype=np.float64)
+
+
+#: Weight of a single plane's rotations about axes across its beam (against 1 about it).
+ROTATION_ACROSS_WEIGHT = 0.5
+
+
+def _rotation_vector(r: Array) -> Array:
+    """Axis times angle (radians) of a 3x3 rotation."""
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1.0) / 2.0)))
+    if angle < 1e-12:
+        return np.zeros(3)
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2.0 * math.sin(angle))
+    return axis * angle
+
+
+def _rotation_matrix(v: Array) -> Array:
+    """Rodrigues: the rotation of axis-angle vector ``v`` (radians)."""
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = v / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * kx @ kx
 
 
 def register(
@@ -494,21 +664,46 @@ def register(
         return LevelProblem.prepare(inputs.renderer, inputs.views, image_px=image_px, volume_level=volume_level,
                                     motion=space.motion(x), margin_mm=options.margin_mm(stage))  # fmt: skip
 
-    shown = 0  # the level number Progress shows
-    if len(inputs.views) > 1 and space.optimizes_tz and options.plane_a_capture:
+    # (index into the options' levels and support margins, level); Progress numbers them in order
+    stages: list[tuple[int, Level]] = list(enumerate(options.levels))
+    starts: list[Array] = [x]
+    shown = 0  # the level number Progress shows for the first of ``stages``
+    multi = len(inputs.views) > 1 and space.optimizes_tz
+    if multi and options.plane_captures:
+        starts, f = _plane_captures(inputs, space, options, rng, monitor)
+        x = starts[0]
+        if len(starts) == 1:
+            # the planes agree: the capture level is done, the pair's levels follow
+            if options.pair_levels is not None:
+                last = len(options.levels) - 1
+                stages = [(min(1 + n, last), lv) for n, lv in enumerate(options.pair_levels)]
+            else:
+                stages = stages[1:]
+        else:
+            # they do not: the pair's own capture level, one run from each start
+            stages[0] = (0, replace(options.levels[0], restarts=len(starts)))
+        shown = 1
+    elif multi and options.plane_a_capture:
         x, f = _plane_a_capture(inputs, space, options, rng, monitor)
         shown = 1
-    for stage, level in enumerate(options.levels):
+    for n, (stage, level) in enumerate(stages):
         if monitor.stopped:
             break
         problem = prepare(level.image_px, level.volume_level, stage)
-        level = replace(level, restarts=options.capture_runs(level, len(inputs.views)))
-        best = _anneal_level(problem, space, level, stage + shown, x, rng, monitor, options.threads)
+        begin: Array | list[Array] = x
+        if n == 0 and len(starts) > 1:
+            begin = starts
+        else:
+            level = replace(level, restarts=options.capture_runs(level, len(inputs.views)))
+        best = _anneal_level(problem, space, level, shown + n, begin, rng, monitor, options.threads)
         x, f = best.x, best.fun
     if options.polish and not monitor.stopped:
         stage = len(options.levels)
-        best = _polish(prepare(options.polish_image_px, options.polish_volume_level, stage), space, stage + shown, x,
-                       options, monitor)  # fmt: skip
+        polish_options = options
+        if multi and options.plane_captures and options.pair_polish_evaluations is not None:
+            polish_options = replace(options, polish_evaluations=options.pair_polish_evaluations)
+        best = _polish(prepare(options.polish_image_px, options.polish_volume_level, stage), space,
+                       shown + len(stages), x, polish_options, monitor)  # fmt: skip
         x, f = best.x, best.fun
     return _result(inputs, space, x, f, monitor, vessel_points_mm, time.perf_counter() - start)
 

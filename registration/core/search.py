@@ -16,7 +16,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.core.geometry import OFFSET_NAMES, CArm, rigid, rotation_x, rotation_y, rotation_z
+from registration.core.geometry import (
+    OFFSET_NAMES,
+    CArm,
+    invert_rigid,
+    matrix_to_offsets,
+    rigid,
+    rotation_x,
+    rotation_y,
+    rotation_z,
+)
 
 Array = NDArray[np.float64]
 
@@ -113,6 +122,12 @@ class SearchSpace:
         """The parameter vector of six view-frame offsets (tz dropped by a five-parameter space)."""
         o = np.asarray(offsets, dtype=np.float64).reshape(6)
         return o.copy() if self.optimizes_tz else o[[0, 1, 3, 4, 5]].copy()
+
+    def from_motion(self, motion: ArrayLike) -> Array:
+        """The parameter vector nearest a patient motion (4x4): its offsets from the initial
+        motion in the frame's view frame (tz dropped by a five-parameter space)."""
+        relative = np.asarray(motion, dtype=np.float64) @ invert_rigid(self.initial_motion)
+        return self.from_offsets(matrix_to_offsets(relative, self.frame))
 
     def as_dict(self, x: ArrayLike) -> dict[str, float]:
         """The parameter vector by name (the JSON form of a result's offsets)."""

@@ -217,6 +217,34 @@ def case_views(case: BiplaneCase, volume: Volume, motion: np.ndarray) -> tuple[A
     return shot.views, source
 
 
+def case_renderers(case: BiplaneCase, volume: Volume, views: Any, options: RegistrationOptions) -> tuple[Any, float]:
+    """(biplane, single-plane, evidence) renderers of the case and the seconds preparing them.
+
+    Phantom 3DRAs: one index pyramid prepared once per volume, as the other phantom studies
+    (:func:`registration.studies.cases.prepared_renderer`). A real CT goes through the
+    real-volume path, as ``roadmap3d register`` does: :func:`registration.core.prepare.prepare_volume`
+    crops it to what the planes' fields can reach over the search and builds its levels in mm,
+    once for the pair and once for plane A alone (each case has its own angles); the seconds
+    are the pair's. The confidence's evidence renders from the pair's prepared levels.
+    """
+    if case.ct_path is None:
+        from registration.studies.cases import prepared_renderer
+
+        renderer, seconds = prepared_renderer(volume)
+        return (renderer, renderer, renderer), seconds
+    import time
+
+    from registration.core.drr import DRRRenderer
+    from registration.core.register import prepared_renderer as prepare_for
+
+    start = time.perf_counter()
+    pair = prepare_for(volume, tuple(views), np.eye(4), options)
+    seconds = time.perf_counter() - start
+    single = prepare_for(volume, (views[0],), np.eye(4), options)
+    levels = [pair.level_volume(k) for k in range(pair.n_levels) if pair.has_level(k)]
+    return (pair, single, DRRRenderer(volume, levels=levels)), seconds
+
+
 def _offset_motion(case: BiplaneCase) -> np.ndarray:
     from registration.studies.runs import axis_angle_matrix
 
@@ -239,14 +267,14 @@ def _scores(prefix: str, result: Any) -> dict:
 def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None = None) -> dict:
     """Register the case biplane and, on the same images' plane A, single-plane."""
     from registration.core.register import register
-    from registration.studies.cases import prepared_renderer
 
     volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
     motion = _offset_motion(case)
     views, image_source = case_views(case, volume, motion)
-    renderer, prepare_seconds = prepared_renderer(volume)
-    both = register(volume, list(views), truth=motion, seed=case.seed, options=options, renderer=renderer)
-    single = register(volume, views[0], truth=motion, seed=case.seed, options=options, renderer=renderer)
+    renderers, prepare_seconds = case_renderers(case, volume, views, options or RegistrationOptions())
+    both = register(volume, list(views), truth=motion, seed=case.seed, options=options, renderer=renderers[0])
+    single = register(volume, views[0], truth=motion, seed=case.seed, options=options, renderer=renderers[1])
+    renderer = renderers[2]
     d = views[0].geometry.direction
     t = np.asarray(case.translation_mm)
     record = {

@@ -122,3 +122,67 @@ def test_polish_keeps_its_budget_and_stops_without_exceptions():
     # Stopped after the 5th evaluation: no more cost calls, the best point so far returned.
     assert len(calls) == 5 and stopped.message == "stopped by the callback"
     assert stopped.fun == min(float(np.sum((c - 0.3) ** 2)) for c in calls)
+
+
+def _study_planes():
+    """Plane A (27 cm, 512 px) and plane B (22 cm, 384 px) of the biplane study, near frontal/lateral."""
+    from registration.sim.biplane import BiplaneSystem
+
+    system = BiplaneSystem()
+    return system.plane_a.nominal(8.0, -5.0), system.plane_b.nominal(97.0, 6.0)
+
+
+def test_plane_estimates_combine_into_the_pose_both_planes_see():
+    from registration.core.geometry import invert_rigid, rotation_angle_deg
+    from registration.core.register import combine_plane_estimates, plane_disagreement
+
+    plane_a, plane_b = _study_planes()
+    initial = offsets_to_matrix((0.5, -1.0, 2.0, 0.0, 1.0, 0.0), plane_a)
+    # 24 mm across plane B's beam, 15 mm along plane A's, rotated 6 degrees about a tilted axis.
+    truth = offsets_to_matrix((-24.0, 4.0, 15.0, 3.0, -4.0, 2.5), plane_a) @ initial
+    # What a perfect single-plane (five-parameter) capture of each plane returns: the truth,
+    # but with the iso-center's displacement along its own beam kept at the initial pose's.
+    estimates = []
+    for g in (plane_a, plane_b):
+        x = SearchSpace(g, initial, SIX_PARAMETERS).from_motion(truth)
+        estimates.append(SearchSpace(g, initial, FIVE_PARAMETERS).motion(x[[0, 1, 3, 4, 5]]))
+    combined = combine_plane_estimates(initial, tuple(estimates), (plane_a, plane_b))
+    err = combined @ invert_rigid(truth)
+    # Each plane's along-beam displacement comes from the other: exact to rounding (1e-9 mm).
+    assert np.linalg.norm(err[:3, 3]) < 1e-9 and rotation_angle_deg(err) < 1e-9
+    shared_mm, rotation_deg = plane_disagreement(tuple(estimates), (plane_a, plane_b))
+    assert shared_mm < 1e-9 and rotation_deg < 1e-9
+    # A capture that traded a rotation for a translation disagrees with the other plane by the
+    # rotation (12 deg about plane A's v axis) and, across both beams, by the part of the
+    # translation (30 mm along plane A's u axis) the axis across both beams sees.
+    from registration.core.geometry import rigid, rotation_y
+
+    u, v = plane_a.world_from_view[:3, 0], plane_a.world_from_view[:3, 1]
+    moved = rigid(None, 30.0 * u) @ estimates[0]
+    shared = np.cross(plane_a.direction, plane_b.direction)
+    shared_mm, rotation_deg = plane_disagreement((moved, estimates[1]), (plane_a, plane_b))
+    assert shared_mm == pytest.approx(30.0 * abs(u @ shared) / np.linalg.norm(shared), abs=1e-9)
+    assert rotation_deg < 1e-9
+    p = estimates[0][:3, :3] @ plane_a.isocenter_mm + estimates[0][:3, 3]  # where the iso-center went
+    world_from_view = plane_a.world_from_view[:3, :3]
+    turn = world_from_view @ rotation_y(12.0) @ world_from_view.T  # 12 deg about v
+    turned = rigid(None, p) @ rigid(turn, None) @ rigid(None, -p) @ estimates[0]
+    shared_mm, rotation_deg = plane_disagreement((turned, estimates[1]), (plane_a, plane_b))
+    assert rotation_deg == pytest.approx(12.0, abs=1e-9) and shared_mm < 1e-9
+    assert abs(v @ (turn @ v) - 1.0) < 1e-12  # (v is the rotation's axis)
+
+
+def test_further_planes_are_compared_at_plane_a_resolution():
+    from registration.core.problem import iso_pixel_mm, level_factor, matched_factor
+
+    plane_a, plane_b = _study_planes()
+    voxel_mm = 2.85  # the 27 cm 3DRA's quarter-resolution level (256^3 at 0.71 mm)
+    for image_px in (64, 128):
+        fa = level_factor(plane_a, image_px, voxel_mm)
+        fb = matched_factor(plane_b, image_px, voxel_mm, iso_pixel_mm(plane_a, fa))
+        # Never coarser than plane A's pixel at the iso-center, never finer than plane B's own rule,
+        # and within one block of it (B's 0.57 mm pixels cannot match A's exactly).
+        assert iso_pixel_mm(plane_b, fb) <= iso_pixel_mm(plane_a, fa) * (1 + 1e-6)
+        assert fb >= level_factor(plane_b, image_px, voxel_mm)
+        assert iso_pixel_mm(plane_b, fb + 1) > iso_pixel_mm(plane_a, fa) or plane_b.cols % (fb + 1)
+        assert plane_b.cols // fb == plane_a.cols // fa  # here: the same pixels across (64 and 128)
