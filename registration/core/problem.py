@@ -131,6 +131,11 @@ class PreparedView:
     mask: NDArray[np.bool_]
     measure: GradientDifference
 
+    @property
+    def pixel_at_iso_mm(self) -> float:
+        """The level's pixel at the iso-center (mm)."""
+        return iso_pixel_mm(self.geometry, 1)
+
 
 @dataclass(frozen=True)
 class LevelProblem:
@@ -150,14 +155,20 @@ class LevelProblem:
         volume_level: int,
         motion: Array,
         margin_mm: float | None,
+        pixel_at_iso_mm: float | None = None,
     ) -> LevelProblem:
-        """Downsample each view, mask it to the support seen at ``motion``, set up GD."""
+        """Downsample each view, mask it to the support seen at ``motion``, set up GD.
+
+        The first view's block size follows :func:`level_factor`, further views match its
+        pixel at the iso-center (:func:`matched_factor`); ``pixel_at_iso_mm`` makes every view
+        match that size instead (plane B's own capture at plane A's resolution).
+        """
         level = renderer_level(renderer, volume_level)
         voxel_mm = float(renderer.level_volume(level).spacing_mm.max())
         prepared = []
-        first_pixel_mm = 0.0
+        first_pixel_mm = 0.0 if pixel_at_iso_mm is None else float(pixel_at_iso_mm)
         for n, view in enumerate(views):
-            if n == 0:
+            if n == 0 and pixel_at_iso_mm is None:
                 factor = level_factor(view.geometry, image_px, voxel_mm)
                 first_pixel_mm = iso_pixel_mm(view.geometry, factor)
             else:

@@ -332,7 +332,7 @@ class _Monitor:
         self.iteration = 0
         self.trace: list[float] = []
         self._level = -1
-        self._best: tuple[float, Array] | None = None
+        self._best: tuple[float, Array, SearchSpace] | None = None
         self._temperatures: dict[int, float] = {}
         #: Where the first level's capture runs ended (motions): the confidence's agreement.
         self.captures: list[Array] = []
@@ -354,16 +354,14 @@ class _Monitor:
         space: SearchSpace | None = None,
     ) -> bool:  # fmt: skip
         """One iteration of one run (in ``space``, the monitor's by default); True to stop."""
-        if space is not None and space is not self.space:
-            # a single-plane capture run in another plane's frame: shown in the monitor's space
-            x, best_x = self.space.from_motion(space.motion(x)), self.space.from_motion(space.motion(best_x))
+        run_space = space or self.space  # a plane's own capture runs in its own frame
         with self.lock:
             if self._level != level:
                 self._level, self._best, self._temperatures = level, None, {}
             if self._best is None or best_f < self._best[0]:
-                self._best = (best_f, best_x)
+                self._best = (best_f, best_x, run_space)
             self._temperatures[chain] = temperature
-            best_f, best_x = self._best
+            best_f, best_x, best_space = self._best
             self.iteration += 1
             self.trace.append(-best_f)
             if self.stop.is_set():
@@ -374,8 +372,8 @@ class _Monitor:
                 iteration=self.iteration,
                 level=level,
                 temperature=max(self._temperatures.values()),
-                current_motion=self.space.motion(x),
-                best_motion=self.space.motion(best_x),
+                current_motion=run_space.motion(x),
+                best_motion=best_space.motion(best_x),
                 current_similarity=-f,
                 best_similarity=-best_f,
                 drr_count=self.drr_count,
@@ -480,10 +478,16 @@ def _plane_captures(
     planes = inputs.views[:2]
     spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg)
               for v in planes]  # fmt: skip
-    problems = [
+    # plane B's capture compares its image at plane A's pixel size at the iso-center, as the pair does
+    problems = [LevelProblem.prepare(inputs.renderer, planes[:1], image_px=level.image_px,
+                                     volume_level=level.volume_level, motion=inputs.initial_motion,
+                                     margin_mm=options.margin_mm(0))]  # fmt: skip
+    pixel_mm = problems[0].views[0].pixel_at_iso_mm
+    problems += [
         LevelProblem.prepare(inputs.renderer, (v,), image_px=level.image_px, volume_level=level.volume_level,
-                             motion=inputs.initial_motion, margin_mm=options.margin_mm(0))  # fmt: skip
-        for v in planes
+                             motion=inputs.initial_motion, margin_mm=options.margin_mm(0),
+                             pixel_at_iso_mm=pixel_mm)  # fmt: skip
+        for v in planes[1:]
     ]
     jobs = [(p, c) for p in range(len(planes)) for c in range(runs)]
     streams = rng.spawn(len(jobs))
