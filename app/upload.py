@@ -419,7 +419,10 @@ def _read_run(path: Path, _folder: Path, name: str, _max_bytes: int) -> ReadRun:
             f"{name}: {len(run)} frames of {first.rows} x {first.cols} pixels decode to {decoded / 1024**2:.0f} MB, "
             f"over Play run's limit of {MAX_RUN_DECODED_BYTES / 1024**2:.0f} MB"
         )
-    return ReadRun(run.frames(), np.asarray(run.times_s, np.float64), run.times_from)
+    frames = run.frames()
+    for frame in frames:  # the sandbox's temporary copy is gone once read: the frames name the upload
+        frame.meta["source"] = name
+    return ReadRun(frames, np.asarray(run.times_s, np.float64), run.times_from)
 
 
 def read_run_upload(

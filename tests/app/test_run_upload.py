@@ -84,6 +84,7 @@ def test_hostile_runs_are_refused_by_the_panels_handler(fresh: RoadmapApp, tmp_p
     # the server goes on: a genuine run still reads after all of them
     assert fresh.playback.load_run("good.dcm", raw)
     assert len(fresh.playback.user_run.frames) == 4
+    assert {f.meta["source"] for f in fresh.playback.user_run.frames} == {"good.dcm"}  # not the deleted copy
     fresh.playback.use_phantom_run()
 
 
