@@ -128,6 +128,11 @@ class Presenter:
         else:
             self._followed = pose
 
+    @property
+    def followed(self) -> FollowedPose | None:
+        """The played run's frame the scene follows, or None (the scene shows the session)."""
+        return self._followed
+
     def start(self) -> None:
         self.present()  # first frame before the loop starts (and before the URL is used)
         self._thread.start()
