@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from registration.core.anneal import AnnealResult, AnnealState, PolishState, Schedule, anneal, polish
 from registration.core.checks import check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import CArm, check_rigid, invert_rigid, rotation_angle_deg
+from registration.core.geometry import CArm, check_rigid, invert_rigid, rigid, rotation_angle_deg
 from registration.core.images import XRayImage
 from registration.core.metrics import Residual, residuals
 from registration.core.prepare import Reach, prepare_volume
@@ -126,13 +126,15 @@ class RegistrationOptions:
     #: plane B's, so the two combine geometrically into a six-parameter start (each plane's
     #: estimate counts for what its image shows: translation across its beam, rotation about
     #: it; :func:`combine_plane_estimates`). ``plane_capture_runs`` capture runs per plane;
-    #: every pairing of a plane A and a plane B run is scored on both planes and the best one
-    #: starts the pair's levels (``pair_levels``). Where the two planes' estimates disagree on
-    #: what both see (:data:`PLANES_AGREE_MM`, :data:`PLANES_AGREE_DEG`: one capture traded a
-    #: rotation for a translation, e.g. plane A 12 deg and 35 mm off on a 25 mm moment) the
-    #: pair's own capture level runs instead, from the best pairing and from each plane's
-    #: estimate alone, then ``levels[1:]``. Replaces ``plane_a_capture`` when True: 950 DRRs
-    #: for a pair whose planes agree (1,940 before), 2,358 when they do not.
+    #: each plane's best run (its own measure) counts and their combination starts the pair's
+    #: levels (``pair_levels``). Where the two disagree on what both see
+    #: (:data:`PLANES_AGREE_MM`, :data:`PLANES_AGREE_DEG`: a capture traded a rotation for a
+    #: translation, e.g. plane A 12 deg and 35 mm off on a 25 mm moment, both its runs alike)
+    #: another round of runs follows, each plane starting from the other's best estimate, spread
+    #: +- :data:`CROSS_START_MM` along the other's beam (up to :data:`PLANE_CAPTURE_ROUNDS`);
+    #: without agreement the pair's own capture level runs, then ``levels[1:]``. Replaces
+    #: ``plane_a_capture`` when True: ~950 DRRs when the planes agree at once (1,940 before),
+    #: ~1,770 after a second round, ~2,590 after a third.
     plane_captures: bool = True
     plane_capture_runs: int = 2
     #: With ``plane_captures`` and agreeing planes: the pair's levels after the capture (None:
@@ -471,8 +473,10 @@ def _plane_captures(
 ) -> tuple[list[Array], float]:
     """Each of the first two planes' own single-plane capture, side by side, combined into the
     start of the pair's six-parameter search (:attr:`RegistrationOptions.plane_captures`) and its
-    cost. When the planes disagree (:func:`plane_disagreement`) the starts of the pair's capture
-    level instead (three: the best pairing, each plane's estimate alone)."""
+    cost. Each plane's best estimate (lowest cost of its own measure) counts; when the two
+    disagree (:func:`plane_disagreement`) another round follows, cross-seeded; after
+    :data:`PLANE_CAPTURE_ROUNDS` rounds without agreement, the starts of the pair's capture level
+    instead (three: the bests' combination, each plane's best alone)."""
     level = options.levels[0]
     runs = options.plane_capture_runs
     planes = inputs.views[:2]
@@ -489,11 +493,78 @@ def _plane_captures(
                              pixel_at_iso_mm=pixel_mm)  # fmt: skip
         for v in planes[1:]
     ]
-    jobs = [(p, c) for p in range(len(planes)) for c in range(runs)]
+    geometries = (planes[0].geometry, planes[1].geometry)
+    pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
+                                volume_level=level.volume_level, motion=inputs.initial_motion,
+                                margin_mm=options.margin_mm(0))  # fmt: skip
+    cost = _cost(pair, space, monitor, None)
+    per_plane: list[list[Array]] = [[] for _ in planes]
+    single_costs: list[list[float]] = [[] for _ in planes]
+    starts = [[sp.start()] * runs for sp in spaces]
+    for _round in range(PLANE_CAPTURE_ROUNDS):
+        for plane, motion, f_plane in _capture_planes(problems, spaces, level, starts, rng, monitor, options.threads):
+            per_plane[plane].append(motion)
+            single_costs[plane].append(f_plane)
+        if monitor.stopped:
+            return [space.start()], math.inf
+        # Each plane's estimate of lowest cost (its own measure) so far: where those two agree,
+        # their combination starts the pair.
+        best = [int(np.argmin(c)) for c in single_costs]
+        ends = (per_plane[0][best[0]], per_plane[1][best[1]])
+        x = space.from_motion(combine_plane_estimates(inputs.initial_motion, ends, geometries))
+        x = np.clip(x, space.bounds[:, 0], space.bounds[:, 1])
+        monitor.captures = [combine_plane_estimates(inputs.initial_motion, (a, b), geometries)
+                            for a in per_plane[0][-runs:] for b in per_plane[1][-runs:]]  # fmt: skip
+        shared_mm, rotation_deg = plane_disagreement(ends, geometries)
+        if shared_mm <= PLANES_AGREE_MM and rotation_deg <= PLANES_AGREE_DEG:
+            return [x], cost(x)
+        # They do not: a capture traded a rotation for a translation (both runs of a plane can
+        # fall into the same wrong basin). Another round, each plane's runs now starting from
+        # the other plane's best estimate (its rotation and the displacement both see): the
+        # plane that failed starts near the right rotation.
+        # What the other plane cannot see (the displacement along its beam) is spread over the
+        # runs: +- CROSS_START_MM along it, the rest of the start from its estimate of lowest cost.
+        starts = []
+        for p in range(2):
+            other = best[1 - p]
+            along = np.asarray(geometries[1 - p].direction, dtype=np.float64)
+            along = along - (along @ geometries[p].direction) * np.asarray(geometries[p].direction)
+            along /= max(float(np.linalg.norm(along)), 1e-12)
+            shifts = np.linspace(-CROSS_START_MM, CROSS_START_MM, runs) if runs > 1 else np.zeros(1)
+            starts.append([
+                np.clip(spaces[p].from_motion(rigid(None, t * along) @ per_plane[1 - p][other]),
+                        spaces[p].bounds[:, 0], spaces[p].bounds[:, 1])
+                for t in shifts
+            ])  # fmt: skip
+    # Still none: the pair's capture runs start from the bests' combination and from each
+    # plane's best estimate alone (the other plane's out-of-plane offset at the initial pose).
+    alone = [np.clip(space.from_motion(m), space.bounds[:, 0], space.bounds[:, 1]) for m in ends]
+    return [x, *alone], cost(x)
+
+
+#: Rounds of plane captures (each ``plane_capture_runs`` runs per plane) before the pair's own
+#: capture level is run instead: a round whose pairings all disagree is followed by another.
+PLANE_CAPTURE_ROUNDS = 3
+#: The second round's runs start this far either side (mm) along the other plane's beam.
+CROSS_START_MM = 12.0
+
+
+def _capture_planes(
+    problems: list[LevelProblem],
+    spaces: list[SearchSpace],
+    level: Level,
+    starts: list[list[Array]],
+    rng: np.random.Generator,
+    monitor: _Monitor,
+    threads: int | None,
+) -> list[tuple[int, Array, float]]:
+    """Single-plane capture runs, one per start of each plane (``starts[plane]``, parameter
+    vectors in its space), all side by side: (plane, end motion, its cost) each."""
+    jobs = [(p, c) for p in range(len(problems)) for c in range(len(starts[p]))]
     streams = rng.spawn(len(jobs))
 
     def run(job: int) -> AnnealResult:
-        plane, _ = jobs[job]
+        plane, chain = jobs[job]
         sp = spaces[plane]
         schedule = replace(level.schedule, step=tuple(sp.per_parameter(level.schedule.step)))
 
@@ -501,36 +572,13 @@ def _plane_captures(
             return monitor.report(0, s.temperature, s.x, s.fun, s.best_x, s.best_fun, job, sp)
 
         cost = _cost(problems[plane], sp, monitor, False)
-        return anneal(cost, sp.start(), sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
+        x0 = starts[plane][chain]
+        return anneal(cost, x0, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
 
-    workers = max(1, min(len(jobs), options.threads or os.cpu_count() or 1))
+    workers = max(1, min(len(jobs), threads or os.cpu_count() or 1))
     with ThreadPoolExecutor(max_workers=workers) as pool:
         results = list(pool.map(run, range(len(jobs))))
-    if monitor.stopped:
-        return [space.start()], math.inf
-    ends = [spaces[plane].motion(r.x) for (plane, _), r in zip(jobs, results, strict=True)]
-    per_plane = [[m for (plane, _), m in zip(jobs, ends, strict=True) if plane == p] for p in range(len(planes))]
-    geometries = (planes[0].geometry, planes[1].geometry)
-    pairs = [(a, b) for a in per_plane[0] for b in per_plane[1]]
-    candidates = [combine_plane_estimates(inputs.initial_motion, ab, geometries) for ab in pairs]
-    # Every pairing scored on both planes at the capture's resolution; the best starts the pair.
-    pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
-                                volume_level=level.volume_level, motion=inputs.initial_motion,
-                                margin_mm=options.margin_mm(0))  # fmt: skip
-    cost = _cost(pair, space, monitor, None)
-    xs = [space.from_motion(m) for m in candidates]
-    xs = [np.clip(x, space.bounds[:, 0], space.bounds[:, 1]) for x in xs]
-    fs = [cost(x) for x in xs]
-    monitor.captures = [space.motion(x) for x in xs]
-    best = int(np.argmin(fs))
-    shared_mm, rotation_deg = plane_disagreement(pairs[best], geometries)
-    if shared_mm <= PLANES_AGREE_MM and rotation_deg <= PLANES_AGREE_DEG:
-        return [xs[best]], fs[best]
-    # One plane's capture failed, and which one cannot be told: the pair's capture runs start
-    # from the best pairing and from each plane's own estimate alone (the other plane's
-    # out-of-plane offset at the initial pose), one run each.
-    alone = [np.clip(space.from_motion(m), space.bounds[:, 0], space.bounds[:, 1]) for m in pairs[best]]
-    return [xs[best], *alone], fs[best]
+    return [(plane, spaces[plane].motion(r.x), r.fun) for (plane, _), r in zip(jobs, results, strict=True)]
 
 
 #: The two planes' captures agree when their estimates of the displacement both images show
