@@ -65,6 +65,25 @@ CROP_PROBE_MM = 4.0
 CACHE_ENTRIES = 4
 #: Levels prepared by default: the capture and refine level (2) and the polish level (1).
 DEFAULT_LEVELS = (1, 2)
+#: The body (:func:`body_blocks`): probe blocks mostly (at least half their voxels) above this
+#: HU are body (fat -100, skin, soft tissue, bone); the CT's couch, head rest and mask are too.
+BODY_HU = -300.0
+#: Structures thinner than this (mm) that join the body (a couch plate, a head rest's legs, a
+#: thermoplastic mask) are cut at the join by a morphological opening of this width.
+BODY_OPENING_MM = 20.0
+#: What lies within this (mm) of the opened body is kept (skin, ears and nose the opening
+#: shaved, the interpolation at the skin); everything farther is set to air.
+BODY_KEEP_MM = 12.0
+#: Voxels below this HU are air (their attenuation, < 10 % of water's, is a CT's noise around
+#: -1000 HU): set to -1000 with the outside of the body, so that rays leap over them.
+AIR_HU = -900.0
+#: Parts of the opened body at least this share of the largest one are body (a head and, cut
+#: from it by the scan's edge or the opening, shoulders); smaller ones (pieces of a couch or a
+#: mask the opening left) are not.
+BODY_PART_SHARE = 0.1
+#: The body is used only if its parts hold at least this share of the body blocks (a body, not
+#: a collection of small objects).
+BODY_MIN_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -161,6 +180,108 @@ def _reach_mask(points: Array, geometries: Sequence[CArm], reach: Reach, margin_
     return needed
 
 
+@dataclass(frozen=True)
+class ProbeBlocks:
+    """The volume seen in blocks of about ``CROP_PROBE_MM`` (``step`` voxels along i, j, k).
+
+    ``tissue[bk, bj, bi]``: some voxel of the block is above the tissue threshold; ``body``:
+    the block lies within ``BODY_KEEP_MM`` of the patient's body (:func:`probe_blocks`), None
+    when no single body was found (then nothing is removed as outside it).
+    """
+
+    step: NDArray[np.int64]
+    tissue: NDArray[np.bool_]
+    body: NDArray[np.bool_] | None
+
+    @property
+    def needed(self) -> NDArray[np.bool_]:
+        """Blocks whose tissue a DRR of the prepared volume can meet."""
+        return self.tissue if self.body is None else self.tissue & self.body
+
+
+@numba.njit(parallel=True, cache=True)
+def _block_counts(data, sk, sj, si, tissue_hu, body_hu, any_out, count_out) -> None:  # noqa: ANN001
+    """Per block: whether a voxel is above ``tissue_hu``, how many are above ``body_hu``."""
+    nk, nj, ni = data.shape
+    for b in numba.prange(any_out.shape[0]):
+        for k in range(b * sk, min((b + 1) * sk, nk)):
+            for j in range(nj):
+                cj = j // sj
+                for i in range(ni):
+                    v = data[k, j, i]
+                    ci = i // si
+                    if v > tissue_hu:
+                        any_out[b, cj, ci] = 1
+                    if v > body_hu:
+                        count_out[b, cj, ci] += 1
+
+
+def probe_blocks(volume: Volume, *, tissue_hu: float = TISSUE_HU, body: bool = True) -> ProbeBlocks:
+    """The volume's tissue per probe block, and (``body``) the patient's body.
+
+    The body: blocks mostly above ``BODY_HU``, opened by a box of ``BODY_OPENING_MM`` (what
+    joins the body through anything thinner, a CT's couch under the head rest, a mask, is cut
+    off there), its large connected parts, their holes filled (sinuses, airways), grown by
+    ``BODY_KEEP_MM``; its parts are the connected pieces of at least ``BODY_PART_SHARE`` of
+    the largest. A CT's couch, head rest and the air around the patient lie outside and are
+    set to air in the prepared levels (as are voxels below ``AIR_HU``): an angiography suite
+    has its own table, and rays leap over empty space. None when the parts hold less than
+    ``BODY_MIN_SHARE`` of the body blocks.
+    """
+    _, spacing = _axes_and_spacing(volume)
+    nk, nj, ni = volume.shape
+    step = np.maximum(1, np.round(CROP_PROBE_MM / spacing).astype(np.int64))  # (i, j, k)
+    si, sj, sk = (int(x) for x in step)
+    shape = (-(-nk // sk), -(-nj // sj), -(-ni // si))
+    tissue = np.zeros(shape, dtype=np.uint8)
+    counts = np.zeros(shape, dtype=np.int32)
+    data = volume.data if volume.data.dtype == np.float32 else volume.data.astype(np.float32)
+    _block_counts(np.ascontiguousarray(data), sk, sj, si, float(tissue_hu), BODY_HU, tissue, counts)
+    if not body:
+        return ProbeBlocks(step, tissue.astype(bool), None)
+    # voxels per block (the last block along an axis may be partial)
+    sizes = [np.minimum(s, n - np.arange(b) * s) for s, n, b in zip((sk, sj, si), (nk, nj, ni), shape, strict=True)]
+    seed = 2 * counts >= sizes[0][:, None, None] * sizes[1][None, :, None] * sizes[2][None, None, :]
+    block_mm = (step * spacing)[::-1]  # (k, j, i)
+    opening = tuple(2 * max(1, round(BODY_OPENING_MM / 2.0 / b)) + 1 for b in block_mm)
+    opened = ndimage.maximum_filter(ndimage.minimum_filter(seed, size=opening, mode="nearest"), size=opening,
+                                    mode="nearest")  # fmt: skip
+    labels, n = ndimage.label(opened)
+    if n == 0:
+        return ProbeBlocks(step, tissue.astype(bool), None)
+    sizes_of = np.bincount(labels.ravel())
+    sizes_of[0] = 0
+    parts = sizes_of >= BODY_PART_SHARE * sizes_of.max()
+    if sizes_of[parts].sum() < BODY_MIN_SHARE * seed.sum():
+        return ProbeBlocks(step, tissue.astype(bool), None)
+    core = ndimage.binary_fill_holes(parts[labels])
+    keep = tuple(2 * math.ceil(BODY_KEEP_MM / b) + 1 for b in block_mm)
+    grown = ndimage.maximum_filter(core, size=keep, mode="constant", cval=False)
+    return ProbeBlocks(step, tissue.astype(bool), grown)
+
+
+def mask_outside_body(level: Volume, volume: Volume, blocks: ProbeBlocks) -> Volume:
+    """``level`` (a grid of ``volume``'s region) with the voxels outside the body set to air."""
+    if blocks.body is None:
+        return level
+    # level index -> source index; the level grids keep the source's axes (diagonal map)
+    a = volume.index_from_world @ level.index_to_world
+    nk, nj, ni = level.shape
+    nb = blocks.body.shape[::-1]  # (i, j, k)
+    if np.abs(a[:3, :3] - np.diag(np.diag(a[:3, :3]))).max() > 1e-6 * np.abs(a[:3, :3]).max():
+        raise ValueError("the level's axes differ from the volume's")
+    idx = []
+    for ax, n in enumerate((ni, nj, nk)):
+        src = a[ax, ax] * np.arange(n) + a[ax, 3]
+        idx.append(np.clip(np.floor((src + 0.5) / blocks.step[ax]).astype(np.int64), 0, nb[ax] - 1))
+    inside = blocks.body[np.ix_(idx[2], idx[1], idx[0])]
+    inside &= level.data > AIR_HU
+    if inside.all():
+        return level
+    return Volume(np.where(inside, level.data, np.float32(-1000.0)), level.index_to_world, label=level.label,
+                  meta=level.meta)  # fmt: skip
+
+
 def needed_box(
     volume: Volume,
     geometries: Sequence[CArm],
@@ -168,27 +289,26 @@ def needed_box(
     *,
     margin_mm: float = 0.0,
     tissue_hu: float = TISSUE_HU,
+    blocks: ProbeBlocks | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
     """Index box (lo, hi inclusive, as (i, j, k)) of the tissue some field ray can reach.
 
     Voxels are tested in blocks of about ``CROP_PROBE_MM``: a block counts when any voxel in
     it is above ``tissue_hu`` and its center is within reach (the margin adds the block's half
     diagonal) and the box grows by ``margin_mm`` on every side (the partial-volume edge of the
-    tissue and interpolation). None when no tissue is within reach. (A CT's couch is tissue here: it touches
-    the patient and lies in the beam; the images show it too.)
+    tissue and interpolation). None when no tissue is within reach. ``blocks``: the probe
+    blocks (:func:`probe_blocks`) when the caller has them; with a body, only its blocks count
+    (a CT's couch and the air around the patient are not kept).
     """
     if not geometries:
         raise ValueError("at least one view geometry is needed to crop a volume")
     _, spacing = _axes_and_spacing(volume)
     nk, nj, ni = volume.shape
-    step = np.maximum(1, np.round(CROP_PROBE_MM / spacing).astype(np.int64))  # (i, j, k)
+    if blocks is None:
+        blocks = probe_blocks(volume, tissue_hu=tissue_hu, body=False)
+    step = blocks.step
     si, sj, sk = (int(x) for x in step)
-    bk, bj, bi = -(-nk // sk), -(-nj // sj), -(-ni // si)
-    tissue = volume.data > tissue_hu
-    padded = np.zeros((bk * sk, bj * sj, bi * si), dtype=bool)
-    padded[:nk, :nj, :ni] = tissue
-    blocks = padded.reshape(bk, sk, bj, sj, bi, si).any(axis=(1, 3, 5))
-    kk, jj, ii = np.nonzero(blocks)
+    kk, jj, ii = np.nonzero(blocks.needed)
     if kk.size == 0:
         return None
     centers = np.stack([(ii + 0.5) * si - 0.5, (jj + 0.5) * sj - 0.5, (kk + 0.5) * sk - 0.5], axis=1)
@@ -313,6 +433,8 @@ class PreparedVolume:
     geometries: tuple[CArm, ...]
     seconds: float
     renderer: DRRRenderer = field(repr=False)
+    #: Whether the levels hold only the body (what lies outside it set to air, ``probe_blocks``).
+    body: bool = False
 
     @property
     def voxels_per_level(self) -> list[int | None]:
@@ -328,6 +450,7 @@ class PreparedVolume:
             "box_lo": list(self.box_lo),
             "box_hi": list(self.box_hi),
             "reach": {"translation_mm": self.reach.translation_mm, "rotation_deg": self.reach.rotation_deg},
+            "body_only": self.body,
             "prepare_seconds": self.seconds,
         }
 
@@ -347,7 +470,9 @@ def _anatomy_extent_mm(volume: Volume, lo: NDArray[np.int64], hi: NDArray[np.int
     return float(max(np.ptp(view[:, 0]), np.ptp(view[:, 1])))
 
 
-def _prepare(volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels: tuple[int, ...]) -> PreparedVolume:
+def _prepare(
+    volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels: tuple[int, ...], body: bool
+) -> PreparedVolume:
     start = time.perf_counter()
     _, spacing = _axes_and_spacing(volume)
     nk, nj, ni = volume.shape
@@ -355,7 +480,8 @@ def _prepare(volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels:
     # the coarsest level's voxels plus a voxel of the source for interpolation at the crop's faces
     extent_guess = max(field_extent_mm(g) for g in geometries)
     margin = 2.0 * level_spacing_mm(extent_guess, max(levels)) + float(spacing.max())
-    lo, hi = needed_box(volume, geometries, reach, margin_mm=margin) or full
+    blocks = probe_blocks(volume, body=body)
+    lo, hi = needed_box(volume, geometries, reach, margin_mm=margin, blocks=blocks) or full
     extent = min(extent_guess, max(_anatomy_extent_mm(volume, lo, hi, g) for g in geometries))
     # level 0 never finer than the volume's own finest spacing (resampling cannot add detail)
     base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()))
@@ -378,7 +504,9 @@ def _prepare(volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels:
             built[lv] = finer
         else:
             built[lv] = resample_isotropic(volume, targets[lv], lo, hi)
-    pyramid = tuple(built.get(lv) for lv in range(max(levels) + 1))
+    # outside the body: air
+    masked = {lv: mask_outside_body(v, volume, blocks) for lv, v in built.items()}
+    pyramid = tuple(masked.get(lv) for lv in range(max(levels) + 1))
     renderer = DRRRenderer(volume, levels=list(pyramid))
     return PreparedVolume(
         volume=volume,
@@ -390,6 +518,7 @@ def _prepare(volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels:
         geometries=geometries,
         seconds=time.perf_counter() - start,
         renderer=renderer,
+        body=blocks.body is not None,
     )
 
 
@@ -404,12 +533,14 @@ def prepare_volume(
     reach: Reach | None = None,
     levels: Sequence[int] = DEFAULT_LEVELS,
     cache: bool = True,
+    body: bool = True,
 ) -> PreparedVolume:
     """The cropped, resampled pyramid of ``volume`` for ``geometries`` (cached per volume).
 
     ``reach``: how far the search may move the anatomy (default: the default search of
     +-30 mm and +-15 degrees, :meth:`Reach.of_search`). ``levels``: the pyramid levels to
-    prepare. A cached preparation of the same volume object for the same fields and levels
+    prepare. ``body``: keep only the patient's body (:func:`probe_blocks`: a CT's couch, head
+    rest and the air around set to air). A cached preparation of the same volume object for the same fields and levels
     whose reach covers ``reach`` is returned as it is (its ``seconds`` are those of its making).
     """
     if not isinstance(volume, Volume):
@@ -421,14 +552,14 @@ def prepare_volume(
     if not levels_t or levels_t[0] < 0:
         raise ValueError(f"levels must be integers >= 0, got {list(levels)}")
     reach = reach or Reach.of_search(30.0, 15.0)
-    key = (id(volume), tuple(_field_key(g) for g in views), levels_t)
+    key = (id(volume), tuple(_field_key(g) for g in views), levels_t, bool(body))
     if cache:
         with _CACHE_LOCK:
             hit = _CACHE.get(key)
             if hit is not None and hit[0] is volume and hit[1].reach.covers(reach):
                 _CACHE.move_to_end(key)
                 return hit[1]
-    prepared = _prepare(volume, views, reach, levels_t)
+    prepared = _prepare(volume, views, reach, levels_t, bool(body))
     if cache:
         with _CACHE_LOCK:
             _CACHE[key] = (volume, prepared)

@@ -185,3 +185,46 @@ def test_air_only_volume_keeps_the_whole_box() -> None:
     prep = prepare_volume(vol, _view(), cache=False)
     assert np.all(prep.renderer.render(_view(), level=2) == 0.0)
     assert ndimage is not None
+
+
+def _head_on_couch(with_couch: bool) -> Volume:
+    """The blob (a head) on a couch plate 40 mm behind it, joined to it by thin posts (a head
+    rest's legs, 6 mm across), on a 3 mm grid; without the couch: the head alone."""
+    sp, n = 3.0, 110
+    axes = [ISO[a] + (np.arange(n) - (n - 1) / 2.0) * sp for a in range(3)]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    hu = _blob_hu(np.stack([x, y, z], axis=-1))
+    if with_couch:
+        dy = y - ISO[1]
+        hu[(dy > 125.0) & (dy < 135.0) & (np.abs(x - ISO[0]) < 150.0)] = 200.0  # the plate
+        for px in (-30.0, 30.0):
+            for pz in (-30.0, 30.0):
+                post = (np.abs(x - ISO[0] - px) < 3.0) & (np.abs(z - ISO[2] - pz) < 3.0) & (dy > 60.0) & (dy < 130.0)
+                hu[post] = 200.0
+    return Volume.from_grid(hu, sp, center_mm=ISO)
+
+
+def test_the_couch_and_the_air_around_the_body_are_not_rendered() -> None:
+    """A CT's couch, joined to the head by a head rest's thin legs, is cut off at the legs and
+    set to air, as is the air around the body: the DRRs are those of the head alone (but for
+    the legs' stubs within BODY_KEEP_MM of it), and they cross only the body's box."""
+    g = _view(0.0, 0.0, fmt_cm=27.0)  # frontal: every ray crosses the couch behind the head
+    reach = Reach(10.0, 4.0)
+    couch = prepare_volume(_head_on_couch(True), g, reach=reach, cache=False)
+    head = prepare_volume(_head_on_couch(False), g, reach=reach, cache=False, body=False)
+    kept = prepare_volume(_head_on_couch(True), g, reach=reach, cache=False, body=False)
+    assert couch.body and not kept.body
+    level = couch.levels[2]
+    plate = np.array([ISO[0] + 100.0, ISO[1] + 130.0, ISO[2]])  # in the plate, far from the head
+    assert float(level.sample(plate)) == -1000.0  # air (or outside the box, also air)
+    # the box ends behind the head (its 85 mm, the keep margin and the crop's margin), not at the plate
+    far_y = (level.index_to_world @ np.array([0, level.shape[1] - 1, 0, 1.0]))[1] - ISO[1]
+    assert far_y < 85.0 + prepare.BODY_KEEP_MM + 2 * 2 * couch.spacing_mm[2] + 4.0
+    motion = offsets_to_matrix([3.0, -2.0, 0.0, 2.0, -1.0, 3.0], g)
+    mask = g.field_mask()
+    a, b, c = (p.renderer.render(g, motion, level=2)[mask] for p in (couch, head, kept))
+    # the couch plate adds 10 mm of 200 HU (~0.25) to every ray behind the head
+    assert np.median(c - b) > 0.2
+    # without it: the head's DRR, but for the legs' stubs (4 posts of 6 mm, at most 12 mm long)
+    assert np.median(np.abs(a - b)) < 0.01 * np.ptp(b)
+    assert np.abs(a - b).max() < 0.1 * np.ptp(b)
