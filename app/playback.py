@@ -10,6 +10,9 @@ its detector, the true pose as the ghost: :class:`app.presenter.FollowedPose`); 
 shows the estimated (shown) and true motion and the per-frame latency. Frames that arrive
 while the engine is busy are skipped (the picture always shows the newest frame).
 
+In Biplane mode the phantom's run has both planes (plane B at the C-arm tab's plane B angles),
+tracked together; both frames are shown side by side and both C-arms follow in the scene.
+
 Play, Pause and Stop control one shared playback: every browser tab watches the same run
 (the panel's widgets are server-level). The work runs on the panel's own thread. "Upload a
 run (.dcm)" plays the user's multi-frame XA/RF run (read with its frame times by
@@ -39,13 +42,14 @@ from registration.core.geometry import CArm, apply, invert_rigid, matrix_to_offs
 
 if TYPE_CHECKING:
     from registration.core.tracking import FrameEstimate
-    from registration.sim.fluoro import FluoroRun
 
 log = logging.getLogger(__name__)
 
 #: Size of the shown frame (pixels) and how often the strip chart is redrawn (Hz).
 DISPLAY_PX = 384
 CHART_HZ = 5.0
+#: What the tab says before the phantom's run plays.
+PHANTOM_RUN_TEXT = "A 20 s fluoroscopy run of the phantom (both planes in Biplane mode): press **Play**."
 #: Size of the frame on the 3-D scene's detector (pixels, as the Roadmap tab's).
 DETECTOR_PX = 256
 #: Message colours (as the Roadmap tab's badge).
@@ -99,7 +103,7 @@ class PlaybackPanel(BasePanel):
         with ctx.layout.view_tab("Play run", viser.Icon.PLAYER_PLAY):
             self.image = gui.add_image(np.zeros((DISPLAY_PX, DISPLAY_PX, 3), np.uint8), label=None, format="jpeg",
                                        jpeg_quality=85)  # fmt: skip
-            self.message = gui.add_markdown("A 20 s fluoroscopy run of the phantom: press **Play**.")
+            self.message = gui.add_markdown(PHANTOM_RUN_TEXT)
             with gui.add_folder("Playback", expand_by_default=True):
                 self.play_button = gui.add_button("Play", color="green", icon=viser.Icon.PLAYER_PLAY)
                 self.pause_button = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True)
@@ -159,6 +163,8 @@ class PlaybackPanel(BasePanel):
         self.frames_shown = 0
         self.skipped = 0
         self.estimates: list[FrameEstimate] = []
+        #: How many planes the last run played had (1, or 2 for a biplane run).
+        self.planes = 0
         self.last_message = ""
         self.finished = threading.Event()
         self._source: tuple[Any, float] = (ctx.phantom, self.case.volume_format_cm)
@@ -213,9 +219,19 @@ class PlaybackPanel(BasePanel):
             self.pause_button.label = "Pause"
 
     # ----- the run ----------------------------------------------------------------------
-    def _load(self) -> tuple[FluoroRun, Any, Any, np.ndarray, float]:
-        """The run (simulated once, cached on disk), the volume, its renderer, vessel vertices and
-        their spacing; ``self._source`` becomes the data source and volume format they come from."""
+    def play_case(self) -> Any:
+        """The phantom's run to play: :attr:`case`, with plane B at the C-arm tab's plane B angles
+        when the app is in Biplane mode (both planes' runs, tracked together)."""
+        st = self.ctx.session.settings
+        if not self.ctx.session.biplane or self.case.plane_b_deg is not None:
+            return self.case
+        return dataclasses.replace(self.case, name=f"{self.case.name}-biplane",
+                                   plane_b_deg=(float(st.primary_b_deg), float(st.secondary_b_deg)))  # fmt: skip
+
+    def _load(self) -> tuple[list[Any], Any, Any, np.ndarray, float]:
+        """The run's planes (one, or plane A and B; simulated once, cached on disk), the volume, its
+        renderer, vessel vertices and their spacing; ``self._source`` becomes the data source and
+        volume format they come from."""
         from registration.studies.tracking import case_runs
 
         if self.user_run is not None:
@@ -223,10 +239,9 @@ class PlaybackPanel(BasePanel):
             fmt = self.ctx.session.settings.volume_format_cm
             vessels = data.meshes(fmt).get("vessels")
             vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
-            run: Any = self.user_run
             self._source = (data, fmt)
-            return run, data.volume(fmt), data.renderer(fmt), vertices, data.mesh_spacing_mm(fmt)
-        case = self.case
+            return [self.user_run], data.volume(fmt), data.renderer(fmt), vertices, data.mesh_spacing_mm(fmt)
+        case = self.play_case()
         start = time.perf_counter()
 
         def progress(done: int, total: int) -> None:
@@ -236,14 +251,14 @@ class PlaybackPanel(BasePanel):
                 )
 
         self.message.content = "Loading the run ..."
-        run = case_runs(case, progress=progress)[0]
+        runs = case_runs(case, progress=progress)
         phantom = self.ctx.phantom
         volume = phantom.volume(case.volume_format_cm)
         renderer = phantom.renderer(case.volume_format_cm)
         vessels = phantom.meshes(case.volume_format_cm).get("vessels")
         vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
         self._source = (phantom, case.volume_format_cm)
-        return run, volume, renderer, vertices, phantom.mesh_spacing_mm(case.volume_format_cm)
+        return list(runs), volume, renderer, vertices, phantom.mesh_spacing_mm(case.volume_format_cm)
 
     def load_run(self, name: str, content: bytes) -> bool:
         """Read an uploaded run (multi-frame XA/RF with frame times) in the upload sandbox (a
@@ -287,7 +302,7 @@ class PlaybackPanel(BasePanel):
             raise ValueError("stop the run playing first")
         self.user_run = None
         self.phantom_run_button.visible = False
-        self.message.content = "The phantom's 20 s run: press **Play**."
+        self.message.content = PHANTOM_RUN_TEXT
 
     def _run_guarded(self) -> None:
         try:
@@ -305,16 +320,22 @@ class PlaybackPanel(BasePanel):
     def _run(self) -> None:
         from registration.core.tracking import Tracker
 
-        run, volume, renderer, vertices, spacing = self._load()
+        runs, volume, renderer, vertices, spacing = self._load()
+        run = runs[0]  # plane A: its times, truth and view frame
+
+        def views_of(n: int) -> Any:  # one image per plane, taken at the same moment
+            return [r[n] for r in runs] if len(runs) > 1 else run[n]
+
         geometry = run.geometry
         times = run.times_s
         n = len(run)
         self.frames_shown, self.skipped, self.estimates = 0, 0, []
         self._followed = None
+        self.planes = len(runs)
         chart: dict[str, list[float]] = {k: [] for k in ("t", "true_x", "shown_x", "true_y", "shown_y", "ms")}
         last_chart = 0.0
         with Tracker(volume, renderer=renderer) as tracker:
-            tracker.warm_up(run[0])
+            tracker.warm_up(views_of(0))
             shown = tracker.shown_pose
             paused_s = 0.0
             t0 = time.perf_counter()
@@ -333,11 +354,11 @@ class PlaybackPanel(BasePanel):
                 if newest > i:  # frames that arrived while busy: skipped, never queued
                     self.skipped += newest - i
                     i = newest
-                est = tracker.process(run[i], frame=i, t_s=float(times[i] - times[0]))
+                est = tracker.process(views_of(i), frame=i, t_s=float(times[i] - times[0]))
                 self.estimates.append(est)
                 text, color = motion_message(est, shown, geometry)
                 shown = est.patient_motion
-                self._show_frame(run, i, est, text, color, vertices, spacing)
+                self._show_frame(runs, i, est, text, color, vertices, spacing)
                 truth = getattr(run, "truth", None)
                 true_xy = matrix_to_offsets(truth[i], geometry)[:2] if truth is not None else (np.nan, np.nan)
                 shown_xy = matrix_to_offsets(shown, geometry)[:2]
@@ -357,28 +378,35 @@ class PlaybackPanel(BasePanel):
             f"{self.skipped} skipped (arrived while busy); {applied} corrections applied, {withheld} withheld."
         )
 
-    def _show_frame(self, run: FluoroRun, i: int, est: FrameEstimate, text: str, color: tuple[int, int, int],
+    def _show_frame(self, runs: list[Any], i: int, est: FrameEstimate, text: str, color: tuple[int, int, int],
                     vertices: np.ndarray, spacing: float) -> None:  # fmt: skip
-        image = run[i]
-        gray = views.resize(views.to_gray(image.image, image.mask), DISPLAY_PX)
-        rgb = views.gray_rgb(gray)
-        if len(vertices):
-            silhouette = views.vessel_silhouette(vertices, est.patient_motion,
-                                                 image.geometry.resized(DISPLAY_PX, DISPLAY_PX), spacing)  # fmt: skip
-            views.draw_outline(rgb, silhouette)
-        draw_message(rgb, text, color)
-        views.label(rgb, f"t = {est.t_s:5.2f} s  frame {i}  {est.latency_ms:.0f} ms", corner="bottom-left")
-        self.image.image = rgb
+        planes = []  # each plane's frame with the roadmap outline at the shown pose
+        for p, run in enumerate(runs):
+            image = run[i]
+            rgb = views.gray_rgb(views.resize(views.to_gray(image.image, image.mask), DISPLAY_PX))
+            if len(vertices):
+                view = image.geometry.resized(DISPLAY_PX, DISPLAY_PX)
+                views.draw_outline(rgb, views.vessel_silhouette(vertices, est.patient_motion, view, spacing))
+            if len(runs) > 1:
+                views.label(rgb, f"PLANE {'AB'[p]}", corner="bottom-right")
+            planes.append((image.geometry, rgb))
+        picture = views.side_by_side(*(rgb for _, rgb in planes)) if len(planes) > 1 else planes[0][1].copy()
+        draw_message(picture, text, color)
+        views.label(picture, f"t = {est.t_s:5.2f} s  frame {i}  {est.latency_ms:.0f} ms", corner="bottom-left")
+        self.image.image = picture
         # The 3-D scene follows: the volume's surfaces at the pose the roadmap shows (the last
-        # applied one), the run's C-arm with this frame on its detector, the true pose as the ghost.
-        truth = getattr(run, "truth", None)
+        # applied one), the run's C-arm(s) with this frame on the detector, the true pose as the ghost.
+        truth = getattr(runs[0], "truth", None)
         data, fmt = self._source
+        geometry_b, rgb_b = planes[1] if len(planes) > 1 else (None, None)
         self._followed = FollowedPose(
-                frame=i, patient_motion=np.array(est.patient_motion, np.float64),
-                truth=None if truth is None else np.array(truth[i], np.float64), geometry=image.geometry,
-                detector_image=views.resize(rgb, DETECTOR_PX), data=data, volume_format_cm=fmt,
+            frame=i, patient_motion=np.array(est.patient_motion, np.float64),
+            truth=None if truth is None else np.array(truth[i], np.float64), geometry=planes[0][0],
+            detector_image=views.resize(planes[0][1], DETECTOR_PX), data=data, volume_format_cm=fmt,
+            geometry_b=geometry_b, detector_image_b=None if rgb_b is None else views.resize(rgb_b, DETECTOR_PX),
         )  # fmt: skip
         self.ctx.follow(self._followed)
+        run = runs[0]
         self.last_message = text
         self.message.content = (
             f"**{text}** · frame {i}/{len(run) - 1} at {est.t_s:.2f} s · {est.path} {est.latency_ms:.0f} ms"

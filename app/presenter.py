@@ -53,6 +53,9 @@ class FollowedPose:
     detector_image: np.ndarray | None
     data: DataSource
     volume_format_cm: float
+    #: Plane B's C-arm and frame of a biplane run (None: one plane; the session's plane B stays).
+    geometry_b: CArm | None = None
+    detector_image_b: np.ndarray | None = None
     #: False once the run ended: the scene keeps this frame until the session changes.
     playing: bool = True
 
@@ -122,7 +125,8 @@ class Presenter:
         with self.session.lock:
             self._followed_version = self.session.version
         if pose is None and self._followed is not None:
-            self._shown_carm = None  # the session's C-arm comes back
+            self._shown_carm = None  # the session's C-arm(s) come back
+            self._shown_carm_b = ("run",)  # never the session's key: its plane B is drawn or removed
             self._followed = None
             self.force_refresh()
         else:
@@ -230,6 +234,14 @@ class Presenter:
             self._shown_carm = carm_key
         elif followed.detector_image is not None:
             self.scene.set_detector_image(followed.detector_image)
+        gb = followed.geometry_b
+        if gb is not None:
+            carm_b_key = ("run", gb.primary_deg, gb.secondary_deg, gb.sid_mm, round(gb.field_diameter_mm, 3))
+            if self._shown_carm_b != carm_b_key:
+                self.scene.set_carm(gb, followed.detector_image_b, plane_b=True)
+                self._shown_carm_b = carm_b_key
+            elif followed.detector_image_b is not None:
+                self.scene.set_detector_image(followed.detector_image_b, plane_b=True)
         hidden = any(panel.hides_patient for panel in self.panels)
         self.scene.place(followed.patient_motion, followed.truth,
                          show_ghost=bool(self.layout.show_ghost.value) and not hidden)  # fmt: skip
@@ -333,7 +345,9 @@ class Presenter:
                 self.shown_geometry = geometry
             else:
                 self.scene.set_detector_image(detector_image)
-            if carm_b_key != self._shown_carm_b:
+            if followed is not None and followed.geometry_b is not None:
+                pass  # a biplane run owns plane B's C-arm too
+            elif carm_b_key != self._shown_carm_b:
                 if xray_b is None:
                     self.scene.remove_plane_b()
                 else:

@@ -117,6 +117,39 @@ def test_the_scene_follows_the_played_run(fresh) -> None:
         assert any(frame >= moved.frame and not np.allclose(pose, np.eye(4)) for frame, pose in drawn)
 
 
+def test_a_biplane_run_plays_in_biplane_mode(fresh) -> None:
+    """Biplane mode: the phantom's run has both planes (plane B at the C-arm tab's angles), tracked
+    together, shown side by side; both C-arms in the scene show the run's views, then the session's."""
+    import viser.transforms as vtf
+
+    from app.playback import DISPLAY_PX
+
+    panel, presenter = fresh.playback, fresh.presenter
+    panel.case = SHORT
+    try:
+        fresh.biplane.value = True
+        fresh.secondary_b.value = 10.0
+        assert wait_until(lambda: presenter.followed is None, 10.0)
+        panel.play_button.value = True
+        assert wait_until(lambda: panel.finished.is_set() and not panel.playing, 240.0)
+        assert panel.planes == 2 and panel.frames_shown + panel.skipped == SHORT.script.frames
+        assert panel.image.image.shape[1] > 2 * DISPLAY_PX  # plane A | plane B
+        assert wait_until(lambda: presenter.followed_frames[-1][0] == panel.estimates[-1].frame, 5.0)
+        followed = presenter.followed
+        assert followed is not None and followed.geometry_b is not None
+        g_b = followed.geometry_b
+        assert (g_b.primary_deg, g_b.secondary_deg) == (fresh.session.settings.primary_b_deg, 10.0)
+        # plane B's frustum looks along the run's plane B beam (the scene's camera convention, app.scene)
+        rotation = vtf.SO3(np.asarray(fresh.scene.frustum_b.wxyz, np.float64)).as_matrix()
+        np.testing.assert_allclose(rotation[:, 2], g_b.direction, atol=1e-9)  # float64 quaternion round trip
+        assert_same_pose(scene_pose(fresh), panel.estimates[-1].patient_motion)
+    finally:
+        fresh.secondary_b.value = 0.0
+        fresh.biplane.value = False
+    # back to one plane: the session changed, the run's plane B leaves the scene
+    assert wait_until(lambda: fresh.scene.frustum_b is None and presenter.followed is None, 10.0)
+
+
 def test_pause_holds_and_stop_ends(fresh) -> None:
     panel = fresh.playback
     panel.case = SHORT
