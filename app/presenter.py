@@ -337,7 +337,7 @@ class Presenter:
         hidden = any(panel.hides_patient for panel in self.panels)  # e.g. the dodecahedron is imaged on its own
         followed = self._followed
         with self.server.atomic():
-            if followed is not None:  # a played run owns the scene (plane B's C-arm stays the session's)
+            if followed is not None:  # a played run owns the scene (after a one-plane run plane B stays the session's)
                 self._show_followed(followed)
             elif self._shown_carm != carm_key:
                 self.scene.set_carm(geometry, detector_image)
