@@ -118,6 +118,7 @@ def register(
     study: str | None = None,
     ca_bundle: Path | None = None,
     store: bool = False,
+    verbose: bool = False,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -140,6 +141,7 @@ def register(
         ca_bundle: CA certificates (PEM) to verify an https:// PACS against.
         store: Store the result into the study on the PACS: the Spatial Registration object and the overlay
             (Secondary Capture).
+        verbose: Print where the time went (start-up, reading, preparing the volume, registration) on stderr.
     """
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
         from app.net_commands import run_register_pacs
@@ -179,6 +181,7 @@ def register(
         seed=seed,
         sid_mm=sid_mm,
         sod_mm=sod_mm,
+        verbose=verbose,
     )
 
 

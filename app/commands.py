@@ -48,6 +48,35 @@ def _say(text: str = "", *, stream: TextIO | None = None) -> None:
     print(text, file=stream or sys.stdout)
 
 
+def _process_age_s() -> float | None:
+    """Seconds since this process started (Linux: /proc), None where that is not known."""
+    try:
+        ticks = os.sysconf("SC_CLK_TCK")
+        start = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19]) / ticks
+        return float(Path("/proc/uptime").read_text().split()[0]) - start
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class _Stopwatch:
+    """Where a command's time went: the start-up before it (interpreter, imports) and its laps."""
+
+    def __init__(self) -> None:
+        self.startup_s = _process_age_s()
+        self.laps: list[tuple[str, float]] = []
+        self._last = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps.append((name, now - self._last))
+        self._last = now
+
+    def report(self) -> str:
+        parts = ([] if self.startup_s is None else [("start-up (interpreter, imports)", self.startup_s)]) + self.laps
+        total = sum(s for _, s in parts)
+        return "time: " + ", ".join(f"{name} {s:.2f} s" for name, s in parts) + f"; total {total:.2f} s"
+
+
 def _show_warnings(caught: list[warnings.WarningMessage]) -> None:
     for message in dict.fromkeys(str(w.message) for w in caught):
         _say(f"warning: {message}", stream=sys.stderr)
@@ -235,9 +264,12 @@ def run_register(
     seed: int = 0,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    verbose: bool = False,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
-    print a summary, optionally write the JSON and the DICOM Spatial Registration object."""
+    print a summary, optionally write the JSON and the DICOM Spatial Registration object.
+    ``verbose``: where the time went, on stderr."""
+    clock = _Stopwatch()
     images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
     if len(images) not in (1, 2):
         raise ValueError(f"one X-ray image, or two (plane A and plane B of one moment), got {len(images)}")
@@ -250,8 +282,10 @@ def run_register(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)
+        clock.lap("reading the volume")
         iso, iso_from = resolve_isocenter(isocenter, vol)
         views = [dicom.read_xray(p, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm) for p in images]
+        clock.lap("reading the image" + ("s" if len(images) > 1 else ""))
         if len(views) == 2:
             from registration.io.dicom.biplane import pair_views
 
@@ -273,8 +307,9 @@ def run_register(
         if pts.ndim == 2 and pts.shape[1] == 3 and len(pts) and np.all(np.isfinite(pts)):
             vessel_points = pts
 
-    from registration.core.register import register
+    from registration.core.register import RegistrationOptions, prepared_renderer, register
 
+    clock.lap("loading the engine")
     g = xray.geometry
     _say(
         f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels, "
@@ -291,7 +326,12 @@ def run_register(
     if len(views) == 2:
         _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
     _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
-    result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points)
+    # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm)
+    renderer = prepared_renderer(vol, tuple(views), np.eye(4) if m_init is None else m_init, RegistrationOptions())
+    clock.lap("preparing the volume")
+    result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points,
+                      renderer=renderer)  # fmt: skip
+    clock.lap("registration")
     _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
     if result.residual is not None:
@@ -304,6 +344,8 @@ def run_register(
             f"{r.outofplane_mm:.2f} mm out-of-plane of plane A), {r.rotation_deg:.2f} deg{mtre} -> {verdict} "
             f"({criterion} criterion)"
         )
+    if verbose:
+        _say(clock.report(), stream=sys.stderr)
     if result.at_bounds:  # inputs without information drift to the search bounds: not a registration
         print(
             f"error: cannot register: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "

@@ -254,10 +254,24 @@ def probe_blocks(volume: Volume, *, tissue_hu: float = TISSUE_HU, body: bool = T
     parts = sizes_of >= BODY_PART_SHARE * sizes_of.max()
     if sizes_of[parts].sum() < BODY_MIN_SHARE * seed.sum():
         return ProbeBlocks(step, tissue.astype(bool), None)
-    core = ndimage.binary_fill_holes(parts[labels])
+    core = _fill_holes(parts[labels])
     keep = tuple(2 * math.ceil(BODY_KEEP_MM / b) + 1 for b in block_mm)
     grown = ndimage.maximum_filter(core, size=keep, mode="constant", cval=False)
     return ProbeBlocks(step, tissue.astype(bool), grown)
+
+
+def _fill_holes(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``mask`` with the background parts that do not reach the array's faces filled (the
+    same as ``ndimage.binary_fill_holes``, by one labelling instead of repeated dilations)."""
+    background, n = ndimage.label(~mask)
+    if n == 0:
+        return mask
+    faces = [background[[0, -1]], background[:, [0, -1]], background[..., [0, -1]]]
+    open_to_faces = np.zeros(n + 1, dtype=bool)
+    for face in faces:
+        open_to_faces[face.ravel()] = True
+    open_to_faces[0] = False  # label 0: the mask itself
+    return ~open_to_faces[background]
 
 
 def mask_outside_body(level: Volume, volume: Volume, blocks: ProbeBlocks) -> Volume:

@@ -174,5 +174,10 @@ MU_WATER_PER_MM = 0.0206
 
 def hu_to_mu_per_mm(hu: ArrayLike, *, mu_water_per_mm: float = MU_WATER_PER_MM) -> NDArray[np.float32]:
     """Linear attenuation (1/mm) from HU at an effective energy (default water at ~60 keV)."""
-    mu = mu_water_per_mm * (1.0 + np.asarray(hu, dtype=np.float32) / 1000.0)
-    return np.maximum(mu, 0.0).astype(np.float32)
+    # the same operations in the same order as mu_w * (1 + hu / 1000), in place: -1000 HU is 0 exactly
+    mu = np.array(hu, dtype=np.float32)  # a copy: the input is left alone
+    mu /= np.float32(1000.0)
+    mu += np.float32(1.0)
+    mu *= np.float32(mu_water_per_mm)
+    np.maximum(mu, np.float32(0.0), out=mu)
+    return mu if mu.ndim else mu[()]

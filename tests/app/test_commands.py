@@ -132,7 +132,7 @@ def test_progress_speaks_only_for_long_work(capsys) -> None:
 @pytest.mark.slow
 def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path, capsys) -> None:
     result_path = tmp_path / "result.json"
-    code, out, _ = run(
+    code, out, err = run(
         [
             "register",
             "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
@@ -140,11 +140,17 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
             "--truth", str(exported / cli_io.PHANTOM_TRUTH),
             "--out", str(result_path),
             "--out-dicom", str(tmp_path / "result.dcm"),
+            "--verbose",
         ],
         capsys,
     )  # fmt: skip
     assert code == 0
     assert "residual vs truth" in out
+    # --verbose: where the time went, on stderr (stdout keeps the summary)
+    timing = next(line for line in err.splitlines() if line.startswith("time: "))
+    for part in ("reading the volume", "preparing the volume", "registration", "total"):
+        assert part in timing
+    assert "time: " not in out
     result = json.loads(result_path.read_text())
     for key in ("patient_motion", "similarity", "drr_count", "seconds", "geometry", "residual", "success"):
         assert key in result
