@@ -8,7 +8,8 @@ and a transfer that stops sending parts is dropped after a timeout (:func:`limit
 
 The archive is unpacked and read in a separate process (:func:`read_upload`), so a file that
 makes a reader hang or swell cannot block the app: the read is abandoned after its time budget
-with a message in the page, the process's memory is capped, and :func:`shutdown_readers`
+with a message in the page, the process's memory is capped, at most :data:`MAX_READERS` reads run
+at once in the server (Data tab, Play run and the DICOM node's runs share them), and :func:`shutdown_readers`
 (called when the server stops) ends every reader and removes its temporary folder. The
 folder is private (0700) and deleted as soon as the data is read; the readers and checks are
 the command line's.
@@ -44,6 +45,9 @@ READ_TIMEOUT_S = 120.0
 #: Address space of the reading process (bytes, ROADMAP3D_UPLOAD_READ_MB): the readers' own
 #: ceilings keep genuine data far below; this stops whatever they miss.
 READER_MEMORY_BYTES = 6 * 1024**3
+#: Reading processes at once for the whole server (each may use READER_MEMORY_BYTES): a further
+#: upload is refused until one ends, never queued (ROADMAP3D_UPLOAD_READERS).
+MAX_READERS = 2
 #: A transfer that sends no part for this long is dropped (seconds).
 IDLE_TIMEOUT_S = 60.0
 #: All transfers in flight together, as multiples of the single-upload limit: per client, per server.
@@ -174,6 +178,7 @@ def limit_uploads(
 # Reading in a separate process
 # --------------------------------------------------------------------------------------
 _ACTIVE_LOCK = threading.Lock()
+_READING: list[str] = []  # the uploads being read now (names), at most MAX_READERS
 _ACTIVE_PROCESSES: set[Any] = set()
 _ACTIVE_FOLDERS: set[Path] = set()
 _CONTEXT: Any = None
@@ -327,8 +332,9 @@ def read_sandboxed(
     one the DICOM node received), within ``timeout_s`` and ``memory_bytes`` (defaults as for
     :func:`read_upload`); its result, or UploadError naming ``name`` and the problem (refused,
     abandoned after the time budget, or a reader that died). ``reader=None`` unpacks and reads
-    an uploaded zip (volume, image). Every reader process and folder is ended by
-    :func:`shutdown_readers`."""
+    an uploaded zip (volume, image). At most MAX_READERS (ROADMAP3D_UPLOAD_READERS) reads run at
+    once in the server, whoever asks (Data tab, Play run, the DICOM node): one more is refused at
+    once with a message. Every reader process and folder is ended by :func:`shutdown_readers`."""
     from registration.io.dicom import UploadError
 
     if (content is None) == (path is None):
@@ -336,6 +342,28 @@ def read_sandboxed(
     timeout_s = _env_float("ROADMAP3D_UPLOAD_READ_S", READ_TIMEOUT_S) if timeout_s is None else float(timeout_s)
     if memory_bytes is None:
         memory_bytes = int(_env_float("ROADMAP3D_UPLOAD_READ_MB", READER_MEMORY_BYTES / 1024**2) * 1024**2)
+    readers = int(_env_float("ROADMAP3D_UPLOAD_READERS", MAX_READERS))
+    with _ACTIVE_LOCK:  # the readers in flight share one budget: memory_bytes each, at most `readers`
+        if len(_READING) >= readers:
+            busy = ", ".join(_READING)
+            raise UploadError(
+                f"{name}: {len(_READING)} uploads are being read already ({busy}); try again when they finish"
+            )
+        _READING.append(name)
+    try:
+        return _read_in_process(name, content, path, max_bytes, reader, timeout_s, memory_bytes, distances_mm,
+                                file_name)  # fmt: skip
+    finally:
+        with _ACTIVE_LOCK:
+            _READING.remove(name)
+
+
+def _read_in_process(
+    name: str, content: bytes | None, path: Path | None, max_bytes: int, reader: Any, timeout_s: float,
+    memory_bytes: int, distances_mm: tuple[float | None, float | None], file_name: str,
+) -> Any:  # fmt: skip
+    from registration.io.dicom import UploadError
+
     tmp = Path(tempfile.mkdtemp(prefix="roadmap3d-upload-"))  # mode 0700: private to this user
     with _ACTIVE_LOCK:
         _ACTIVE_FOLDERS.add(tmp)

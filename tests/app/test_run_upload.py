@@ -146,3 +146,43 @@ def test_run_uploads_count_in_the_one_upload_budget(fresh: RoadmapApp) -> None:
         assert "run.bin: this tab's uploads in flight" in fresh.status.content
     finally:
         states.clear()
+
+
+def test_reads_in_flight_share_one_budget(fresh: RoadmapApp, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two uploads being read (each may use the reader's memory cap) hold the server's readers: a
+    run uploaded meanwhile is refused at once with a message, not queued; it reads when they end."""
+    import threading
+
+    from app.upload import MAX_READERS, read_upload, shutdown_readers
+    from tests.app.conftest import TEST_CONFIG
+    from tests.app.test_upload_server import _upload, hanging_reader
+
+    private = tmp_path / "tmp"
+    private.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(private))
+    outcomes: list[str] = []
+
+    def hung(name: str) -> None:
+        try:
+            read_upload(name, _upload(), max_bytes=MB, config=TEST_CONFIG, timeout_s=120, reader=hanging_reader)
+        except ValueError as exc:
+            outcomes.append(str(exc))
+
+    threads = [threading.Thread(target=hung, args=(f"case{n}.zip",), daemon=True) for n in range(MAX_READERS)]
+    for thread in threads:
+        thread.start()
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(list(private.glob("*/files/partial.dcm"))) < MAX_READERS:
+            time.sleep(0.1)
+        assert len(list(private.glob("*/files/partial.dcm"))) == MAX_READERS, "the readers never started"
+        start = time.monotonic()
+        _refused(fresh, "run.dcm", _run_bytes(tmp_path), "2 uploads are being read already", "case0.zip")
+        assert time.monotonic() - start < 5.0  # refused, not queued behind the hung reads
+    finally:
+        shutdown_readers()  # ends the hung readers (what stopping the server does)
+        for thread in threads:
+            thread.join(10.0)
+    assert len(outcomes) == MAX_READERS and all("ended without an answer" in text for text in outcomes)
+    assert fresh.playback.load_run("run.dcm", _run_bytes(tmp_path))  # the readers are free again
+    fresh.playback.use_phantom_run()
