@@ -100,6 +100,8 @@ def run_track(
             raise ValueError(f"{run} has {len(runs[0])} frames but {run_b} has {len(runs[1])}: not one biplane run")
         if not np.allclose(runs[0].times_s, runs[1].times_s, atol=1e-3):
             raise ValueError(f"{run} and {run_b}: frame times differ (not taken at the same moments)")
+    if len(runs) == 1 and runs[0].planes and runs[0].planes[0] in ("PLANE A", "PLANE B"):
+        _err(f"note: {run} is {runs[0].planes[0]} of a biplane run; --run-b with the other plane's run tracks both")
     times = runs[0].times_s
     m_true = read_run_truth(truth, len(times)) if truth is not None else None
     _say(f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels")

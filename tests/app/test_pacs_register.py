@@ -200,6 +200,10 @@ def test_track_a_biplane_pair_from_pacs(
         np.testing.assert_array_equal(a["patient_motion"], b["patient_motion"])  # same files, same seed: exact
     assert remote["summary"]["tracking_error_mm_median"] is not None  # scored against the truth (3-D: biplane)
 
+    # plane A alone: tracked as one plane, with a word on the other plane's run
+    code, _, err = _run([*pacs_args, "--run", plane["A"].series_uid], capsys)
+    assert code == 0 and "is PLANE A of a biplane run; --run-b" in err, err
+
     # the planes given the other way round: plane A by its Plane Identification goes first
     code, _, err = _run([*pacs_args, "--run", plane["B"].series_uid, "--run-b", plane["A"].series_uid,
                          "--out", str(tmp_path / "swapped.json"), *common], capsys)  # fmt: skip
