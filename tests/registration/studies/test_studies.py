@@ -296,3 +296,19 @@ def test_confidence_section_counts_decisions_reasons_and_the_depth_probe(tmp_pat
     # the probe's pose: c2 and c5 fixed (0.3, 0.4 mm), c4 broken (1.1 mm): 4 of 6 succeed against 3
     assert "66.7 % successful against 50.0 % (2 failures it would fix, 1 successes it would break)" in md
     assert (tmp_path / "roc.png").stat().st_size > 0
+
+
+def test_depth_fields_score_the_probe_pose_like_the_result():
+    from registration.core.geometry import CArm, offsets_to_matrix
+    from registration.studies.runs import depth_fields
+
+    g = CArm.for_format(22.0, pixels=64, primary_deg=30.0)
+    # the probe's pose: 0.6 mm in-plane (u), 12 mm along the beam, 2 degrees about the view's x
+    probe = offsets_to_matrix([0.6, 0.0, 12.0, 2.0, 0.0, 0.0], g)
+    fields = depth_fields({"depth_probe": {"motion": probe.tolist()}}, np.eye(4), g)
+    # rotations are about the iso-center: its shift is the translation alone (1e-9: float64)
+    assert fields["depth_inplane_residual_mm"] == pytest.approx(0.6, abs=1e-9)
+    assert abs(fields["depth_outofplane_residual_mm"]) == pytest.approx(12.0, abs=1e-9)
+    assert fields["depth_rotation_residual_deg"] == pytest.approx(2.0, abs=1e-9)
+    assert fields["depth_success"] is True
+    assert depth_fields({}, np.eye(4), g) == {}  # biplane records: no probe, no fields
