@@ -102,7 +102,9 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
     from registration.studies.volume import bench_real_volume
 
     say("registration on the real head CT (../shared) ...")
-    out["real_volume"] = bench_real_volume(seed=seed, cases=2 if quick else 4, log=say)
+    out["real_volume"] = bench_real_volume(
+        seed=seed, cases=2 if quick else 4, log=say, phantom_seconds=reg["seconds_median"]
+    )
     if not quick:
         from registration.sim.reconstruct import bench_reconstruction
 

@@ -204,7 +204,9 @@ def run_volume_case(
                             translations=3 if options.optimizes_tz(len(images)) else 2)  # fmt: skip
     levels = sorted({lv.volume_level for lv in options.levels} | {options.polish_volume_level})
     prepared = prepare_volume(volume, geometries, reach=reach, levels=levels)
+    samples_before = list(prepared.renderer.samples_per_level)
     result = register(volume, images, truth=truth, seed=case.seed, options=options, renderer=prepared.renderer)
+    samples = [b - a for a, b in zip(samples_before, prepared.renderer.samples_per_level, strict=True)]
     res = result.residual
     assert res is not None
     g = geometries[0]
@@ -232,6 +234,9 @@ def run_volume_case(
         "prepare_seconds": prepared.seconds,
         "image_seconds": image_s,
         "drr_count": result.drr_count,
+        # the registration's work whatever the machine's load: bilinear samples of its DRRs
+        "drr_samples": int(sum(samples)),
+        "drr_samples_per_level": samples,
         "voxels_per_level": prepared.voxels_per_level,
         "spacing_mm": list(prepared.spacing_mm),
         "parameters": list(result.parameters),
@@ -370,11 +375,21 @@ def find_real_ct() -> Path | None:
     return None
 
 
-def bench_real_volume(*, seed: int = 0, cases: int = 3, log: Callable[[str], None] | None = None) -> dict:
+def bench_real_volume(
+    *,
+    seed: int = 0,
+    cases: int = 3,
+    log: Callable[[str], None] | None = None,
+    phantom_seconds: float | None = None,
+    command_line: bool = True,
+) -> dict:
     """Registration on the real head CT: 384-px fluoro images of a 27 cm format at random angles
-    and offsets <= 25 mm / 10 deg, the volume prepared per view (``prepare_seconds``), and one
-    registration end to end in this process (reading the DICOM series, preparing, registering).
-    ``{"skipped": reason}`` when the CT is absent."""
+    and offsets <= 25 mm / 10 deg, the volume prepared per view (``prepare_seconds``), one
+    registration end to end in this process (reading the DICOM series, preparing, registering)
+    and (``command_line``) ``roadmap3d register --verbose`` in a new process on an XA formed from
+    the CT (start-up, imports and numba's cache included). ``phantom_seconds``: the phantom's
+    registration median of the same run, for the ratio. ``{"skipped": reason}`` when the CT is
+    absent."""
     from registration.io import dicom
 
     path = find_real_ct()
@@ -392,14 +407,21 @@ def bench_real_volume(*, seed: int = 0, cases: int = 3, log: Callable[[str], Non
         say(f"real CT case {case.number + 1}/{cases} ...")
         records.append(run_volume_case(volume, imager, case, config, iso))
     end_to_end = read_s + records[0]["prepare_seconds"] + records[0]["seconds"]
+    seconds = float(np.median([r["seconds"] for r in records]))
+    cli = _command_line_register(volume, imager, config, iso, path, log=say) if command_line else None
     return {
-        "seconds_median": float(np.median([r["seconds"] for r in records])),
+        "seconds_median": seconds,
+        "seconds_ratio_to_phantom": None if not phantom_seconds else seconds / phantom_seconds,
+        "drr_samples_median": float(np.median([r["drr_samples"] for r in records])),
+        "drr_samples_per_level": records[0]["drr_samples_per_level"],
+        "drr_count_median": float(np.median([r["drr_count"] for r in records])),
         "prepare_seconds": float(np.median([r["prepare_seconds"] for r in records])),
         "voxels_per_level": records[0]["voxels_per_level"],
         "spacing_mm": records[0]["spacing_mm"],
         "source_voxels": int(np.prod(volume.shape)),
         "read_seconds": read_s,
         "register_end_to_end_seconds": end_to_end,
+        "command_line": cli,
         "success_rate": float(np.mean([r["success"] for r in records])),
         "runs": [
             {k: r[k] for k in ("seconds", "prepare_seconds", "inplane_residual_mm", "rotation_residual_deg", "success")}
@@ -408,4 +430,46 @@ def bench_real_volume(*, seed: int = 0, cases: int = 3, log: Callable[[str], Non
         "volume": str(path),
         "isocenter_mm": list(iso),
         "images": IMAGES_FROM_VOLUME,
+    }
+
+
+def _command_line_register(
+    volume: Volume,
+    imager: VolumeImager,
+    config: VolumeStudyConfig,
+    isocenter_mm: tuple[float, float, float],
+    series: Path,
+    *,
+    log: Callable[[str], None],
+) -> dict:
+    """``roadmap3d register --verbose`` in a new process: the series against an XA of case 0
+    formed from it (and its truth), wall seconds and the command's own breakdown."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from registration.io import dicom
+
+    case = volume_cases(replace(config, cases=1))[0]
+    geometry = _views(config, case, isocenter_mm)[0]
+    truth = case_motion(case, isocenter_mm)
+    image = imager.image(geometry, truth, kind=config.kind, seed=case.seed)
+    with tempfile.TemporaryDirectory(prefix="roadmap3d-bench-") as tmp:
+        xa, truth_json = Path(tmp) / "xa.dcm", Path(tmp) / "truth.json"
+        dicom.write_xray(image, xa, description=f"fluoro formed from {volume.label or 'the CT'} (bench, case 0)")
+        truth_json.write_text(json.dumps({"patient_motion": truth.tolist()}))
+        iso = ",".join(f"{c:.6g}" for c in isocenter_mm)
+        argv = [sys.executable, "-c", "from app.cli import main; main()", "register", "--volume", str(series),
+                "--image", str(xa), "--truth", str(truth_json), "--isocenter", iso, "--verbose"]  # fmt: skip
+        log("roadmap3d register on the real CT in a new process ...")
+        start = time.perf_counter()
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=600, check=False)
+        wall = time.perf_counter() - start
+    timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
+    return {
+        "wall_seconds": wall,
+        "exit_code": done.returncode,
+        "timing": timing,
+        "success": "-> success" in done.stdout,
+        "command": "roadmap3d register --volume CT --image XA --truth JSON --isocenter ISO --verbose",
     }
