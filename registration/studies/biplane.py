@@ -381,7 +381,7 @@ def biplane_histograms(records: list[dict], path: Path) -> Path:
         ax.set_xlabel("mm", fontsize=8)
         ax.set_ylabel("registrations", fontsize=8)
         ax.set_title(f"{title} (n = {len(records)})", fontsize=9)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper center")  # the middle bins: between biplane's and single plane's
         _headroom(ax, max(bi + single))
     fig.suptitle("Biplane vs single-plane registration; right of the dashed line: >= 1 mm (fails)", fontsize=10)
     fig.tight_layout()
