@@ -6,6 +6,7 @@ millimetres, voxel centers at integer indices (CONVENTIONS.md §2).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -40,7 +41,8 @@ class Volume:
         if not np.issubdtype(data.dtype, np.number):
             raise ValueError(f"volume data must be numeric, got dtype {data.dtype}")
         data = np.ascontiguousarray(data, dtype=np.float32)
-        if not np.all(np.isfinite(data)):
+        # the float64 sum of float32 values cannot overflow: it is finite iff every voxel is
+        if not math.isfinite(float(np.sum(data, dtype=np.float64))):
             bad = int(np.count_nonzero(~np.isfinite(data)))
             raise ValueError(f"volume contains {bad} NaN or infinite voxels")
         affine = np.asarray(self.index_to_world, dtype=np.float64)

@@ -170,7 +170,9 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
             raise DicomError(
                 s.source, f"{tag_name('PixelData')} has shape {pixels.shape}, expected {ref.rows}x{ref.cols}"
             )
-        data[k] = pixels.astype(np.float32) * np.float32(s.slope) + np.float32(s.intercept)
+        # stored values * slope + intercept, written into the stack (no temporary arrays)
+        np.multiply(pixels, np.float32(s.slope), out=data[k], dtype=np.float32, casting="unsafe")
+        data[k] += np.float32(s.intercept)
     affine = np.eye(4)
     affine[:3, 0] = row_dir * ref.spacing[1]  # i: along a row (increasing column index)
     affine[:3, 1] = col_dir * ref.spacing[0]  # j: down a column (increasing row index)
