@@ -17,8 +17,10 @@ which is trilinear interpolation sampled at the slices (step = 1 voxel along tha
 samples are integrated by the trapezoid rule, with the partial slices at both ends of the
 clipped ray integrated exactly, so the DRR is continuous in the pose. A finer ``step_voxels``
 switches to a trilinear marcher. Rays are clipped (slab method) to the box of voxels that can
-contribute (non-zero attenuation, padded by one voxel), so exactly-zero air around the anatomy
-costs nothing (noisy air, above -1000 HU, does count). :func:`render_reference` samples every
+contribute (non-zero attenuation, padded by one voxel), then leap from both ends over the
+exactly-zero space inside that box (a distance map per 2^3 block), so exactly-zero air around the
+anatomy costs next to nothing (noisy air, above -1000 HU, does count: :mod:`registration.core.prepare`
+sets a CT's air and couch to -1000). :func:`render_reference` samples every
 ray with
 ``scipy.ndimage.map_coordinates`` at fine steps: slow, obviously correct, the yardstick of the
 tests and of the benchmark.

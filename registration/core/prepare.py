@@ -6,8 +6,16 @@ registration only ever renders the part of the volume that rays through the coll
 can reach while the search moves the anatomy within its bounds, and only at the resolutions
 of its pyramid. :func:`prepare_volume` makes that volume once:
 
-1. **Crop** (:func:`needed_box`): keep the voxels that hold tissue (above ``TISSUE_HU``; the
-   noisy air of a CT around the head is dropped, its attenuation is ~0) and that some ray
+0. **The body** (:func:`probe_blocks`): the patient's body is found on blocks of about
+   ``CROP_PROBE_MM`` (mostly above ``BODY_HU``, opened by ``BODY_OPENING_MM`` so that a CT's
+   couch, head rest and immobilisation mask are cut off where thin parts join them to the body,
+   its large parts, holes filled, grown by ``BODY_KEEP_MM``); what lies outside it, and air
+   below ``AIR_HU`` anywhere, is set to -1000 HU in the prepared levels
+   (:func:`mask_outside_body`): the angiography suite has its own table, the CT's couch is not
+   in its images, and the renderer's rays leap over the exact zeros (:mod:`registration.core.drr`).
+   (Images formed from the CT itself keep its couch: the DRRs then lack it, a small handicap.)
+1. **Crop** (:func:`needed_box`): keep the voxels that hold tissue of the body (above
+   ``TISSUE_HU``; the noisy air of a CT around the head is dropped, its attenuation is ~0) and that some ray
    through a view's field can reach under any motion of the search (:class:`Reach`: a
    translation and a rotation about the iso-center, every voxel displaced by at most
    ``translation_mm + 2 sin(rotation / 2) |X - c|``). The crop never changes a DRR inside
