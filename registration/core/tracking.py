@@ -705,24 +705,20 @@ def registration_evidence(
     f_est = f(m)
     steps = [PERTURB_MM, PERTURB_MM, PERTURB_DEG, PERTURB_DEG, PERTURB_DEG]
     slots = [0, 1, 3, 4, 5]  # tx, ty, rx, ry, rz of the six offsets
-    margins = []
-    for slot, step in zip(slots, steps, strict=True):
+
+    def margin(slot: int, step: float) -> float:
+        # the measure's margin over the better of the two poses moved by +-step along one offset
         worst = -math.inf
         for sign in (1.0, -1.0):
             o = np.zeros(6)
             o[slot] = sign * step
             worst = max(worst, f(offsets_to_matrix(o, geometry) @ m))
-        margins.append(f_est - worst)
+        return f_est - worst
+
+    margins = [margin(slot, step) for slot, step in zip(slots, steps, strict=True)]
     # the out-of-plane rotations (about the view's x and y axes), which one view sees least,
     # at ROTATION_PROBE_DEG: a wrong local optimum of rx / ry is flat there
-    rotation_margins = []
-    for slot in (3, 4):
-        worst = -math.inf
-        for sign in (1.0, -1.0):
-            o = np.zeros(6)
-            o[slot] = sign * ROTATION_PROBE_DEG
-            worst = max(worst, f(offsets_to_matrix(o, geometry) @ m))
-        rotation_margins.append(f_est - worst)
+    rotation_margins = [margin(slot, ROTATION_PROBE_DEG) for slot in (3, 4)]
     agreement = None
     if capture_motions:
         agreement = capture_agreement([np.asarray(c) for c in capture_motions], m, geometry.isocenter_mm)
