@@ -195,9 +195,9 @@ def _npz(path: Path, data: np.ndarray, affine: np.ndarray | None = None) -> Path
     return path
 
 
-def test_npz_of_compressed_zeros_is_refused_before_inflating(tmp_path: Path) -> None:
-    """A ~1 MB .npz inflating to 1.35 GB took 1.35 GB in `info` and 4.7 GB in `register`."""
-    shape = (1280, 512, 512)  # float32: 1.34 GB
+def zeros_npz(tmp_path: Path, shape: tuple[int, ...]) -> Path:
+    """A small .npz whose float32 ``data.npy`` of ``shape`` is deflated zeros (it inflates to
+    4 bytes a voxel), with an identity ``index_to_world.npy``."""
     header = io.BytesIO()
     np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": shape})
     size = int(np.prod(shape)) * 4
@@ -208,6 +208,12 @@ def test_npz_of_compressed_zeros_is_refused_before_inflating(tmp_path: Path) -> 
     np.save(affine, np.eye(4))
     with zipfile.ZipFile(path, "a") as archive:
         archive.writestr("index_to_world.npy", affine.getvalue())
+    return path
+
+
+def test_npz_of_compressed_zeros_is_refused_before_inflating(tmp_path: Path) -> None:
+    """A ~1 MB .npz inflating to 1.35 GB took 1.35 GB in `info` and 4.7 GB in `register`."""
+    path = zeros_npz(tmp_path, (1280, 512, 512))  # float32: 1.34 GB
     assert path.stat().st_size < 3 * 1024**2
     refused(lambda: dicom.read_volume(path), str(path), "compressed", "ROADMAP3D_MAX_NPZ_RATIO")
 
@@ -311,17 +317,7 @@ def test_rows_zero_or_all_ones_are_refused(tmp_path: Path, rows: int) -> None:
 
 def test_info_refuses_the_compressed_zeros_npz_without_inflating_it(tmp_path: Path, capsys) -> None:
     """`roadmap3d info` took 1.35 GB on a 1 MB .npz."""
-    shape = (512, 512, 512)
-    header = io.BytesIO()
-    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": shape})
-    size = int(np.prod(shape)) * 4
-    payload, crc = deflated_zeros(size, header.getvalue())
-    path = tmp_path / "zeros.npz"
-    path.write_bytes(one_member_zip("data.npy", payload, crc, size + len(header.getvalue())))
-    affine = io.BytesIO()
-    np.save(affine, np.eye(4))
-    with zipfile.ZipFile(path, "a") as archive:
-        archive.writestr("index_to_world.npy", affine.getvalue())
+    path = zeros_npz(tmp_path, (512, 512, 512))
     tracemalloc.start()
     try:
         report = dicom.inspect(path)
