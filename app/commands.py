@@ -18,7 +18,7 @@ import time
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -36,6 +36,8 @@ PHANTOM_VOLUME_DIR = "volume"
 PHANTOM_FLUORO = "xa_fluoro.dcm"
 PHANTOM_EXPOSURE = "xa_exposure.dcm"
 PHANTOM_FLUORO_B = "xa_fluoro_plane_b.dcm"
+#: Seconds between the phantom's fluoro frame and its exposure (two acquisitions, not one moment).
+EXPOSURE_AFTER_FLUORO_S = 4.0
 PHANTOM_TRUTH = "truth.json"
 #: Long work (building the FDK 3DRA the first time) is announced on stderr once it has taken
 #: this long (seconds); a cached volume loads well within it ...
@@ -541,7 +543,10 @@ def run_phantom_export(
                          acquired_at=moment)  # fmt: skip
         dicom.write_xray(fluoro_b, tmp / PHANTOM_FLUORO_B, study_uid=study_uid, uid_seed=f"{uid_seed} plane B",
                          plane="PLANE B", acquired_at=moment, description="roadmap3d fluoro, plane B")  # fmt: skip
-        dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed)
+        # The exposure is its own acquisition, a few seconds after the fluoro frame: never one moment
+        # with it, however fast this machine writes the files (biplane pairing refuses it).
+        dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed,
+                         acquired_at=moment + timedelta(seconds=EXPOSURE_AFTER_FLUORO_S))  # fmt: skip
         if volume_source == "fdk":  # the run the 3DRA was reconstructed from (validate rotational-run)
             from app.rotational_commands import export_phantom_run
 
