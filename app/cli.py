@@ -8,10 +8,12 @@ set ``ROADMAP3D_DEBUG=1`` to see the traceback instead.
 
 from __future__ import annotations
 
+import atexit
 import os
 import sys
+import threading
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, NoReturn
 
 import tyro
 
@@ -484,9 +486,31 @@ COMMANDS = {
 }
 
 
+def _exit_now(code: int) -> NoReturn:
+    """End the process with ``code`` without the interpreter's teardown.
+
+    Tearing down a process that loaded numba, llvmlite and scipy (freeing every module's
+    objects one by one) takes ~0.4 s after a command's work is done. The exit handlers run
+    (``atexit``: logging, temporary files, caches), the output is flushed, then the process
+    ends. Only when no other Python thread that the interpreter would wait for is running;
+    otherwise the ordinary exit.
+    """
+    if any(t is not threading.main_thread() and t.is_alive() and not t.daemon for t in threading.enumerate()):
+        sys.exit(code)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (| head): nothing more can be said
+            pass
+    os._exit(code)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``roadmap3d`` console script."""
     debug = os.environ.get("ROADMAP3D_DEBUG") == "1"
+    # the console script (no argv given) ends at once; a caller of main(argv) gets SystemExit as before
+    finish = _exit_now if argv is None else sys.exit
     try:
         code = tyro.extras.subcommand_cli_from_dict(
             COMMANDS, args=argv, config=(tyro.conf.OmitArgPrefixes,), prog="roadmap3d"
@@ -498,7 +522,7 @@ def main(argv: list[str] | None = None) -> None:
         if debug:
             raise
         print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+        finish(2)
     except (ArithmeticError, RecursionError, MemoryError, LookupError, TypeError) as exc:
         # Reachable only from a value no check caught (a file or an option): still a message, exit 2.
         if debug:
@@ -508,8 +532,8 @@ def main(argv: list[str] | None = None) -> None:
         given = given if len(given) <= 300 else given[:297] + "..."
         print(f"error: {type(exc).__name__} ({what}) on the input of: roadmap3d {given}; rerun with "
               "ROADMAP3D_DEBUG=1 to see where", file=sys.stderr)  # fmt: skip
-        sys.exit(2)
-    sys.exit(int(code or 0))
+        finish(2)
+    finish(int(code or 0))
 
 
 if __name__ == "__main__":
