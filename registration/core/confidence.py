@@ -67,6 +67,7 @@ class Evidence:
     edges: float | None = None
     plane_disagreement_mm: float | None = None
     depth_shift_mm: float | None = None
+    depth_tz_mm: float | None = None
     #: A hard reason to withhold whatever the score (e.g. "no usable pixel", "stopped").
     veto: str | None = None
 
@@ -125,6 +126,22 @@ class ConfidenceRule:
     #: the clinical study, seeds 0 and 1 (140 registrations).
     depth_weight: float = 20.0
     depth_free_mm: float = 0.7
+    #: per mm that the depth probe moves the volume away from the source beyond
+    #: ``pull_free_mm`` (its tz below -7 mm; revision 2 of the single-plane rule, calibrated on
+    #: the clinical study's seeds 0, 1 and 2, calibration_evidence.json): at the truth the
+    #: gradient difference peaks 2-20 mm toward the source on FDK volumes, so a probe that pulls
+    #: the volume back by more than 7 mm found an estimate ~10-25 mm toward the source of the
+    #: truth (seed 2: 3 of its 5 applied misses, 1.01-1.06 mm in-plane, had -10.6 to -15.4 mm).
+    pull_weight: float = 1.0
+    pull_free_mm: float = -7.0
+    #: per mm/mm of in-plane shift per mm along the beam (``depth_shift_mm`` over
+    #: max(|``depth_tz_mm``|, ``sensitivity_floor_mm``)) beyond ``sensitivity_free``: 0.06 mm
+    #: per mm is 1 mm of in-plane error for a 17 mm out-of-plane offset; 0.075 costs 3, as
+    #: much as the bias. The right estimates of the calibration seeds lie at 0.03-0.04; the
+    #: near misses at 0.07-0.09 (1.26 mm at tz 6.6 mm, 1.11 mm at tz 3.7 mm).
+    sensitivity_weight: float = 200.0
+    sensitivity_free: float = 0.06
+    sensitivity_floor_mm: float = 3.0
     threshold: float = 0.5
 
     def terms(self, e: Evidence) -> dict[str, float]:
@@ -144,6 +161,10 @@ class ConfidenceRule:
             out["planes"] = -self.planes_weight * max(0.0, e.plane_disagreement_mm - self.planes_free_mm)
         if e.depth_shift_mm is not None:
             out["depth"] = -self.depth_weight * max(0.0, e.depth_shift_mm - self.depth_free_mm)
+            if e.depth_tz_mm is not None:
+                out["depth_pull"] = -self.pull_weight * max(0.0, self.pull_free_mm - e.depth_tz_mm)
+                per_mm = e.depth_shift_mm / max(abs(e.depth_tz_mm), self.sensitivity_floor_mm)
+                out["depth_sensitivity"] = -self.sensitivity_weight * max(0.0, per_mm - self.sensitivity_free)
         return out
 
     def score(self, e: Evidence) -> float:
@@ -169,6 +190,8 @@ _REASONS = {
     "edges": "too few edges in the field",
     "planes": "the planes disagree",
     "depth": "the in-plane estimate moves when the volume may move along the beam (magnification)",
+    "depth_pull": "the measure pulls the volume away from the source (a large out-of-plane offset)",
+    "depth_sensitivity": "the in-plane estimate follows the unknown out-of-plane offset too strongly",
 }
 
 

@@ -684,8 +684,8 @@ def registration_evidence(
     rotations (rx, ry) perturbed by ROTATION_PROBE_DEG (4 DRRs); ``edges``: the field's edge
     fraction; ``agreement``: the capture runs' agreement with the result (when
     ``capture_motions`` are given); ``depth``: a
-    :class:`~registration.core.depth.DepthProbe` of the result (its ``shift_mm`` becomes the
-    evidence ``depth_shift_mm``).
+    :class:`~registration.core.depth.DepthProbe` of the result (its ``shift_mm`` and ``tz_mm``
+    become the evidence ``depth_shift_mm`` and ``depth_tz_mm``).
     """
     from registration.core.confidence import PERTURB_DEG, PERTURB_MM, ROTATION_PROBE_DEG, capture_agreement
 
@@ -728,4 +728,5 @@ def registration_evidence(
         agreement=agreement,
         edges=edge_fraction(lv.image, lv.mask),
         depth_shift_mm=None if depth is None else float(depth.shift_mm),
+        depth_tz_mm=None if depth is None else float(depth.tz_mm),
     )
