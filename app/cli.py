@@ -121,6 +121,7 @@ def register(
     ca_bundle: Path | None = None,
     store: bool = False,
     verbose: bool = False,
+    confidence: bool = False,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -144,6 +145,8 @@ def register(
         store: Store the result into the study on the PACS: the Spatial Registration object and the overlay
             (Secondary Capture).
         verbose: Print where the time went (start-up, reading, preparing the volume, registration) on stderr.
+        confidence: Also assess the estimate (CONVENTIONS §7): its confidence and whether a roadmap would apply or
+            withhold it, and why (the studies' rule; about a second more; written to --out too).
     """
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
         from app.net_commands import run_register_pacs
@@ -184,6 +187,7 @@ def register(
         sid_mm=sid_mm,
         sod_mm=sod_mm,
         verbose=verbose,
+        confidence=confidence,
     )
 
 

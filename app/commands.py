@@ -267,10 +267,12 @@ def run_register(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     verbose: bool = False,
+    confidence: bool = False,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
-    ``verbose``: where the time went, on stderr."""
+    ``verbose``: where the time went, on stderr. ``confidence``: the estimate's confidence and
+    decision (applied / withheld, CONVENTIONS §7) by the studies' rule."""
     clock = _Stopwatch()
     images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
     if len(images) not in (1, 2):
@@ -346,6 +348,15 @@ def run_register(
             f"{r.outofplane_mm:.2f} mm out-of-plane of plane A), {r.rotation_deg:.2f} deg{mtre} -> {verdict} "
             f"({criterion} criterion)"
         )
+    assessed = None
+    if confidence and not result.at_bounds:
+        from registration.studies.cases import confidence_fields
+
+        # its own renderer: the registration's prepares only the levels the search uses
+        assessed = confidence_fields(vol, views if len(views) == 2 else xray, result)
+        clock.lap("confidence")
+        decision = "applied" if assessed["applied"] else f"withheld: {assessed['withheld_reason']}"
+        _say(f"confidence {assessed['confidence']:.2f} -> {decision}")
     if verbose:
         _say(clock.report(), stream=sys.stderr)
     if result.at_bounds:  # inputs without information drift to the search bounds: not a registration
@@ -366,6 +377,9 @@ def run_register(
         document["image"] = described[0]
         if len(views) == 2:
             document["images"] = described
+        if assessed is not None:
+            keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
+            document.update({k: assessed[k] for k in keys})
         document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
         dicom.write_text_atomic(out, dicom.json_dumps(document))
         _say(f"wrote {out}")

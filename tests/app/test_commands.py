@@ -141,6 +141,7 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
             "--out", str(result_path),
             "--out-dicom", str(tmp_path / "result.dcm"),
             "--verbose",
+            "--confidence",
         ],
         capsys,
     )  # fmt: skip
@@ -161,6 +162,11 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     assert residual.inplane_mm < 1.0, residual
     assert residual.rotation_deg < 3.0, residual
     assert result["success"] is True
+    # --confidence: one plane is also probed along the beam; the decision printed is the JSON's
+    assert result["confidence_evidence"]["depth_shift_mm"] is not None
+    decision = "applied" if result["applied"] else f"withheld: {result['withheld_reason']}"
+    assert f"confidence {result['confidence']:.2f} -> {decision}" in out
+    assert "confidence" in timing
     # --initial-motion takes the result's own form.
     assert np.allclose(cli_io.read_motion_json(result_path, what="result")[0], result["patient_motion"])
     # ... and the DICOM Spatial Registration written beside it: the same motion (DS strings keep
@@ -190,11 +196,17 @@ def test_biplane_register_from_exported_files(exported: Path, tmp_path: Path, ca
             "--image", str(exported / cli_io.PHANTOM_FLUORO),
             "--truth", str(exported / cli_io.PHANTOM_TRUTH),
             "--out", str(result_path),
+            "--confidence",
         ],
         capsys,
     )  # fmt: skip
     assert code == 0 and "out-of-plane" in out and "3-D criterion" in out
     result = json.loads(result_path.read_text())
+    # --confidence: the rule's decision, printed and in the JSON; a sub-millimetre biplane estimate
+    # of the phantom is applied (validate biplane: recall 98-100 %)
+    assert result["applied"] is True and result["withheld_reason"] == ""
+    assert f"confidence {result['confidence']:.2f} -> applied" in out
+    assert result["confidence_evidence"]["depth_shift_mm"] is None  # no depth probe for two planes
     assert set(result["offsets"]) == {"tx", "ty", "tz", "rx", "ry", "rz"}
     assert [i["plane"] for i in result["images"]] == ["PLANE A", "PLANE B"]
     truth = json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())
