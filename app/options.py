@@ -88,7 +88,7 @@ class TrackingStudy:
     """Live motion compensation over simulated fluoroscopy runs (still, drift, sudden moves)."""
 
     out: Path = Path("validation-tracking")
-    """Output folder (results.json, plots, report.md/html)."""
+    """Output folder (results.json, plots, report.md/html; each run's outcome in cases/: a rerun resumes)."""
     quick: bool = False
     """One 20 s run at 128 px (minutes the first time, then the run is cached)."""
     json: bool = False

@@ -230,7 +230,7 @@ def run_tracking_study(args: TrackingStudy) -> int:
 
     config = TrackingConfig.quick_config(args.seed) if args.quick else TrackingConfig.full_config(args.seed)
     config = replace(config, realtime=not args.every_frame)
-    study = study_run(config, log=_stderr)
+    study = study_run(config, log=_stderr, out=Path(args.out))
     write_tracking_report(study, Path(args.out))
     s = study["summary"]
     if args.json:

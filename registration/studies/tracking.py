@@ -12,6 +12,7 @@ estimates that were applied.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -258,12 +259,45 @@ def summarize_tracking(cases: list[dict]) -> dict:
     }
 
 
-def run_tracking_study(config: TrackingConfig, *, log: Callable[[str], None] | None = None) -> dict:
-    """Every case of the config; returns {"summary", "cases", "config"}."""
-    cases = [
-        run_tracking_case(c, options=config.options, realtime=config.realtime, seed=config.seed, log=log)
-        for c in config.cases
-    ]
+def _case_key(case: TrackingCase, config: TrackingConfig) -> dict:
+    """What a saved case's outcome depends on (a rerun reuses it only when all of this matches)."""
+    return {
+        "case_config": json.loads(json.dumps({**asdict(case), "script": case.script.to_dict()}, default=float)),
+        "seed": config.seed,
+        "realtime": config.realtime,
+        "options": _options_dict(config.options),
+        "version": __version__,
+    }
+
+
+def run_tracking_study(
+    config: TrackingConfig, *, log: Callable[[str], None] | None = None, out: Path | None = None
+) -> dict:
+    """Every case of the config; returns {"summary", "cases", "config"}. With ``out``, each
+    case's outcome is saved as it finishes (``out/cases/NAME.json``, written atomically) and a
+    rerun with the same configuration reuses it: an interrupted study resumes at the case it
+    was in."""
+    from registration.io.dicom import write_text_atomic
+
+    say = log or (lambda _m: None)
+    cases = []
+    for c in config.cases:
+        saved = None if out is None else Path(out) / "cases" / f"{c.name}.json"
+        key = _case_key(c, config)
+        if saved is not None and saved.is_file():
+            try:
+                doc = json.loads(saved.read_text())
+            except (OSError, ValueError):
+                doc = None
+            if isinstance(doc, dict) and doc.get("key") == key:
+                say(f"{c.name}: reused from {saved}")
+                cases.append(doc["case"])
+                continue
+        done = run_tracking_case(c, options=config.options, realtime=config.realtime, seed=config.seed, log=log)
+        if saved is not None:
+            saved.parent.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(saved, json.dumps({"key": key, "case": done}, default=float))
+        cases.append(done)
     return {
         "summary": summarize_tracking(cases),
         "cases": cases,
@@ -359,8 +393,6 @@ def strip_chart(case: dict, path: Path) -> Path:
 
 def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
     """results.json, one strip chart per case, the ROC curve, report.md and report.html."""
-    import json
-
     from registration.io.dicom import write_text_atomic
     from registration.studies.report import _write
 
