@@ -38,8 +38,8 @@ The confidence is a logistic function of what the engine knows about the estimat
     found an estimate that already sits far toward the source, a large out-of-plane offset and
     so a large magnification error. (The in-plane error of the clinical study's single-plane
     estimates grows by 0.051 mm per mm of out-of-plane offset, median, 0.043-0.058
-    interquartile, over the 119 registrations of seeds 0-3 with more than 10 mm: beyond ~18 mm
-    an estimate is a near miss whatever else the engine sees.)
+    interquartile, over the 119 of seeds 0-3's 540 registrations with more than 10 mm: beyond
+    ~15-18 mm an estimate is a near miss whatever else the engine sees.)
 
 The rule's coefficients were calibrated on the studies (see ``docs/validation``); records
 report ``confidence`` and ``applied`` beside their residuals, and the summaries the applied
