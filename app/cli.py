@@ -122,6 +122,7 @@ def register(
     store: bool = False,
     verbose: bool = False,
     confidence: bool = False,
+    no_cache: bool = False,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -147,6 +148,9 @@ def register(
         verbose: Print where the time went (start-up, reading, preparing the volume, registration) on stderr.
         confidence: Also assess the estimate (CONVENTIONS §7): its confidence and whether a roadmap would apply or
             withhold it, and why (the studies' rule; about a second more; written to --out too).
+        no_cache: Prepare the volume from scratch and keep nothing on disk (default: the view-independent part
+            of the preparation is kept in the cache folder, ROADMAP3D_CACHE, by the volume's content;
+            ROADMAP3D_NO_CACHE=1 does the same as this flag).
     """
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
         from app.net_commands import run_register_pacs
@@ -188,6 +192,7 @@ def register(
         sod_mm=sod_mm,
         verbose=verbose,
         confidence=confidence,
+        cache=not no_cache,
     )
 
 

@@ -268,11 +268,14 @@ def run_register(
     sod_mm: float | None = None,
     verbose: bool = False,
     confidence: bool = False,
+    cache: bool = True,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
     ``verbose``: where the time went, on stderr. ``confidence``: the estimate's confidence and
-    decision (applied / withheld, CONVENTIONS §7) by the studies' rule."""
+    decision (applied / withheld, CONVENTIONS §7) by the studies' rule. ``cache``: keep the
+    preparation's view-independent part on disk (:class:`registration.io.cache.PreparationCache`)
+    and use it."""
     clock = _Stopwatch()
     images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
     if len(images) not in (1, 2):
@@ -311,7 +314,8 @@ def run_register(
         if pts.ndim == 2 and pts.shape[1] == 3 and len(pts) and np.all(np.isfinite(pts)):
             vessel_points = pts
 
-    from registration.core.register import RegistrationOptions, prepared_renderer, register
+    from registration.core.register import RegistrationOptions, prepared_volume, register
+    from registration.io.cache import PreparationCache
 
     clock.lap("loading the engine")
     g = xray.geometry
@@ -331,8 +335,10 @@ def run_register(
         _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
     _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
     # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm)
-    renderer = prepared_renderer(vol, tuple(views), np.eye(4) if m_init is None else m_init, RegistrationOptions())
-    clock.lap("preparing the volume")
+    prepared = prepared_volume(vol, tuple(views), np.eye(4) if m_init is None else m_init, RegistrationOptions(),
+                               store=PreparationCache() if cache else None)  # fmt: skip
+    renderer = prepared.renderer
+    clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
     result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points,
                       renderer=renderer)  # fmt: skip
     clock.lap("registration")

@@ -210,6 +210,13 @@ def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
             f"{real['prepare_seconds']:.2f} s preparing, {real['register_end_to_end_seconds']:.2f} s end to end, "
             f"{100 * real['success_rate']:.0f} % successful (images formed from the CT: a best case)"
         )
+        cli = real.get("command_line") or {}
+        if "wall_seconds" in cli:
+            warm = cli.get("warm", {}).get("wall_seconds")
+            print(
+                f"real CT, new process    roadmap3d register {cli['wall_seconds']:.2f} s (preparation not cached)"
+                + ("" if warm is None else f", {warm:.2f} s (its view-independent part cached on disk)")
+            )
     if "reconstruction" in out:
         rec = out["reconstruction"]
         print(

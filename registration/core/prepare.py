@@ -34,19 +34,29 @@ of its pyramid. :func:`prepare_volume` makes that volume once:
    level's spacing lies within ``SNAP_TOLERANCE`` of a power-of-two multiple of an isotropic
    volume's own spacing (a 3DRA whose format is the image format), that grid is used and made
    by block averages, exactly the volume's own pyramid.
-3. **Cache** (:func:`prepare_volume`): the prepared levels and their renderer are kept per
-   volume (by identity), per view and per reach, and reused by later registrations whose
-   views and searches they cover.
+3. **Cache** (:func:`prepare_volume`): what does not depend on the views (the probe blocks
+   and, per level spacing, the body's box of the volume resampled and set to air outside the
+   body: :class:`PreparedBase`) is kept per volume (by identity) and, given a ``store``
+   (:class:`PreparationStore`, for example :class:`registration.io.cache.PreparationCache` on
+   disk), per volume content (a SHA-256 of its voxels and affine, with the preparation's
+   parameters and ``PREPARE_VERSION``): a later process skips the resampling. Each view's
+   levels are slices of the base levels (the level grid's voxels covering the view's crop
+   box), so a cached and a freshly built preparation hold the same voxels. The prepared levels
+   and their renderer are also kept per volume (by identity), per view and per reach, and
+   reused by later registrations whose views and searches they cover.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numba
 import numpy as np
@@ -85,6 +95,8 @@ BODY_KEEP_MM = 12.0
 #: Voxels below this HU are air (their attenuation, < 10 % of water's, is a CT's noise around
 #: -1000 HU): set to -1000 with the outside of the body, so that rays leap over them.
 AIR_HU = -900.0
+#: Bump when what a preparation computes changes (it is part of the keys of stored bases).
+PREPARE_VERSION = 1
 #: Parts of the opened body at least this share of the largest one are body (a head and, cut
 #: from it by the scan's edge or the opening, shoulders); smaller ones (pieces of a couch or a
 #: mask the opening left) are not.
@@ -457,6 +469,8 @@ class PreparedVolume:
     renderer: DRRRenderer = field(repr=False)
     #: Whether the levels hold only the body (what lies outside it set to air, ``probe_blocks``).
     body: bool = False
+    #: Where the view-independent part came from: "built", "memory" or "disk" (a store).
+    base_source: str = "built"
 
     @property
     def voxels_per_level(self) -> list[int | None]:
@@ -473,6 +487,7 @@ class PreparedVolume:
             "box_hi": list(self.box_hi),
             "reach": {"translation_mm": self.reach.translation_mm, "rotation_deg": self.reach.rotation_deg},
             "body_only": self.body,
+            "base_source": self.base_source,
             "prepare_seconds": self.seconds,
         }
 
@@ -492,31 +507,134 @@ def _anatomy_extent_mm(volume: Volume, lo: NDArray[np.int64], hi: NDArray[np.int
     return float(max(np.ptp(view[:, 0]), np.ptp(view[:, 1])))
 
 
-def _prepare(
-    volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels: tuple[int, ...], body: bool
-) -> PreparedVolume:
-    start = time.perf_counter()
-    _, spacing = _axes_and_spacing(volume)
+class PreparationStore(Protocol):
+    """Where prepared bases outlive a process (:class:`registration.io.cache.PreparationCache`).
+
+    ``load`` returns the arrays stored under ``key`` (a JSON-ready dict), or None when there
+    are none or they cannot be read (a store never raises for a damaged entry: the preparation
+    is then built again and saved over it); ``save`` stores them (atomically).
+    """
+
+    def load(self, kind: str, key: dict) -> dict[str, np.ndarray] | None: ...
+
+    def save(self, kind: str, key: dict, arrays: dict[str, np.ndarray]) -> None: ...
+
+
+@dataclass(frozen=True)
+class PreparedBase:
+    """What a preparation computes whatever the views: the probe blocks and, per pyramid
+    level, the volume's box of needed tissue (the body's, all views alike) on the level's grid,
+    set to air outside the body. A view's levels are slices of these (:func:`_slice_level`).
+    ``source``: "built", or "memory" / "disk" where it was found."""
+
+    blocks: ProbeBlocks
+    levels: dict[int, Volume]
+    box_lo: NDArray[np.int64]
+    box_hi: NDArray[np.int64]
+    source: str = "built"
+
+
+def volume_digest(volume: Volume) -> str:
+    """SHA-256 of the volume's voxels (float32, C order), shape and affine: what a stored
+    preparation belongs to (hashing its 94 MB takes ~0.1 s; decoding the series 0.4 s)."""
+    h = hashlib.sha256()
+    h.update(json.dumps([list(volume.shape), str(volume.data.dtype)]).encode())
+    h.update(np.ascontiguousarray(volume.index_to_world, dtype=np.float64).tobytes())
+    h.update(memoryview(np.ascontiguousarray(volume.data)).cast("B"))
+    return h.hexdigest()
+
+
+def _blocks_key(digest: str, body: bool) -> dict:
+    return {
+        "volume_sha256": digest,
+        "prepare_version": PREPARE_VERSION,
+        "body": body,
+        "thresholds_hu": [TISSUE_HU, BODY_HU, AIR_HU],
+        "probe_mm": CROP_PROBE_MM,
+        "body_mm": [BODY_OPENING_MM, BODY_KEEP_MM],
+        "body_shares": [BODY_PART_SHARE, BODY_MIN_SHARE],
+    }
+
+
+def _levels_key(blocks_key: dict, targets: dict[int, float], margin_mm: float) -> dict:
+    return blocks_key | {
+        "targets_mm": [[lv, round(t, 9)] for lv, t in sorted(targets.items())],
+        "margin_mm": round(margin_mm, 9),
+        "snap_tolerance": SNAP_TOLERANCE,
+    }
+
+
+def _blocks_arrays(blocks: ProbeBlocks) -> dict[str, np.ndarray]:
+    out = {"step": np.asarray(blocks.step, dtype=np.int64), "tissue": np.asarray(blocks.tissue, dtype=bool)}
+    if blocks.body is not None:
+        out["body"] = np.asarray(blocks.body, dtype=bool)
+    return out
+
+
+def _blocks_from(arrays: dict[str, np.ndarray], volume: Volume) -> ProbeBlocks | None:
+    """The stored probe blocks, None unless they fit ``volume`` (a foreign or damaged entry)."""
+    try:
+        step = np.asarray(arrays["step"])
+        tissue = np.asarray(arrays["tissue"])
+        body = arrays.get("body")
+        if step.shape != (3,) or step.dtype != np.int64 or np.any(step < 1) or tissue.dtype != bool:
+            return None
+        shape = tuple(-(-n // int(s)) for n, s in zip(volume.shape, step[::-1], strict=True))
+        if tissue.shape != shape or (body is not None and (body.dtype != bool or body.shape != shape)):
+            return None
+    except (KeyError, TypeError, ValueError):
+        return None
+    return ProbeBlocks(step, tissue, None if body is None else np.asarray(body))
+
+
+def _base_arrays(base: PreparedBase) -> dict[str, np.ndarray]:
+    out = {"box": np.stack([base.box_lo, base.box_hi]).astype(np.int64)}
+    for lv, v in base.levels.items():
+        out[f"level{lv}"] = v.data
+        out[f"affine{lv}"] = v.index_to_world
+    return out
+
+
+def _base_from(
+    arrays: dict[str, np.ndarray], volume: Volume, blocks: ProbeBlocks, levels: Sequence[int]
+) -> PreparedBase | None:
+    """The stored levels, None unless they are those of ``levels`` for ``volume``'s grid."""
+    try:
+        box = np.asarray(arrays["box"])
+        if box.shape != (2, 3) or box.dtype != np.int64:
+            return None
+        built = {}
+        for lv in levels:
+            data, affine = np.asarray(arrays[f"level{lv}"]), np.asarray(arrays[f"affine{lv}"])
+            if data.dtype != np.float32 or data.ndim != 3 or affine.shape != (4, 4) or affine.dtype != np.float64:
+                return None
+            level = Volume(data, affine, label=volume.label, meta=volume.meta)
+            a = volume.index_from_world @ level.index_to_world  # the level keeps the volume's axes
+            if np.abs(a[:3, :3] - np.diag(np.diag(a[:3, :3]))).max() > 1e-6 * np.abs(a[:3, :3]).max():
+                return None
+            built[int(lv)] = level
+    except (KeyError, TypeError, ValueError):
+        return None
+    return PreparedBase(blocks, built, box[0], box[1], source="disk")
+
+
+def _build_levels(
+    volume: Volume, targets: dict[int, float], lo: NDArray[np.int64], hi: NDArray[np.int64], blocks: ProbeBlocks
+) -> tuple[dict[int, Volume], NDArray[np.int64], NDArray[np.int64]]:
+    """The levels of ``targets`` (level -> spacing) over the index box ``lo..hi``, set to air
+    outside the body; and the box they cover (aligned for block averages)."""
     nk, nj, ni = volume.shape
-    full = (np.zeros(3, dtype=np.int64), np.array([ni - 1, nj - 1, nk - 1], dtype=np.int64))
-    # the coarsest level's voxels plus a voxel of the source for interpolation at the crop's faces
-    extent_guess = max(field_extent_mm(g) for g in geometries)
-    margin = 2.0 * level_spacing_mm(extent_guess, max(levels)) + float(spacing.max())
-    blocks = probe_blocks(volume, body=body)
-    lo, hi = needed_box(volume, geometries, reach, margin_mm=margin, blocks=blocks) or full
-    extent = min(extent_guess, max(_anatomy_extent_mm(volume, lo, hi, g) for g in geometries))
-    # level 0 never finer than the volume's own finest spacing (resampling cannot add detail)
-    base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()))
-    targets = {lv: base_mm * 2**lv for lv in levels}
-    snaps = {lv: _snap_factor(spacing, targets[lv]) for lv in levels}
+    top = np.array([ni - 1, nj - 1, nk - 1], dtype=np.int64)
+    _, spacing = _axes_and_spacing(volume)
+    snaps = {lv: _snap_factor(spacing, t) for lv, t in targets.items()}
     largest = max([f for f in snaps.values() if f is not None], default=1)
     if largest > 1:  # crop on block boundaries, so block averages are the volume's own pyramid's
         lo = (lo // largest) * largest
         span = np.maximum(-(-(hi - lo + 1) // largest) * largest, 2 * largest)
-        hi = np.minimum(lo + span - 1, full[1])
+        hi = np.minimum(lo + span - 1, top)
     base = _crop(volume, lo, hi) if any(f is not None for f in snaps.values()) else None
     built: dict[int, Volume] = {}
-    for lv in levels:  # finest first
+    for lv in sorted(targets):  # finest first
         finer = built.get(lv - 1)
         if snaps[lv] is not None and base is not None:
             built[lv] = base.downsample(snaps[lv]) if snaps[lv] > 1 else base
@@ -527,8 +645,143 @@ def _prepare(
         else:
             built[lv] = resample_isotropic(volume, targets[lv], lo, hi)
     # outside the body: air
-    masked = {lv: mask_outside_body(v, volume, blocks) for lv, v in built.items()}
-    pyramid = tuple(masked.get(lv) for lv in range(max(levels) + 1))
+    return {lv: mask_outside_body(v, volume, blocks) for lv, v in built.items()}, lo, hi
+
+
+def _slice_level(level: Volume, volume: Volume, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> Volume:
+    """The voxels of ``level`` (a grid of ``volume``'s axes) that span the source index box
+    ``lo..hi``: from the voxel nearest its low face to the one nearest its high face (the box
+    holds the crop's margin of two coarsest voxels; at least two voxels along each axis)."""
+    a = volume.index_from_world @ level.index_to_world  # level index -> source index (diagonal)
+    scale, offset = np.diag(a)[:3], a[:3, 3]
+    n = np.array(level.shape[::-1], dtype=np.int64)  # (i, j, k)
+    g_lo = np.round((lo - offset) / scale).astype(np.int64)
+    g_hi = np.round((hi - offset) / scale).astype(np.int64)
+    g_lo = np.clip(g_lo, 0, n - 2)
+    g_hi = np.clip(np.maximum(g_hi, g_lo + 1), 1, n - 1)
+    if np.all(g_lo == 0) and np.all(g_hi == n - 1):
+        return level
+    data = level.data[g_lo[2] : g_hi[2] + 1, g_lo[1] : g_hi[1] + 1, g_lo[0] : g_hi[0] + 1]
+    affine = level.index_to_world.copy()
+    affine[:3, 3] = level.index_to_world[:3, :3] @ g_lo + level.index_to_world[:3, 3]
+    return Volume(np.ascontiguousarray(data), affine, label=level.label, meta=level.meta)
+
+
+_BLOCKS: OrderedDict[tuple, tuple[Volume, ProbeBlocks]] = OrderedDict()
+_BASES: OrderedDict[tuple, tuple[Volume, PreparedBase]] = OrderedDict()
+
+
+def _remember(table: OrderedDict, key: tuple, value: tuple) -> None:
+    with _CACHE_LOCK:
+        table[key] = value
+        table.move_to_end(key)
+        while len(table) > CACHE_ENTRIES:
+            table.popitem(last=False)
+
+
+def _recall(table: OrderedDict, key: tuple, volume: Volume):  # noqa: ANN202
+    with _CACHE_LOCK:
+        hit = table.get(key)
+        if hit is None or hit[0] is not volume:
+            return None
+        table.move_to_end(key)
+        return hit[1]
+
+
+class _Digest:
+    """The volume's digest, computed once and only when a store asks for it."""
+
+    def __init__(self, volume: Volume) -> None:
+        self.volume, self._value = volume, None
+
+    def __call__(self) -> str:
+        if self._value is None:
+            self._value = volume_digest(self.volume)
+        return self._value
+
+
+def _probe(volume: Volume, body: bool, store: PreparationStore | None, remember: bool, digest: _Digest) -> ProbeBlocks:
+    key = (id(volume), body)
+    blocks = _recall(_BLOCKS, key, volume) if remember else None
+    if blocks is not None:
+        return blocks
+    if store is not None:
+        stored = store.load("prepared-blocks", _blocks_key(digest(), body))
+        blocks = None if stored is None else _blocks_from(stored, volume)
+    if blocks is None:
+        blocks = probe_blocks(volume, body=body)
+        if store is not None:
+            store.save("prepared-blocks", _blocks_key(digest(), body), _blocks_arrays(blocks))
+    if remember:
+        _remember(_BLOCKS, key, (volume, blocks))
+    return blocks
+
+
+def _base(
+    volume: Volume, blocks: ProbeBlocks, targets: dict[int, float], margin_mm: float, body: bool,
+    store: PreparationStore | None, remember: bool, digest: _Digest,
+) -> PreparedBase:  # fmt: skip
+    """The base levels of ``targets``: remembered, stored, or built over the needed tissue's box."""
+    key = (id(volume), body, tuple(sorted(targets.items())), round(margin_mm, 9))
+    base = _recall(_BASES, key, volume) if remember else None
+    if base is not None:
+        return PreparedBase(base.blocks, base.levels, base.box_lo, base.box_hi, source="memory")
+    if store is not None:
+        stored = store.load("prepared-levels", _levels_key(_blocks_key(digest(), body), targets, margin_mm))
+        base = None if stored is None else _base_from(stored, volume, blocks, sorted(targets))
+    if base is None:
+        nk, nj, ni = volume.shape
+        full = (np.zeros(3, dtype=np.int64), np.array([ni - 1, nj - 1, nk - 1], dtype=np.int64))
+        lo, hi = _tissue_box(volume, blocks, margin_mm) or full
+        levels, lo, hi = _build_levels(volume, targets, lo, hi, blocks)
+        base = PreparedBase(blocks, levels, lo, hi)
+        if store is not None:
+            store.save("prepared-levels", _levels_key(_blocks_key(digest(), body), targets, margin_mm),
+                       _base_arrays(base))  # fmt: skip
+    if remember:
+        _remember(_BASES, key, (volume, base))
+    return base
+
+
+def _tissue_box(
+    volume: Volume, blocks: ProbeBlocks, margin_mm: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
+    """Index box (lo, hi inclusive, (i, j, k)) of the needed blocks (tissue of the body) grown
+    by ``margin_mm``: what any view's crop (:func:`needed_box`) lies within."""
+    _, spacing = _axes_and_spacing(volume)
+    nk, nj, ni = volume.shape
+    si, sj, sk = (int(x) for x in blocks.step)
+    kk, jj, ii = np.nonzero(blocks.needed)
+    if kk.size == 0:
+        return None
+    pad = np.ceil(margin_mm / spacing).astype(np.int64)
+    lo = np.array([ii.min() * si, jj.min() * sj, kk.min() * sk], dtype=np.int64) - pad
+    hi = np.array([(ii.max() + 1) * si - 1, (jj.max() + 1) * sj - 1, (kk.max() + 1) * sk - 1], dtype=np.int64) + pad
+    return np.maximum(lo, 0), np.minimum(hi, np.array([ni - 1, nj - 1, nk - 1]))
+
+
+def _prepare(
+    volume: Volume, geometries: tuple[CArm, ...], reach: Reach, levels: tuple[int, ...], body: bool,
+    store: PreparationStore | None = None, remember: bool = True,
+) -> PreparedVolume:  # fmt: skip
+    start = time.perf_counter()
+    digest = _Digest(volume)
+    _, spacing = _axes_and_spacing(volume)
+    nk, nj, ni = volume.shape
+    full = (np.zeros(3, dtype=np.int64), np.array([ni - 1, nj - 1, nk - 1], dtype=np.int64))
+    # the coarsest level's voxels plus a voxel of the source for interpolation at the crop's faces
+    extent_guess = max(field_extent_mm(g) for g in geometries)
+    margin = 2.0 * level_spacing_mm(extent_guess, max(levels)) + float(spacing.max())
+    blocks = _probe(volume, body, store, remember, digest)
+    lo, hi = needed_box(volume, geometries, reach, margin_mm=margin, blocks=blocks) or full
+    extent = min(extent_guess, max(_anatomy_extent_mm(volume, lo, hi, g) for g in geometries))
+    # level 0 never finer than the volume's own finest spacing (resampling cannot add detail)
+    base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()))
+    targets = {lv: base_mm * 2**lv for lv in levels}
+    base = _base(volume, blocks, targets, margin, body, store, remember, digest)
+    # this view's crop: the base levels' voxels that cover its box
+    sliced = {lv: _slice_level(v, volume, lo, hi) for lv, v in base.levels.items()}
+    pyramid = tuple(sliced.get(lv) for lv in range(max(levels) + 1))
     renderer = DRRRenderer(volume, levels=list(pyramid))
     return PreparedVolume(
         volume=volume,
@@ -541,6 +794,7 @@ def _prepare(
         seconds=time.perf_counter() - start,
         renderer=renderer,
         body=blocks.body is not None,
+        base_source=base.source,
     )
 
 
@@ -556,6 +810,7 @@ def prepare_volume(
     levels: Sequence[int] = DEFAULT_LEVELS,
     cache: bool = True,
     body: bool = True,
+    store: PreparationStore | None = None,
 ) -> PreparedVolume:
     """The cropped, resampled pyramid of ``volume`` for ``geometries`` (cached per volume).
 
@@ -564,6 +819,9 @@ def prepare_volume(
     prepare. ``body``: keep only the patient's body (:func:`probe_blocks`: a CT's couch, head
     rest and the air around set to air). A cached preparation of the same volume object for the same fields and levels
     whose reach covers ``reach`` is returned as it is (its ``seconds`` are those of its making).
+    ``store``: where the view-independent part (:class:`PreparedBase`) is looked up by the
+    volume's content and saved (``PreparedVolume.base_source`` says "disk" when it came from
+    there). ``cache=False``: nothing remembered, looked up or stored.
     """
     if not isinstance(volume, Volume):
         raise ValueError(f"volume must be a Volume, got {type(volume).__name__}")
@@ -581,17 +839,15 @@ def prepare_volume(
             if hit is not None and hit[0] is volume and hit[1].reach.covers(reach):
                 _CACHE.move_to_end(key)
                 return hit[1]
-    prepared = _prepare(volume, views, reach, levels_t, bool(body))
+    prepared = _prepare(volume, views, reach, levels_t, bool(body), store if cache else None, remember=cache)
     if cache:
-        with _CACHE_LOCK:
-            _CACHE[key] = (volume, prepared)
-            _CACHE.move_to_end(key)
-            while len(_CACHE) > CACHE_ENTRIES:
-                _CACHE.popitem(last=False)
+        _remember(_CACHE, key, (volume, prepared))
     return prepared
 
 
 def clear_cache() -> None:
-    """Forget every cached preparation."""
+    """Forget every cached preparation (and the remembered bases and probe blocks)."""
     with _CACHE_LOCK:
         _CACHE.clear()
+        _BASES.clear()
+        _BLOCKS.clear()

@@ -32,7 +32,7 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, check_rigid, invert_rigid, rigid, rotation_angle_deg
 from registration.core.images import XRayImage
 from registration.core.metrics import Residual, residuals
-from registration.core.prepare import Reach, prepare_volume
+from registration.core.prepare import PreparationStore, PreparedVolume, Reach, prepare_volume
 from registration.core.problem import LevelProblem, support_mask
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
@@ -305,6 +305,19 @@ def prepared_renderer(
     """The renderer of the volume prepared for these views and this search (cropped to what the
     fields can reach, isotropic levels in mm; :func:`registration.core.prepare.prepare_volume`,
     cached per volume and field)."""
+    return prepared_volume(volume, views, initial_motion, options).renderer
+
+
+def prepared_volume(
+    volume: Volume,
+    views: tuple[XRayImage, ...],
+    initial_motion: Array,
+    options: RegistrationOptions,
+    *,
+    store: PreparationStore | None = None,
+) -> PreparedVolume:
+    """:func:`prepared_renderer`'s preparation itself; ``store``: where its view-independent part
+    is looked up and kept across processes (:class:`registration.core.prepare.PreparationStore`)."""
     reach = Reach.of_search(
         options.bound_mm,
         options.bound_deg,
@@ -313,7 +326,7 @@ def prepared_renderer(
         translations=3 if options.optimizes_tz(len(views)) else 2,
     )
     levels = {lv.volume_level for lv in options.levels} | ({options.polish_volume_level} if options.polish else set())
-    return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=sorted(levels)).renderer
+    return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=sorted(levels), store=store)
 
 
 # --------------------------------------------------------------------------------------

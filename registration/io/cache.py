@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import tempfile
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,6 +22,13 @@ import platformdirs
 
 #: Bump when the meaning of cached data changes (phantom model, reconstruction, ...).
 CACHE_VERSION = 1
+#: Prepared volumes (:class:`PreparationCache`) kept at most, in bytes on disk together (the
+#: least recently used go first); one real CT's entry is ~25 MB.
+PREPARED_MAX_BYTES = 512 * 1024**2
+#: The kinds of entry a :class:`PreparationCache` writes (file name prefixes).
+PREPARED_KINDS = ("prepared-blocks", "prepared-levels")
+
+log = logging.getLogger(__name__)
 
 
 def cache_dir() -> Path:
@@ -49,7 +58,16 @@ def cached_arrays(
         except (OSError, ValueError, EOFError):
             path.unlink(missing_ok=True)  # corrupt entry: rebuild
     arrays = build()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
+    _write_npz_atomic(path, arrays)
+    return arrays
+
+
+def is_cached(kind: str, params: dict) -> bool:
+    return (cache_dir() / f"{cache_key(kind, params)}.npz").exists()
+
+
+def _write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=".tmp.npz")
     os.close(fd)
     try:
         np.savez(tmp, **arrays)
@@ -57,8 +75,94 @@ def cached_arrays(
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-    return arrays
 
 
-def is_cached(kind: str, params: dict) -> bool:
-    return (cache_dir() / f"{cache_key(kind, params)}.npz").exists()
+class PreparationCache:
+    """Prepared volumes on disk (:class:`registration.core.prepare.PreparationStore`).
+
+    Entries are ``.npz`` files in :func:`cache_dir` (or ``root``) named by a hash of their key
+    (the volume's SHA-256 and the preparation's parameters and version); each holds its key,
+    which a load compares, so a foreign or stale file of the same name is never used. Writes
+    are atomic; a damaged, unreadable or mismatching entry is removed and reported as missing
+    (the caller builds and saves it again), never an exception. The entries of this kind are
+    kept under ``max_bytes`` together, the least recently used removed first.
+    ``ROADMAP3D_NO_CACHE=1`` turns it off (nothing read, nothing written).
+    """
+
+    def __init__(self, root: Path | None = None, *, max_bytes: int = PREPARED_MAX_BYTES) -> None:
+        self._root = None if root is None else Path(root)
+        self.max_bytes = int(max_bytes)
+        self.enabled = os.environ.get("ROADMAP3D_NO_CACHE") != "1"
+
+    @property
+    def root(self) -> Path:
+        if self._root is None:
+            return cache_dir()
+        self._root.mkdir(parents=True, exist_ok=True)
+        return self._root
+
+    def path(self, kind: str, key: dict) -> Path:
+        if kind not in PREPARED_KINDS:
+            raise ValueError(f"unknown prepared-volume entry kind {kind!r}")
+        return self.root / f"{cache_key(kind, key)}.npz"
+
+    @staticmethod
+    def _key_bytes(kind: str, key: dict) -> np.ndarray:
+        blob = json.dumps({"kind": kind, **key}, sort_keys=True, default=str).encode()
+        return np.frombuffer(blob, dtype=np.uint8)
+
+    def load(self, kind: str, key: dict) -> dict[str, np.ndarray] | None:
+        if not self.enabled:
+            return None
+        try:
+            path = self.path(kind, key)
+        except OSError as exc:  # no cache folder can be made: prepare without one
+            log.warning("prepared-volume cache unavailable: %s", exc)
+            return None
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+            if not np.array_equal(arrays.pop("__key__", None), self._key_bytes(kind, key)):
+                raise ValueError("the entry belongs to another key")
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+            log.warning("prepared-volume cache entry %s unusable (%s): rebuilt", path.name, exc)
+            path.unlink(missing_ok=True)
+            return None
+        try:
+            os.utime(path)  # recently used: pruned last
+        except OSError:
+            pass
+        return arrays
+
+    def save(self, kind: str, key: dict, arrays: dict[str, np.ndarray]) -> None:
+        if not self.enabled:
+            return
+        try:
+            path = self.path(kind, key)
+            _write_npz_atomic(path, {**arrays, "__key__": self._key_bytes(kind, key)})
+            self.prune(keep=path)
+        except OSError as exc:  # a full or read-only disk: this run is prepared, the next builds again
+            log.warning("prepared-volume cache not written: %s", exc)
+
+    def entries(self) -> list[Path]:
+        return [p for kind in PREPARED_KINDS for p in self.root.glob(f"{kind}-*.npz")]
+
+    def prune(self, *, keep: Path | None = None) -> None:
+        """Remove the least recently used entries until they fit ``max_bytes`` (never ``keep``)."""
+        sized = []
+        for p in self.entries():
+            try:
+                st = p.stat()
+            except OSError:
+                continue
+            sized.append((st.st_mtime, st.st_size, p))
+        total = sum(size for _, size, _ in sized)
+        for _, size, p in sorted(sized, key=lambda e: e[0]):
+            if total <= self.max_bytes:
+                break
+            if keep is not None and p == keep:
+                continue
+            p.unlink(missing_ok=True)
+            total -= size
