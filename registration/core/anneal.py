@@ -214,6 +214,7 @@ def polish(
     step: ArrayLike,
     max_evaluations: int,
     callback: Callable[[PolishState], bool | None] | None = None,
+    xtol: float = POLISH_XTOL,
 ) -> AnnealResult:
     """A short local refinement of ``x0`` by Powell's method inside ``bounds``.
 
@@ -222,7 +223,9 @@ def polish(
     ``x0`` (its evaluation budget). Points are clipped to the bounds before ``cost`` sees
     them. The callback sees every evaluation and may stop the run by returning True: from
     then on ``cost`` is no longer called and Powell sees a flat function, so it ends at once.
-    The result is the best point evaluated (``x0`` if nothing improved on it).
+    The result is the best point evaluated (``x0`` if nothing improved on it). ``xtol``:
+    Powell's tolerance; with bounds each line search ends when it knows its minimum to
+    ``xtol`` times the line's step (``step``), in the parameters' unit.
     """
     b = np.asarray(bounds, dtype=np.float64)
     x_start = np.asarray(x0, dtype=np.float64).copy()
@@ -237,7 +240,7 @@ def polish(
         x_start,
         method="Powell",
         bounds=b,
-        options={"maxfev": int(max_evaluations), "xtol": POLISH_XTOL, "ftol": POLISH_FTOL, "direc": direc},
+        options={"maxfev": int(max_evaluations), "xtol": float(xtol), "ftol": POLISH_FTOL, "direc": direc},
     )
     message = "stopped by the callback" if run.stopped else "polish completed"
     return AnnealResult(run.best_x, run.best_fun, run.spent, run.spent + 1, True, message)

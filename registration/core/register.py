@@ -26,7 +26,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.core.anneal import AnnealResult, AnnealState, PolishState, Schedule, anneal, polish
+from registration.core.anneal import POLISH_XTOL, AnnealResult, AnnealState, PolishState, Schedule, anneal, polish
 from registration.core.checks import check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, check_rigid, invert_rigid, rigid, rotation_angle_deg
@@ -133,19 +133,33 @@ class RegistrationOptions:
     #: another round of runs follows, each plane starting from the other's best estimate, spread
     #: +- :data:`CROSS_START_MM` along the other's beam (up to :data:`PLANE_CAPTURE_ROUNDS`);
     #: without agreement the pair's own capture level runs, then ``levels[1:]``. Replaces
-    #: ``plane_a_capture`` when True: ~950 DRRs when the planes agree at once (1,940 before),
-    #: ~1,770 after a second round, ~2,590 after a third.
+    #: ``plane_a_capture`` when True: ~914 DRRs when the planes agree at once (1,940 before),
+    #: ~1,730 after a second round, ~2,550 after a third (the pair polish: 92 DRRs).
     plane_captures: bool = True
     plane_capture_runs: int = 2
     #: With ``plane_captures`` and agreeing planes: the pair's levels after the capture (None:
     #: ``levels[1:]``; each with the support margin of the level after the capture) and the
     #: pair's polish budget (None: ``polish_evaluations``). By default the combined start goes
     #: straight to the polish: it lies within about 1 mm and 1 deg (two planes, each across
-    #: the other's beam), which Powell's 60 evaluations close (the 27 cm study's moments 1-6:
-    #: 0.05-0.44 mm, 0.06-0.34 deg, as with the 128 px annealing level between, 178 DRRs
-    #: more); a 40-45 evaluation polish left up to 0.6-1.1 deg.
+    #: the other's beam), which the polish closes (the 27 cm study's moments 1-6 with 60
+    #: evaluations over the whole range: 0.05-0.44 mm, 0.06-0.34 deg, as with the 128 px
+    #: annealing level between, 178 DRRs more; 40-45 such evaluations left up to 0.6-1.1 deg).
     pair_levels: tuple[Level, ...] | None = ()
-    pair_polish_evaluations: int | None = None
+    pair_polish_evaluations: int | None = 45
+    #: With ``plane_captures``: the pair's polish searches its start +- this (mm, deg), not the
+    #: whole search range (None: the search range, as the single-plane polish does). Powell's
+    #: bounded line search (scipy's fminbound) opens each line with two points 38 % into the
+    #: interval from its ends: over +- 30 mm / 15 deg those lie 7 mm / 3.5 deg out (a third
+    #: point at 16 mm / 8 deg), far outside the basin of a start within about 1 mm and 1 deg,
+    #: and the rest of the line's budget converges from there: 60 evaluations were one pass over
+    #: the six parameters. Over +- 4 mm / 3 deg the first points lie ~1 mm / 0.7 deg out, and
+    #: with ``pair_polish_xtol`` 0.1 (each line ends at 0.05 mm / 0.03 deg, not 0.01 / 0.006)
+    #: 45 evaluations do better than 60 did: the full study's first 10 moments at 27 and 48 cm
+    #: from the same captures, median 0.18 mm / 0.22 deg against 0.22 mm / 0.25 deg, worst
+    #: 0.44 mm / 0.54 deg against 0.45 / 0.77, 92 DRRs against 122.
+    pair_polish_reach: tuple[float, float] | None = (4.0, 3.0)
+    #: Powell's tolerance of the pair's polish (:func:`registration.core.anneal.polish`).
+    pair_polish_xtol: float = 0.1
 
     def __post_init__(self) -> None:
         if not self.levels:
@@ -164,6 +178,10 @@ class RegistrationOptions:
                 raise ValueError("support_margin_mm needs one margin per level plus one for the polish")
             if any(not math.isfinite(m) or m < 0 for m in self.support_margin_mm):
                 raise ValueError(f"support margins must be >= 0 mm, got {self.support_margin_mm}")
+        if self.pair_polish_reach is not None and not all(r > 0 for r in self.pair_polish_reach):
+            raise ValueError(f"pair_polish_reach must be positive (mm, deg), got {self.pair_polish_reach}")
+        if not self.pair_polish_xtol > 0:
+            raise ValueError(f"pair_polish_xtol must be positive, got {self.pair_polish_xtol}")
         if self.plane_capture_runs < 1:
             raise ValueError(f"plane_capture_runs must be >= 1, got {self.plane_capture_runs}")
         if self.multi_view_restarts is not None and self.multi_view_restarts < 1:
@@ -451,16 +469,25 @@ def _anneal_level(
 
 
 def _polish(problem: LevelProblem, space: SearchSpace, stage: int, x_start: Array, options: RegistrationOptions,
-            monitor: _Monitor) -> AnnealResult:  # fmt: skip
-    """Powell from the annealed estimate, within the evaluation budget."""
+            monitor: _Monitor, *, pair: bool = False) -> AnnealResult:  # fmt: skip
+    """Powell from the annealed estimate, within the evaluation budget, over the search range;
+    ``pair``: the pair's polish after the plane captures (its budget, reach and tolerance)."""
 
     def on_evaluation(s: PolishState) -> bool:
         return monitor.report(stage, 0.0, s.x, s.fun, s.best_x, s.best_fun, 0)
 
     step = np.where(space.is_translation(), options.polish_step_mm, options.polish_step_deg)
+    bounds, evaluations, xtol = space.bounds, options.polish_evaluations, POLISH_XTOL
+    if pair:
+        if options.pair_polish_evaluations is not None:
+            evaluations = options.pair_polish_evaluations
+        if options.pair_polish_reach is not None:
+            half = np.where(space.is_translation(), *options.pair_polish_reach)
+            x0 = np.clip(x_start, bounds[:, 0], bounds[:, 1])
+            bounds = np.stack([np.maximum(bounds[:, 0], x0 - half), np.minimum(bounds[:, 1], x0 + half)], axis=1)
+        xtol = options.pair_polish_xtol
     cost = _cost(problem, space, monitor, None)
-    return polish(cost, x_start, space.bounds, step=step, max_evaluations=options.polish_evaluations,
-                  callback=on_evaluation)  # fmt: skip
+    return polish(cost, x_start, bounds, step=step, max_evaluations=evaluations, callback=on_evaluation, xtol=xtol)
 
 
 def _plane_a_capture(
@@ -764,11 +791,8 @@ def register(
         x, f = best.x, best.fun
     if options.polish and not monitor.stopped:
         stage = len(options.levels)
-        polish_options = options
-        if multi and options.plane_captures and options.pair_polish_evaluations is not None:
-            polish_options = replace(options, polish_evaluations=options.pair_polish_evaluations)
         best = _polish(prepare(options.polish_image_px, options.polish_volume_level, stage), space,
-                       shown + len(stages), x, polish_options, monitor)  # fmt: skip
+                       shown + len(stages), x, options, monitor, pair=multi and options.plane_captures)  # fmt: skip
         x, f = best.x, best.fun
     return _result(inputs, space, x, f, monitor, vessel_points_mm, time.perf_counter() - start)
 

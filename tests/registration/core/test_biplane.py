@@ -124,6 +124,56 @@ def test_polish_keeps_its_budget_and_stops_without_exceptions():
     assert stopped.fun == min(float(np.sum((c - 0.3) ** 2)) for c in calls)
 
 
+def test_pair_polish_searches_near_its_start_and_the_single_plane_polish_does_not():
+    from registration.core import register as reg
+
+    geometry = CArm.for_format(27.0, pixels=64)
+    six = SearchSpace(geometry, np.eye(4), SIX_PARAMETERS, 30.0, 15.0)
+    optimum = np.array([0.4, -0.3, 0.6, 0.5, -0.4, 0.3])  # within a mm and a degree of the start
+    start = np.array([0.1, 0.2, -0.3, 0.1, 0.2, -0.2])
+    # A stand-in for the level's cost: a bowl with coupled parameters about the optimum and a
+    # small ripple (gradient difference is rugged at the scale of a tenth of a pixel).
+    a = np.random.default_rng(1).normal(size=(6, 6))
+    hessian = np.eye(6) + 0.15 * (a + a.T)  # positive definite (eigenvalues 0.26-1.66)
+
+    def bowl(x):
+        return float((x - optimum) @ hessian @ (x - optimum) + 0.003 * np.sin(40.0 * x).sum())
+
+    class Evaluator:
+        drrs_per_evaluation = 2
+
+        def __init__(self):
+            self.points = []
+
+        def similarity(self, motion):
+            x = six.from_motion(motion)
+            self.points.append(x)
+            return -bowl(x)
+
+    def run(pair, options):
+        evaluator = Evaluator()
+        problem = type("Problem", (), {"evaluator": lambda self, parallel=None: evaluator})()
+        monitor = reg._Monitor(six, None, 0.0)
+        best = reg._polish(problem, six, 1, start, options, monitor, pair=pair)
+        return np.array(evaluator.points), best, monitor.drr_count
+
+    options = RegistrationOptions(polish_evaluations=45, pair_polish_evaluations=45, pair_polish_xtol=0.1)
+    points, pair_best, drrs = run(True, options)
+    # Every point the pair's polish evaluates lies within its reach of the start (4 mm, 3 deg).
+    reach = np.where(six.is_translation(), *options.pair_polish_reach)
+    assert np.all(np.abs(points - start) <= reach + 1e-9)
+    assert len(points) == 46 and drrs == 2 * len(points)  # the start and its budget, two views each
+    # The single-plane polish (pair=False) keeps the whole search range: its line searches open
+    # 7 mm out (fminbound's first points, 38 % into +- 30 mm from the ends).
+    points, single_best, _ = run(False, options)
+    assert len(points) == 46
+    assert np.max(np.abs(points[:, 0] - start[0])) > 5.0
+    # Same budget: the near search ends closer to the optimum (max error over the parameters:
+    # 0.24 against 0.50 here) because fewer of its evaluations land far from it.
+    pair_error, single_error = np.abs(pair_best.x - optimum).max(), np.abs(single_best.x - optimum).max()
+    assert pair_error < 0.3 < single_error, (pair_error, single_error)
+
+
 def _study_planes():
     """Plane A (27 cm, 512 px) and plane B (22 cm, 384 px) of the biplane study, near frontal/lateral."""
     from registration.sim.biplane import BiplaneSystem
