@@ -342,19 +342,36 @@ def needed_box(
         blocks = probe_blocks(volume, tissue_hu=tissue_hu, body=False)
     step = blocks.step
     si, sj, sk = (int(x) for x in step)
-    kk, jj, ii = np.nonzero(blocks.needed)
-    if kk.size == 0:
-        return None
-    centers = np.stack([(ii + 0.5) * si - 0.5, (jj + 0.5) * sj - 0.5, (kk + 0.5) * sk - 0.5], axis=1)
-    world = centers @ volume.index_to_world[:3, :3].T + volume.index_to_world[:3, 3]
+    needed = blocks.needed
     half_diagonal = 0.5 * float(np.linalg.norm(step * spacing))
-    keep = _reach_mask(world, geometries, reach, margin_mm + half_diagonal)
-    if not keep.any():
-        return None
-    ii, jj, kk = ii[keep], jj[keep], kk[keep]
+
+    def any_kept(kk: NDArray[np.int64], jj: NDArray[np.int64], ii: NDArray[np.int64]) -> bool:
+        centers = np.stack([(ii + 0.5) * si - 0.5, (jj + 0.5) * sj - 0.5, (kk + 0.5) * sk - 0.5], axis=1)
+        world = centers @ volume.index_to_world[:3, :3].T + volume.index_to_world[:3, 3]
+        return bool(_reach_mask(world, geometries, reach, margin_mm + half_diagonal).any())
+
+    # The box is the extent of the kept blocks: along each axis, from either end, the first slab
+    # of blocks holding a kept one. The same box as testing every block; usually a few slabs
+    # are tested (all of them only when nothing is within reach).
+    ends = []  # (k, j, i): (first, last) block index
+    for axis in range(3):
+        occupied = np.flatnonzero(needed.any(axis=tuple(a for a in range(3) if a != axis)))
+        found = []
+        for order in (occupied, occupied[::-1]):
+            for b in order:
+                u, v = np.nonzero(np.take(needed, b, axis=axis))
+                index = [u, v]
+                index.insert(axis, np.full(u.size, b, dtype=np.int64))
+                if any_kept(*index):
+                    found.append(int(b))
+                    break
+            else:
+                return None  # no block within reach
+        ends.append(found)
+    (k0, k1), (j0, j1), (i0, i1) = ends
     pad = np.ceil(margin_mm / spacing).astype(np.int64)  # the tissue's partial-volume edge and interpolation
-    lo = np.array([ii.min() * si, jj.min() * sj, kk.min() * sk], dtype=np.int64) - pad
-    hi = np.array([(ii.max() + 1) * si - 1, (jj.max() + 1) * sj - 1, (kk.max() + 1) * sk - 1], dtype=np.int64) + pad
+    lo = np.array([i0 * si, j0 * sj, k0 * sk], dtype=np.int64) - pad
+    hi = np.array([(i1 + 1) * si - 1, (j1 + 1) * sj - 1, (k1 + 1) * sk - 1], dtype=np.int64) + pad
     return np.maximum(lo, 0), np.minimum(hi, np.array([ni - 1, nj - 1, nk - 1]))
 
 
