@@ -172,15 +172,17 @@ _FIX_INV = np.float32(1.0 / _FIX_ONE)
 
 
 @numba.njit(cache=True, fastmath=True, inline="always")
-def _bilinear(arr: np.ndarray, base_m: np.uint64, pfx: np.int64, qfx: np.int64, usq: np.uint64) -> np.float32:
-    """Bilinear sample of the slice starting at ``base_m`` at (p, q) = (pfx, qfx) / 2^32, fixed point.
+def _bilinear(arr: np.ndarray, xfx: np.int64, qfx: np.int64, usq: np.uint64) -> np.float32:
+    """Bilinear sample at fixed point (x, q) = (xfx, qfx) / 2^32 of the flat ``arr``, whose
+    q axis has stride ``usq``: x is the flat index of the slice's start plus the contiguous
+    index p (an integer offset added to p keeps its fraction, the bilinear weight along p).
 
-    p is the contiguous axis, q has stride ``usq``; p, q >= 0 (padded indices: the padding keeps
-    them so), so the integer parts are shifts and the weights the low words.
+    x, q >= 0 (padded indices: the padding keeps them so), so the integer parts are shifts and
+    the weights the low words.
     """
-    fp = np.float32(pfx & _FIX_MASK) * _FIX_INV
+    fp = np.float32(xfx & _FIX_MASK) * _FIX_INV
     fq = np.float32(qfx & _FIX_MASK) * _FIX_INV
-    base = base_m + np.uint64(qfx >> _FIX_SHIFT) * usq + np.uint64(pfx >> _FIX_SHIFT)
+    base = np.uint64(qfx >> _FIX_SHIFT) * usq + np.uint64(xfx >> _FIX_SHIFT)
     v00 = arr[base]
     v10 = arr[base + np.uint64(1)]
     v01 = arr[base + usq]
@@ -188,6 +190,209 @@ def _bilinear(arr: np.ndarray, base_m: np.uint64, pfx: np.int64, qfx: np.int64, 
     a0 = v00 + fp * (v10 - v00)
     a1 = v01 + fp * (v11 - v01)
     return a0 + fq * (a1 - a0)
+
+
+@numba.njit(cache=True, inline="always")
+def _empty_blocks(empty: np.ndarray, m: int, pp: float, qp: float, ebm: int, ebp: int, ebq: int) -> int:
+    """The distance (in blocks) to attenuation of the block holding padded index (m, p, q)."""
+    return np.int64(empty[(m >> _BLOCK_SHIFT) * ebm + (np.int64(pp) >> _BLOCK_SHIFT) * ebp
+                          + (np.int64(qp) >> _BLOCK_SHIFT) * ebq])  # fmt: skip
+
+
+@numba.njit(cache=True, inline="always")
+def _no_ray():  # noqa: ANN202 - the tuple of _ray_start
+    return (False, False, np.int64(0), np.int64(0), np.int64(0), np.int64(0), np.int64(0), np.int64(0), 0.0, 0.0,
+            np.int64(0), np.int64(0), 0.0)  # fmt: skip
+
+
+@numba.njit(cache=True, inline="always")
+def _ray_start(c, r, a_mat, s0, s1, s2, lo, hi, ni, nj, nk, ni_p, nj_p, ebi, ebj, ebk, empty, use_empty, i2w):  # noqa: ANN001, ANN202
+    """The ray through pixel (c, r), ready to march: (hit, transposed, x, q, x step, q step, q stride,
+    inner slices, e0, e1, first slice, last slice, mm per slice), positions in fixed point (see
+    :func:`_bilinear`); ``hit`` False for a ray that misses the attenuation or crosses only zeros."""
+    d0 = a_mat[0, 0] * c + a_mat[0, 1] * r + a_mat[0, 2]
+    d1 = a_mat[1, 0] * c + a_mat[1, 1] * r + a_mat[1, 2]
+    d2 = a_mat[2, 0] * c + a_mat[2, 1] * r + a_mat[2, 2]
+    tmin, tmax = _clip(s0, s1, s2, d0, d1, d2, lo, hi)
+    if not tmin < tmax:
+        return _no_ray()
+    # dominant axis m; minor axes p (contiguous in memory) and q
+    ad0, ad1, ad2 = abs(d0), abs(d1), abs(d2)
+    if ad0 >= ad1 and ad0 >= ad2:  # m = i: mu_t, p = j, q = k
+        transposed = True
+        nm, np_, nq = ni, nj, nk
+        dm, dp, dq, sm, sp, sq = d0, d1, d2, s0, s1, s2
+        str_m = nj_p
+        str_q = nj_p * ni_p
+        ebm, ebp, ebq = ebi, ebj, ebk
+    elif ad1 >= ad2:  # m = j: p = i, q = k
+        transposed = False
+        nm, np_, nq = nj, ni, nk
+        dm, dp, dq, sm, sp, sq = d1, d0, d2, s1, s0, s2
+        str_m = ni_p
+        str_q = ni_p * nj_p
+        ebm, ebp, ebq = ebj, ebi, ebk
+    else:  # m = k: p = i, q = j
+        transposed = False
+        nm, np_, nq = nk, ni, nj
+        dm, dp, dq, sm, sp, sq = d2, d0, d1, s2, s0, s1
+        str_m = ni_p * nj_p
+        str_q = ni_p
+        ebm, ebp, ebq = ebk, ebi, ebj
+    e0 = sm + tmin * dm
+    e1 = sm + tmax * dm
+    if e0 > e1:
+        e0, e1 = e1, e0
+    e0 = max(e0, 0.0)
+    e1 = min(e1, nm - 1.0)
+    if not e0 < e1:
+        return _no_ray()
+    m_first = int(math.ceil(e0))
+    m_last = int(math.floor(e1))
+    n_inner = max(m_last - m_first, 0)  # m_last = m_first - 1: within one slice interval
+    rp = dp / dm
+    rq = dq / dm
+    # p, q one slice before the first sample and one after the last
+    p_before = sp + (m_first - 1 - sm) * rp
+    q_before = sq + (m_first - 1 - sm) * rq
+    p_after = p_before + (n_inner + 2) * rp
+    q_after = q_before + (n_inner + 2) * rq
+    # Guard the memory footprint against any numerical surprise (never taken for rays
+    # clipped to the box: the samples lie within one voxel of it).
+    if (
+        min(p_before, p_after) < -1.5
+        or max(p_before, p_after) > np_ + 0.5
+        or min(q_before, q_after) < -1.5
+        or max(q_before, q_after) > nq + 0.5
+    ):
+        return _no_ray()
+    if use_empty:
+        # leap from the first sample (slice m_first - 1) forward over proven zeros: at a
+        # block whose distance is db >= 2 the next 2 db - 3 slices' bilinear footprints
+        # (p, q within one voxel, moving at most one voxel per slice) stay in empty blocks
+        # with a voxel to spare for rounding
+        m = m_first - 1
+        m_end = m_last + 1
+        while m <= m_end:
+            pp = sp + (m - sm) * rp + _PAD
+            qp = sq + (m - sm) * rq + _PAD
+            db = _empty_blocks(empty, m + _PAD, pp, qp, ebm, ebp, ebq)
+            if db < _LEAP_MIN:
+                break
+            m += 2 * db - 3
+        if m > m_end:
+            return _no_ray()  # every sample is zero
+        m_start = m
+        m = m_end
+        while m > m_start:
+            pp = sp + (m - sm) * rp + _PAD
+            qp = sq + (m - sm) * rq + _PAD
+            db = _empty_blocks(empty, m + _PAD, pp, qp, ebm, ebp, ebq)
+            if db < _LEAP_MIN:
+                break
+            m -= 2 * db - 3
+        # the samples before m_start and after m are zero: integrate from the zero
+        # slice before the first possibly non-zero one to the zero slice after the last
+        e0 = max(e0, m_start - 1.0)
+        e1 = min(e1, m + 1.0)
+        if not e0 < e1:
+            return _no_ray()
+        m_first = int(math.ceil(e0))
+        m_last = int(math.floor(e1))
+        n_inner = max(m_last - m_first, 0)
+        p_before = sp + (m_first - 1 - sm) * rp
+        q_before = sq + (m_first - 1 - sm) * rq
+    w0 = i2w[0, 0] * d0 + i2w[0, 1] * d1 + i2w[0, 2] * d2
+    w1 = i2w[1, 0] * d0 + i2w[1, 1] * d1 + i2w[1, 2] * d2
+    w2 = i2w[2, 0] * d0 + i2w[2, 1] * d1 + i2w[2, 2] * d2
+    step_mm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / abs(dm)
+    xfx = (np.int64((m_first - 1 + _PAD) * str_m) << _FIX_SHIFT) + np.int64((p_before + _PAD) * _FIX_ONE)
+    qfx = np.int64((q_before + _PAD) * _FIX_ONE)
+    rxx = (np.int64(str_m) << _FIX_SHIFT) + np.int64(round(rp * _FIX_ONE))
+    rqx = np.int64(round(rq * _FIX_ONE))
+    return (True, transposed, xfx, qfx, rxx, rqx, np.int64(str_q), np.int64(n_inner), e0, e1,
+            np.int64(m_first), np.int64(m_last), step_mm)  # fmt: skip
+
+
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _ends(v_before, v_first, v_last, v_after, acc, e0, e1, m_first, m_last):  # noqa: ANN001, ANN202
+    """The ray's integral (in slices) from its samples: the trapezoid over [m_first, m_last]
+    (``acc`` = the sum of the samples there) and the exact areas over the partial end slices."""
+    if e1 < m_first:  # inside one slice interval [m_first - 1, m_first]
+        f = np.float32(0.5 * (e0 + e1) - (m_first - 1))
+        return np.float32(e1 - e0) * (v_before + f * (v_first - v_before))
+    f0 = np.float32(m_first - e0)
+    f1 = np.float32(e1 - m_last)
+    v_e0 = v_first + f0 * (v_before - v_first)
+    v_e1 = v_last + f1 * (v_after - v_last)
+    total = acc - np.float32(0.5) * (v_first + v_last)
+    total += np.float32(0.5) * (f0 * (v_e0 + v_first) + f1 * (v_e1 + v_last))
+    return total
+
+
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _march_one(arr, ray):  # noqa: ANN001, ANN202
+    """Joseph's sum along one started ray (in slices: times ``ray[12]`` for mm)."""
+    xfx, qfx, rxx, rqx, usq, n_inner = ray[2], ray[3], ray[4], ray[5], np.uint64(ray[6]), ray[7]
+    v_before = _bilinear(arr, xfx, qfx, usq)
+    xfx += rxx
+    qfx += rqx
+    v_first = _bilinear(arr, xfx, qfx, usq)
+    v_last = v_first
+    acc = v_first
+    for _ in range(n_inner):
+        xfx += rxx
+        qfx += rqx
+        v_last = _bilinear(arr, xfx, qfx, usq)
+        acc += v_last
+    xfx += rxx
+    qfx += rqx
+    v_after = _bilinear(arr, xfx, qfx, usq)
+    return _ends(v_before, v_first, v_last, v_after, acc, ray[8], ray[9], ray[10], ray[11])
+
+
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _march_two(arr_a, a, arr_b, b):  # noqa: ANN001, ANN202
+    """:func:`_march_one` of two rays at once (the same operations on each, interleaved: twice
+    the independent loads in flight, one loop's overhead for the slices both have)."""
+    xa, qa, rxa, rqa, usqa, na = a[2], a[3], a[4], a[5], np.uint64(a[6]), a[7]
+    xb, qb, rxb, rqb, usqb, nb = b[2], b[3], b[4], b[5], np.uint64(b[6]), b[7]
+    vba = _bilinear(arr_a, xa, qa, usqa)
+    vbb = _bilinear(arr_b, xb, qb, usqb)
+    xa += rxa
+    qa += rqa
+    xb += rxb
+    qb += rqb
+    vfa = _bilinear(arr_a, xa, qa, usqa)
+    vfb = _bilinear(arr_b, xb, qb, usqb)
+    vla = vfa
+    vlb = vfb
+    acca = vfa
+    accb = vfb
+    n_both = min(na, nb)
+    for _ in range(n_both):
+        xa += rxa
+        qa += rqa
+        xb += rxb
+        qb += rqb
+        vla = _bilinear(arr_a, xa, qa, usqa)
+        vlb = _bilinear(arr_b, xb, qb, usqb)
+        acca += vla
+        accb += vlb
+    for _ in range(na - n_both):
+        xa += rxa
+        qa += rqa
+        vla = _bilinear(arr_a, xa, qa, usqa)
+        acca += vla
+    for _ in range(nb - n_both):
+        xb += rxb
+        qb += rqb
+        vlb = _bilinear(arr_b, xb, qb, usqb)
+        accb += vlb
+    vaa = _bilinear(arr_a, xa + rxa, qa + rqa, usqa)
+    vab = _bilinear(arr_b, xb + rxb, qb + rqb, usqb)
+    return (_ends(vba, vfa, vla, vaa, acca, a[8], a[9], a[10], a[11]),
+            _ends(vbb, vfb, vlb, vab, accb, b[8], b[9], b[10], b[11]))  # fmt: skip
 
 
 def _joseph(
@@ -226,6 +431,11 @@ def _joseph(
     voxels, the chessboard distance in blocks to the nearest block with attenuation) and its
     span is narrowed to the slices in between, plus the zero slice at each end: the integral
     is the same (the samples left out are exact zeros), rays cross no air around the anatomy.
+
+    Speed: the rays of a row are set up one by one (:func:`_ray_start`) and marched two at a
+    time (:func:`_march_two`: twice the independent loads in flight); positions march in 32.32
+    fixed point (exact steps, no float-to-int conversions) and the kernels compile without
+    reassociation, so the sample loop stays scalar and each ray's sum keeps its order.
     """
     rows, cols = out.shape
     ni, nj, nk = shape_ijk[0], shape_ijk[1], shape_ijk[2]
@@ -234,147 +444,29 @@ def _joseph(
     ebi, ebj, ebk = empty_strides[0], empty_strides[1], empty_strides[2]
     for r in numba.prange(rows):
         samples = 0
+        # rays are marched in pairs (the previous hit waits for the next)
+        waiting = False
+        c_wait = 0
+        ray_wait = _no_ray()
         for c in range(cols):
             out[r, c] = 0.0
             if use_mask and mask[r, c] == 0:
                 continue
-            d0 = a_mat[0, 0] * c + a_mat[0, 1] * r + a_mat[0, 2]
-            d1 = a_mat[1, 0] * c + a_mat[1, 1] * r + a_mat[1, 2]
-            d2 = a_mat[2, 0] * c + a_mat[2, 1] * r + a_mat[2, 2]
-            tmin, tmax = _clip(s0, s1, s2, d0, d1, d2, lo, hi)
-            if not tmin < tmax:
+            ray = _ray_start(c, r, a_mat, s0, s1, s2, lo, hi, ni, nj, nk, ni_p, nj_p, ebi, ebj, ebk, empty, use_empty,
+                             i2w)  # fmt: skip
+            if not ray[0]:
                 continue
-            # dominant axis m; minor axes p (contiguous in memory) and q
-            ad0, ad1, ad2 = abs(d0), abs(d1), abs(d2)
-            if ad0 >= ad1 and ad0 >= ad2:  # m = i: mu_t, p = j, q = k
-                arr = mu_t
-                nm, np_, nq = ni, nj, nk
-                dm, dp, dq, sm, sp, sq = d0, d1, d2, s0, s1, s2
-                str_m = nj_p
-                str_q = nj_p * ni_p
-                ebm, ebp, ebq = ebi, ebj, ebk
-            elif ad1 >= ad2:  # m = j: p = i, q = k
-                arr = mu
-                nm, np_, nq = nj, ni, nk
-                dm, dp, dq, sm, sp, sq = d1, d0, d2, s1, s0, s2
-                str_m = ni_p
-                str_q = ni_p * nj_p
-                ebm, ebp, ebq = ebj, ebi, ebk
-            else:  # m = k: p = i, q = j
-                arr = mu
-                nm, np_, nq = nk, ni, nj
-                dm, dp, dq, sm, sp, sq = d2, d0, d1, s2, s0, s1
-                str_m = ni_p * nj_p
-                str_q = ni_p
-                ebm, ebp, ebq = ebk, ebi, ebj
-            e0 = sm + tmin * dm
-            e1 = sm + tmax * dm
-            if e0 > e1:
-                e0, e1 = e1, e0
-            e0 = max(e0, 0.0)
-            e1 = min(e1, nm - 1.0)
-            if not e0 < e1:
+            if not waiting:
+                ray_wait, c_wait, waiting = ray, c, True
                 continue
-            m_first = int(math.ceil(e0))
-            m_last = int(math.floor(e1))
-            n_inner = max(m_last - m_first, 0)  # m_last = m_first - 1: within one slice interval
-            rp = dp / dm
-            rq = dq / dm
-            # p, q one slice before the first sample and one after the last
-            p_before = sp + (m_first - 1 - sm) * rp
-            q_before = sq + (m_first - 1 - sm) * rq
-            p_after = p_before + (n_inner + 2) * rp
-            q_after = q_before + (n_inner + 2) * rq
-            # Guard the memory footprint against any numerical surprise (never taken for rays
-            # clipped to the box: the samples lie within one voxel of it).
-            if (
-                min(p_before, p_after) < -1.5
-                or max(p_before, p_after) > np_ + 0.5
-                or min(q_before, q_after) < -1.5
-                or max(q_before, q_after) > nq + 0.5
-            ):
-                continue
-            if use_empty:
-                # leap from the first sample (slice m_first - 1) forward over proven zeros: at a
-                # block whose distance is db >= 2 the next 2 db - 3 slices' bilinear footprints
-                # (p, q within one voxel, moving at most one voxel per slice) stay in empty blocks
-                # with a voxel to spare for rounding
-                m = m_first - 1
-                m_end = m_last + 1
-                while m <= m_end:
-                    pp = sp + (m - sm) * rp + _PAD
-                    qp = sq + (m - sm) * rq + _PAD
-                    db = np.int64(empty[((m + _PAD) >> _BLOCK_SHIFT) * ebm + (np.int64(pp) >> _BLOCK_SHIFT) * ebp
-                                        + (np.int64(qp) >> _BLOCK_SHIFT) * ebq])  # fmt: skip
-                    if db < _LEAP_MIN:
-                        break
-                    m += 2 * db - 3
-                if m > m_end:
-                    continue  # every sample is zero
-                m_start = m
-                m = m_end
-                while m > m_start:
-                    pp = sp + (m - sm) * rp + _PAD
-                    qp = sq + (m - sm) * rq + _PAD
-                    db = np.int64(empty[((m + _PAD) >> _BLOCK_SHIFT) * ebm + (np.int64(pp) >> _BLOCK_SHIFT) * ebp
-                                        + (np.int64(qp) >> _BLOCK_SHIFT) * ebq])  # fmt: skip
-                    if db < _LEAP_MIN:
-                        break
-                    m -= 2 * db - 3
-                # the samples before m_start and after m are zero: integrate from the zero
-                # slice before the first possibly non-zero one to the zero slice after the last
-                e0 = max(e0, m_start - 1.0)
-                e1 = min(e1, m + 1.0)
-                if not e0 < e1:
-                    continue
-                m_first = int(math.ceil(e0))
-                m_last = int(math.floor(e1))
-                n_inner = max(m_last - m_first, 0)
-                p_before = sp + (m_first - 1 - sm) * rp
-                q_before = sq + (m_first - 1 - sm) * rq
-            w0 = i2w[0, 0] * d0 + i2w[0, 1] * d1 + i2w[0, 2] * d2
-            w1 = i2w[1, 0] * d0 + i2w[1, 1] * d1 + i2w[1, 2] * d2
-            w2 = i2w[2, 0] * d0 + i2w[2, 1] * d1 + i2w[2, 2] * d2
-            step_mm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / abs(dm)
-            # march in fixed point (32 fraction bits): exact integer steps, the voxel index is a
-            # shift, the bilinear weight the low word
-            usm = np.uint64(str_m)
-            usq = np.uint64(str_q)
-            base_m = np.uint64(m_first - 1 + _PAD) * usm
-            pfx = np.int64((p_before + _PAD) * _FIX_ONE)
-            qfx = np.int64((q_before + _PAD) * _FIX_ONE)
-            rpx = np.int64(round(rp * _FIX_ONE))
-            rqx = np.int64(round(rq * _FIX_ONE))
-            v_before = _bilinear(arr, base_m, pfx, qfx, usq)
-            pfx += rpx
-            qfx += rqx
-            base_m += usm
-            v_first = _bilinear(arr, base_m, pfx, qfx, usq)
-            v_last = v_first
-            acc = v_first
-            for _ in range(n_inner):
-                pfx += rpx
-                qfx += rqx
-                base_m += usm
-                v_last = _bilinear(arr, base_m, pfx, qfx, usq)
-                acc += v_last
-            pfx += rpx
-            qfx += rqx
-            base_m += usm
-            v_after = _bilinear(arr, base_m, pfx, qfx, usq)
-            if e1 < m_first:  # inside one slice interval [m_first - 1, m_first]
-                f = np.float32(0.5 * (e0 + e1) - (m_first - 1))
-                total = np.float32(e1 - e0) * (v_before + f * (v_first - v_before))
-            else:
-                # trapezoid over [m_first, m_last], then the partial slices at both ends
-                f0 = np.float32(m_first - e0)
-                f1 = np.float32(e1 - m_last)
-                v_e0 = v_first + f0 * (v_before - v_first)
-                v_e1 = v_last + f1 * (v_after - v_last)
-                total = acc - np.float32(0.5) * (v_first + v_last)
-                total += np.float32(0.5) * (f0 * (v_e0 + v_first) + f1 * (v_e1 + v_last))
-            out[r, c] = total * np.float32(step_mm)
-            samples += n_inner + 3
+            total_a, total_b = _march_two(mu_t if ray_wait[1] else mu, ray_wait, mu_t if ray[1] else mu, ray)
+            out[r, c_wait] = total_a * np.float32(ray_wait[12])
+            out[r, c] = total_b * np.float32(ray[12])
+            samples += ray_wait[7] + ray[7] + 6
+            waiting = False
+        if waiting:
+            out[r, c_wait] = _march_one(mu_t if ray_wait[1] else mu, ray_wait) * np.float32(ray_wait[12])
+            samples += ray_wait[7] + 3
         work[r] = samples
 
 
