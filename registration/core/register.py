@@ -133,8 +133,8 @@ class RegistrationOptions:
     #: another round of runs follows, each plane starting from the other's best estimate, spread
     #: +- :data:`CROSS_START_MM` along the other's beam (up to :data:`PLANE_CAPTURE_ROUNDS`);
     #: without agreement the pair's own capture level runs, then ``levels[1:]``. Replaces
-    #: ``plane_a_capture`` when True: ~914 DRRs when the planes agree at once (1,940 before),
-    #: ~1,730 after a second round, ~2,550 after a third (the pair polish: 92 DRRs).
+    #: ``plane_a_capture`` when True: ~996 DRRs when the planes agree at once (1,940 before),
+    #: ~1,820 after a second round, ~2,640 after a third (the polishes: 122 DRRs of 64 px, 52 of 128 px).
     plane_captures: bool = True
     plane_capture_runs: int = 2
     #: With ``plane_captures`` and agreeing planes: the pair's levels after the capture (None:
@@ -145,7 +145,7 @@ class RegistrationOptions:
     #: evaluations over the whole range: 0.05-0.44 mm, 0.06-0.34 deg, as with the 128 px
     #: annealing level between, 178 DRRs more; 40-45 such evaluations left up to 0.6-1.1 deg).
     pair_levels: tuple[Level, ...] | None = ()
-    pair_polish_evaluations: int | None = 45
+    pair_polish_evaluations: int | None = 25
     #: With ``plane_captures``: the pair's polish searches its start +- this (mm, deg), not the
     #: whole search range (None: the search range, as the single-plane polish does). Powell's
     #: bounded line search (scipy's fminbound) opens each line with two points 38 % into the
@@ -154,12 +154,24 @@ class RegistrationOptions:
     #: and the rest of the line's budget converges from there: 60 evaluations were one pass over
     #: the six parameters. Over +- 4 mm / 3 deg the first points lie ~1 mm / 0.7 deg out, and
     #: with ``pair_polish_xtol`` 0.1 (each line ends at 0.05 mm / 0.03 deg, not 0.01 / 0.006)
-    #: 45 evaluations do better than 60 did: the full study's first 10 moments at 27 and 48 cm
-    #: from the same captures, median 0.18 mm / 0.22 deg against 0.22 mm / 0.25 deg, worst
-    #: 0.44 mm / 0.54 deg against 0.45 / 0.77, 92 DRRs against 122.
-    pair_polish_reach: tuple[float, float] | None = (4.0, 3.0)
-    #: Powell's tolerance of the pair's polish (:func:`registration.core.anneal.polish`).
+    #: 45 evaluations did better than 60 (a4957a5: the full study's first 10 moments at 27 and
+    #: 48 cm from the same captures, median 0.18 mm / 0.22 deg against 0.22 / 0.25, worst
+    #: 0.44 mm / 0.54 deg against 0.45 / 0.77, 92 DRRs against 122). After the coarse polish
+    #: (below) the start is closer still: +- 2 mm / 1.5 deg and 25 evaluations.
+    pair_polish_reach: tuple[float, float] | None = (2.0, 1.5)
+    #: Powell's tolerance of the pair's polishes (:func:`registration.core.anneal.polish`).
     pair_polish_xtol: float = 0.1
+    #: With ``plane_captures``: before the pair's polish, a coarse one of this many evaluations
+    #: (0: none) on the first level's images and volume level (64 px, quarter resolution: about
+    #: a seventh of the polish's DRR samples per evaluation) over the start +-
+    #: ``pair_coarse_polish_reach`` (mm, deg). Each plane's capture fitted five parameters to
+    #: its own image; this fits the six to both images at once. From the same captures, 60
+    #: coarse + 25 evaluations against the 45 of the polish alone: the full study's first 8
+    #: moments at 27 and 48 cm, median 0.10 mm / 0.16 deg against 0.18 / 0.17, worst 0.29 mm /
+    #: 0.47 deg against 0.44 / 0.54, DRR samples of the polishes 0.75x; the real CT's first 12
+    #: moments (quick images), see docs/biplane.md.
+    pair_coarse_polish_evaluations: int = 60
+    pair_coarse_polish_reach: tuple[float, float] | None = (4.0, 3.0)
 
     def __post_init__(self) -> None:
         if not self.levels:
@@ -178,8 +190,12 @@ class RegistrationOptions:
                 raise ValueError("support_margin_mm needs one margin per level plus one for the polish")
             if any(not math.isfinite(m) or m < 0 for m in self.support_margin_mm):
                 raise ValueError(f"support margins must be >= 0 mm, got {self.support_margin_mm}")
-        if self.pair_polish_reach is not None and not all(r > 0 for r in self.pair_polish_reach):
-            raise ValueError(f"pair_polish_reach must be positive (mm, deg), got {self.pair_polish_reach}")
+        for name in ("pair_polish_reach", "pair_coarse_polish_reach"):
+            reach = getattr(self, name)
+            if reach is not None and not (len(reach) == 2 and all(r > 0 for r in reach)):
+                raise ValueError(f"{name} must be two positive numbers (mm, deg), got {reach}")
+        if self.pair_coarse_polish_evaluations < 0:
+            raise ValueError(f"pair_coarse_polish_evaluations must be >= 0, got {self.pair_coarse_polish_evaluations}")
         if not self.pair_polish_xtol > 0:
             raise ValueError(f"pair_polish_xtol must be positive, got {self.pair_polish_xtol}")
         if self.plane_capture_runs < 1:
@@ -469,9 +485,10 @@ def _anneal_level(
 
 
 def _polish(problem: LevelProblem, space: SearchSpace, stage: int, x_start: Array, options: RegistrationOptions,
-            monitor: _Monitor, *, pair: bool = False) -> AnnealResult:  # fmt: skip
+            monitor: _Monitor, *, pair: bool = False, coarse: bool = False) -> AnnealResult:  # fmt: skip
     """Powell from the annealed estimate, within the evaluation budget, over the search range;
-    ``pair``: the pair's polish after the plane captures (its budget, reach and tolerance)."""
+    ``pair``: the pair's polish after the plane captures (its budget, reach and tolerance), and
+    with ``coarse`` the pair's coarse polish before it."""
 
     def on_evaluation(s: PolishState) -> bool:
         return monitor.report(stage, 0.0, s.x, s.fun, s.best_x, s.best_fun, 0)
@@ -479,10 +496,13 @@ def _polish(problem: LevelProblem, space: SearchSpace, stage: int, x_start: Arra
     step = np.where(space.is_translation(), options.polish_step_mm, options.polish_step_deg)
     bounds, evaluations, xtol = space.bounds, options.polish_evaluations, POLISH_XTOL
     if pair:
-        if options.pair_polish_evaluations is not None:
+        reach = options.pair_coarse_polish_reach if coarse else options.pair_polish_reach
+        if coarse:
+            evaluations = options.pair_coarse_polish_evaluations
+        elif options.pair_polish_evaluations is not None:
             evaluations = options.pair_polish_evaluations
-        if options.pair_polish_reach is not None:
-            half = np.where(space.is_translation(), *options.pair_polish_reach)
+        if reach is not None:
+            half = np.where(space.is_translation(), *reach)
             x0 = np.clip(x_start, bounds[:, 0], bounds[:, 1])
             bounds = np.stack([np.maximum(bounds[:, 0], x0 - half), np.minimum(bounds[:, 1], x0 + half)], axis=1)
         xtol = options.pair_polish_xtol
@@ -789,10 +809,18 @@ def register(
             level = replace(level, restarts=options.capture_runs(level, len(inputs.views)))
         best = _anneal_level(problem, space, level, shown + n, begin, rng, monitor, options.threads)
         x, f = best.x, best.fun
+    pair = multi and options.plane_captures
+    polish_shown = shown + len(stages)
+    if options.polish and pair and options.pair_coarse_polish_evaluations and not monitor.stopped:
+        first = options.levels[0]
+        coarse = prepare(first.image_px, first.volume_level, len(options.levels) - 1)
+        best = _polish(coarse, space, polish_shown, x, options, monitor, pair=True, coarse=True)
+        x, f = best.x, best.fun
+        polish_shown += 1
     if options.polish and not monitor.stopped:
         stage = len(options.levels)
         best = _polish(prepare(options.polish_image_px, options.polish_volume_level, stage), space,
-                       shown + len(stages), x, options, monitor, pair=multi and options.plane_captures)  # fmt: skip
+                       polish_shown, x, options, monitor, pair=pair)  # fmt: skip
         x, f = best.x, best.fun
     return _result(inputs, space, x, f, monitor, vessel_points_mm, time.perf_counter() - start)
 

@@ -39,7 +39,8 @@ def scene():
 def test_tz_recovered_from_two_views_where_one_cannot(scene):
     volume, views, truth = scene
     single = register(volume, views[0], truth=truth, seed=3, options=FAST)
-    both = register(volume, views, truth=truth, seed=3, options=FAST)
+    levels = []
+    both = register(volume, views, truth=truth, seed=3, options=FAST, callback=lambda p: levels.append(p.level))
     # One view keeps tz: its estimate stays ~8 mm off along the beam (the paper's five parameters).
     assert single.parameters == FIVE_PARAMETERS
     assert single.residual.outofplane_mm > 6.0, single.residual
@@ -52,6 +53,9 @@ def test_tz_recovered_from_two_views_where_one_cannot(scene):
     assert both.success  # the 3-D criterion, since tz was optimised
     # Two DRRs per evaluation.
     assert both.drr_count % 2 == 0
+    # The planes' captures (level 0; agreeing here, so no pair capture), the pair's coarse polish
+    # on the capture level's images (1), then the polish (2), in that order.
+    assert sorted(set(levels)) == [0, 1, 2] and levels == sorted(levels)
     d = both.to_dict()
     assert set(d["offsets"]) == set(SIX_PARAMETERS) and len(d["views"]) == 2
 
@@ -150,19 +154,25 @@ def test_pair_polish_searches_near_its_start_and_the_single_plane_polish_does_no
             self.points.append(x)
             return -bowl(x)
 
-    def run(pair, options):
+    def run(pair, options, coarse=False):
         evaluator = Evaluator()
         problem = type("Problem", (), {"evaluator": lambda self, parallel=None: evaluator})()
         monitor = reg._Monitor(six, None, 0.0)
-        best = reg._polish(problem, six, 1, start, options, monitor, pair=pair)
+        best = reg._polish(problem, six, 1, start, options, monitor, pair=pair, coarse=coarse)
         return np.array(evaluator.points), best, monitor.drr_count
 
-    options = RegistrationOptions(polish_evaluations=45, pair_polish_evaluations=45, pair_polish_xtol=0.1)
+    options = RegistrationOptions(polish_evaluations=45, pair_polish_evaluations=45, pair_polish_reach=(4.0, 3.0),
+                                  pair_polish_xtol=0.1, pair_coarse_polish_evaluations=30,
+                                  pair_coarse_polish_reach=(3.0, 2.0))  # fmt: skip
     points, pair_best, drrs = run(True, options)
     # Every point the pair's polish evaluates lies within its reach of the start (4 mm, 3 deg).
     reach = np.where(six.is_translation(), *options.pair_polish_reach)
     assert np.all(np.abs(points - start) <= reach + 1e-9)
     assert len(points) == 46 and drrs == 2 * len(points)  # the start and its budget, two views each
+    # The coarse polish before it: its own budget and reach.
+    points, _, _ = run(True, options, coarse=True)
+    assert len(points) == 31
+    assert np.all(np.abs(points - start) <= np.where(six.is_translation(), 3.0, 2.0) + 1e-9)
     # The single-plane polish (pair=False) keeps the whole search range: its line searches open
     # 7 mm out (fminbound's first points, 38 % into +- 30 mm from the ends).
     points, single_best, _ = run(False, options)
