@@ -193,13 +193,6 @@ def _bilinear(arr: np.ndarray, xfx: np.int64, qfx: np.int64, usq: np.uint64) -> 
 
 
 @numba.njit(cache=True, inline="always")
-def _empty_blocks(empty: np.ndarray, m: int, pp: float, qp: float, ebm: int, ebp: int, ebq: int) -> int:
-    """The distance (in blocks) to attenuation of the block holding padded index (m, p, q)."""
-    return np.int64(empty[(m >> _BLOCK_SHIFT) * ebm + (np.int64(pp) >> _BLOCK_SHIFT) * ebp
-                          + (np.int64(qp) >> _BLOCK_SHIFT) * ebq])  # fmt: skip
-
-
-@numba.njit(cache=True, inline="always")
 def _no_ray():  # noqa: ANN202 - the tuple of _ray_start
     return (False, False, np.int64(0), np.int64(0), np.int64(0), np.int64(0), np.int64(0), np.int64(0), 0.0, 0.0,
             np.int64(0), np.int64(0), 0.0)  # fmt: skip
@@ -267,30 +260,43 @@ def _ray_start(c, r, a_mat, s0, s1, s2, lo, hi, ni, nj, nk, ni_p, nj_p, ebi, ebj
     ):
         return _no_ray()
     if use_empty:
-        # leap from the first sample (slice m_first - 1) forward over proven zeros: at a
-        # block whose distance is db >= 2 the next 2 db - 3 slices' bilinear footprints
-        # (p, q within one voxel, moving at most one voxel per slice) stay in empty blocks
-        # with a voxel to spare for rounding
-        m = m_first - 1
-        m_end = m_last + 1
-        while m <= m_end:
-            pp = sp + (m - sm) * rp + _PAD
-            qp = sq + (m - sm) * rq + _PAD
-            db = _empty_blocks(empty, m + _PAD, pp, qp, ebm, ebp, ebq)
-            if db < _LEAP_MIN:
-                break
-            m += 2 * db - 3
-        if m > m_end:
-            return _no_ray()  # every sample is zero
-        m_start = m
-        m = m_end
-        while m > m_start:
-            pp = sp + (m - sm) * rp + _PAD
-            qp = sq + (m - sm) * rq + _PAD
-            db = _empty_blocks(empty, m + _PAD, pp, qp, ebm, ebp, ebq)
-            if db < _LEAP_MIN:
-                break
-            m -= 2 * db - 3
+        # leap from both ends (slices m_first - 1 and m_last + 1) inwards over proven zeros:
+        # at a block whose distance is db >= 2 the next 2 db - 3 slices' bilinear footprints
+        # (p, q within one voxel, moving at most one voxel per slice) stay in empty blocks with
+        # a voxel to spare for rounding. The two leaps are independent chains of loads, taken
+        # step for step together; positions in fixed point (the block index is a shift).
+        m_f = m_first - 1
+        m_b = m_last + 1
+        p_f = np.int64((p_before + _PAD) * _FIX_ONE)
+        q_f = np.int64((q_before + _PAD) * _FIX_ONE)
+        rp_x = np.int64(round(rp * _FIX_ONE))
+        rq_x = np.int64(round(rq * _FIX_ONE))
+        p_b = p_f + (m_b - m_f) * rp_x
+        q_b = q_f + (m_b - m_f) * rq_x
+        shift = _FIX_SHIFT + _BLOCK_SHIFT
+        forward = True
+        backward = True
+        while forward or backward:
+            if forward:
+                db = np.int64(empty[((m_f + _PAD) >> _BLOCK_SHIFT) * ebm + (p_f >> shift) * ebp + (q_f >> shift) * ebq])
+                if db < _LEAP_MIN:
+                    forward = False
+                else:
+                    m_f += 2 * db - 3
+                    p_f += (2 * db - 3) * rp_x
+                    q_f += (2 * db - 3) * rq_x
+            if backward:
+                db = np.int64(empty[((m_b + _PAD) >> _BLOCK_SHIFT) * ebm + (p_b >> shift) * ebp + (q_b >> shift) * ebq])
+                if db < _LEAP_MIN:
+                    backward = False
+                else:
+                    m_b -= 2 * db - 3
+                    p_b -= (2 * db - 3) * rp_x
+                    q_b -= (2 * db - 3) * rq_x
+            if m_f > m_b:
+                return _no_ray()  # the slices before m_f and after m_b, that is all, are zero
+        m_start = m_f
+        m = m_b
         # the samples before m_start and after m are zero: integrate from the zero
         # slice before the first possibly non-zero one to the zero slice after the last
         e0 = max(e0, m_start - 1.0)
