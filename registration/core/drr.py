@@ -750,6 +750,15 @@ class DRRRenderer:
             raise ValueError(f"level {level} of this renderer was not prepared")
         return lev
 
+    def _joseph(self, kernel, lev: _Level, level: int, source, a_mat, mask_u8, use_mask: bool, out) -> None:  # noqa: ANN001
+        """Run a Joseph kernel into ``out`` and count its samples."""
+        work = np.empty(out.shape[0], dtype=np.int64)
+        kernel(
+            lev.mu, lev.mu_t, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
+            mask_u8, use_mask, lev.empty, lev.empty_strides, lev.use_empty and self.skip_empty, out, work,
+        )  # fmt: skip
+        self.samples_per_level[int(level)] += int(work.sum())
+
     def render(
         self,
         geometry: CArm,
@@ -793,28 +802,26 @@ class DRRRenderer:
             if mask.dtype != np.bool_:
                 raise ValueError(f"mask must be boolean, got dtype {mask.dtype}")
             mask_u8, use_mask = np.ascontiguousarray(mask).view(np.uint8), True
-        previous_chunk = numba.get_parallel_chunksize()
-        numba.set_parallel_chunksize(_ROW_CHUNK)
-        try:
-            if self.step_voxels == 1.0:
-                # small jobs run serially: a parallel launch costs more than it saves
-                serial = geometry.rows * geometry.cols * int(lev.shape_ijk.max()) < _SERIAL_SAMPLES
-                if parallel is not None:
-                    serial = not parallel
-                kernel = _render_joseph_serial if serial else _render_joseph
-                work = np.empty(shape[0], dtype=np.int64)
-                kernel(
-                    lev.mu, lev.mu_t, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
-                    mask_u8, use_mask, lev.empty, lev.empty_strides, lev.use_empty and self.skip_empty, out, work,
-                )  # fmt: skip
-                self.samples_per_level[int(level)] += int(work.sum())
-            else:
-                _render_trilinear(
-                    lev.mu, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
-                    mask_u8, use_mask, self.step_voxels, out,
-                )  # fmt: skip
-        finally:
-            numba.set_parallel_chunksize(previous_chunk)
+        joseph = self.step_voxels == 1.0
+        # small jobs run serially: a parallel launch costs more than it saves
+        serial = geometry.rows * geometry.cols * int(lev.shape_ijk.max()) < _SERIAL_SAMPLES
+        if parallel is not None:
+            serial = not parallel
+        if joseph and serial:  # no thread pool: no chunk size to set (a few us per call)
+            self._joseph(_render_joseph_serial, lev, level, source, a_mat, mask_u8, use_mask, out)
+        else:
+            previous_chunk = numba.get_parallel_chunksize()
+            numba.set_parallel_chunksize(_ROW_CHUNK)
+            try:
+                if joseph:
+                    self._joseph(_render_joseph, lev, level, source, a_mat, mask_u8, use_mask, out)
+                else:
+                    _render_trilinear(
+                        lev.mu, lev.shape_ijk, lev.lo, lev.hi, source, a_mat, lev.index_to_world3,
+                        mask_u8, use_mask, self.step_voxels, out,
+                    )  # fmt: skip
+            finally:
+                numba.set_parallel_chunksize(previous_chunk)
         self.count += 1
         return out
 
