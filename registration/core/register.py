@@ -133,8 +133,8 @@ class RegistrationOptions:
     #: another round of runs follows, each plane starting from the other's best estimate, spread
     #: +- :data:`CROSS_START_MM` along the other's beam (up to :data:`PLANE_CAPTURE_ROUNDS`);
     #: without agreement the pair's own capture level runs, then ``levels[1:]``. Replaces
-    #: ``plane_a_capture`` when True: ~996 DRRs when the planes agree at once (1,940 before),
-    #: ~1,820 after a second round, ~2,640 after a third (the polishes: 122 DRRs of 64 px, 52 of 128 px).
+    #: ``plane_a_capture`` when True: ~1,006 DRRs when the planes agree at once (1,940 before),
+    #: ~1,830 after a second round, ~2,650 after a third (the polishes: 122 DRRs of 64 px, 62 of 128 px).
     plane_captures: bool = True
     plane_capture_runs: int = 2
     #: With ``plane_captures`` and agreeing planes: the pair's levels after the capture (None:
@@ -145,7 +145,7 @@ class RegistrationOptions:
     #: evaluations over the whole range: 0.05-0.44 mm, 0.06-0.34 deg, as with the 128 px
     #: annealing level between, 178 DRRs more; 40-45 such evaluations left up to 0.6-1.1 deg).
     pair_levels: tuple[Level, ...] | None = ()
-    pair_polish_evaluations: int | None = 25
+    pair_polish_evaluations: int | None = 30
     #: With ``plane_captures``: the pair's polish searches its start +- this (mm, deg), not the
     #: whole search range (None: the search range, as the single-plane polish does). Powell's
     #: bounded line search (scipy's fminbound) opens each line with two points 38 % into the
@@ -157,7 +157,9 @@ class RegistrationOptions:
     #: 45 evaluations did better than 60 (a4957a5: the full study's first 10 moments at 27 and
     #: 48 cm from the same captures, median 0.18 mm / 0.22 deg against 0.22 / 0.25, worst
     #: 0.44 mm / 0.54 deg against 0.45 / 0.77, 92 DRRs against 122). After the coarse polish
-    #: (below) the start is closer still: +- 2 mm / 1.5 deg and 25 evaluations.
+    #: (below) the start is closer still: +- 2 mm / 1.5 deg and 30 evaluations (25 left the
+    #: rotation a little worse than the 45 without it on the quick study's 12 moments, whose
+    #: capture level has 5.7 mm voxels: median 0.30 deg against 0.21; 30: 0.24 deg).
     pair_polish_reach: tuple[float, float] | None = (2.0, 1.5)
     #: Powell's tolerance of the pair's polishes (:func:`registration.core.anneal.polish`).
     pair_polish_xtol: float = 0.1
@@ -168,8 +170,8 @@ class RegistrationOptions:
     #: its own image; this fits the six to both images at once. From the same captures, 60
     #: coarse + 25 evaluations against the 45 of the polish alone: the full study's first 8
     #: moments at 27 and 48 cm, median 0.10 mm / 0.16 deg against 0.18 / 0.17, worst 0.29 mm /
-    #: 0.47 deg against 0.44 / 0.54, DRR samples of the polishes 0.75x; the real CT's first 12
-    #: moments (quick images), see docs/biplane.md.
+    #: 0.47 deg against 0.44 / 0.54, DRR samples of the polishes 0.75x; on the real CT's first
+    #: 11 moments (quick images) 60 + 30: 0.21 mm / 0.14 deg against 0.39 / 0.28 (docs/biplane.md).
     pair_coarse_polish_evaluations: int = 60
     pair_coarse_polish_reach: tuple[float, float] | None = (4.0, 3.0)
 
