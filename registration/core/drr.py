@@ -401,6 +401,13 @@ def _march_two(arr_a, a, arr_b, b):  # noqa: ANN001, ANN202
             _ends(vbb, vfb, vlb, vab, accb, b[8], b[9], b[10], b[11]))  # fmt: skip
 
 
+@numba.njit(cache=True, inline="always")
+def _stored_ray(ints, reals, n):  # noqa: ANN001, ANN202
+    """The tuple of :func:`_ray_start` from row ``n`` of the set-up arrays."""
+    return (True, ints[n, 0] != 0, ints[n, 1], ints[n, 2], ints[n, 3], ints[n, 4], ints[n, 5], ints[n, 6],
+            reals[n, 0], reals[n, 1], ints[n, 7], ints[n, 8], reals[n, 2])  # fmt: skip
+
+
 def _joseph(
     mu: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD) volume
     mu_t: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, ni + 2 PAD, nj + 2 PAD) volume
@@ -438,7 +445,7 @@ def _joseph(
     span is narrowed to the slices in between, plus the zero slice at each end: the integral
     is the same (the samples left out are exact zeros), rays cross no air around the anatomy.
 
-    Speed: the rays of a row are set up one by one (:func:`_ray_start`) and marched two at a
+    Speed: the rays of a row are all set up first (:func:`_ray_start`), then marched two at a
     time (:func:`_march_two`: twice the independent loads in flight); positions march in 32.32
     fixed point (exact steps, no float-to-int conversions) and the kernels compile without
     reassociation, so the sample loop stays scalar and each ray's sum keeps its order.
@@ -449,11 +456,12 @@ def _joseph(
     s0, s1, s2 = source[0], source[1], source[2]
     ebi, ebj, ebk = empty_strides[0], empty_strides[1], empty_strides[2]
     for r in numba.prange(rows):
-        samples = 0
-        # rays are marched in pairs (the previous hit waits for the next)
-        waiting = False
-        c_wait = 0
-        ray_wait = _no_ray()
+        # the row's rays are all set up first, then marched in pairs: a march starts with
+        # loads of its state, not behind another ray's clip and leaps
+        ints = np.empty((cols, 9), dtype=np.int64)
+        reals = np.empty((cols, 3), dtype=np.float64)
+        where = np.empty(cols, dtype=np.int64)
+        n_rays = 0
         for c in range(cols):
             out[r, c] = 0.0
             if use_mask and mask[r, c] == 0:
@@ -462,17 +470,32 @@ def _joseph(
                              i2w)  # fmt: skip
             if not ray[0]:
                 continue
-            if not waiting:
-                ray_wait, c_wait, waiting = ray, c, True
-                continue
-            total_a, total_b = _march_two(mu_t if ray_wait[1] else mu, ray_wait, mu_t if ray[1] else mu, ray)
-            out[r, c_wait] = total_a * np.float32(ray_wait[12])
-            out[r, c] = total_b * np.float32(ray[12])
-            samples += ray_wait[7] + ray[7] + 6
-            waiting = False
-        if waiting:
-            out[r, c_wait] = _march_one(mu_t if ray_wait[1] else mu, ray_wait) * np.float32(ray_wait[12])
-            samples += ray_wait[7] + 3
+            ints[n_rays, 0] = 1 if ray[1] else 0
+            ints[n_rays, 1] = ray[2]
+            ints[n_rays, 2] = ray[3]
+            ints[n_rays, 3] = ray[4]
+            ints[n_rays, 4] = ray[5]
+            ints[n_rays, 5] = ray[6]
+            ints[n_rays, 6] = ray[7]
+            ints[n_rays, 7] = ray[10]
+            ints[n_rays, 8] = ray[11]
+            reals[n_rays, 0] = ray[8]
+            reals[n_rays, 1] = ray[9]
+            reals[n_rays, 2] = ray[12]
+            where[n_rays] = c
+            n_rays += 1
+        samples = 0
+        for n in range(0, n_rays - 1, 2):
+            ray_a = _stored_ray(ints, reals, n)
+            ray_b = _stored_ray(ints, reals, n + 1)
+            total_a, total_b = _march_two(mu_t if ray_a[1] else mu, ray_a, mu_t if ray_b[1] else mu, ray_b)
+            out[r, where[n]] = total_a * np.float32(ray_a[12])
+            out[r, where[n + 1]] = total_b * np.float32(ray_b[12])
+            samples += ray_a[7] + ray_b[7] + 6
+        if n_rays % 2 == 1:
+            ray_a = _stored_ray(ints, reals, n_rays - 1)
+            out[r, where[n_rays - 1]] = _march_one(mu_t if ray_a[1] else mu, ray_a) * np.float32(ray_a[12])
+            samples += ray_a[7] + 3
         work[r] = samples
 
 
