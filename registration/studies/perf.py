@@ -101,6 +101,9 @@ def _bench_one(image_px: int, volume_px: int, repeats: int, reference_repeats: i
     fast_ms, fast_cpu_ms, fast_min_ms = _timings(render, repeats, warmup=3)
     images: list[np.ndarray] = []
     ref_ms = median_ms(lambda: images.append(render_reference(volume, geometry)), reference_repeats, warmup=0)
+    before = renderer.samples_per_level[0]
+    renderer.render(geometry, mask=mask, out=out)
+    samples = renderer.samples_per_level[0] - before
     fast = renderer.render(geometry)
     ref = images[-1]
     scale = float(ref.max()) or 1.0
@@ -111,6 +114,9 @@ def _bench_one(image_px: int, volume_px: int, repeats: int, reference_repeats: i
         "ms_min": round(fast_min_ms, 4),
         "cpu_ms_median": round(fast_cpu_ms, 4),
         "threads": numba.get_num_threads(),
+        # the work of one DRR, whatever the machine's load: its bilinear samples
+        "samples_per_drr": int(samples),
+        "ns_per_sample": round(fast_ms * 1e6 / samples, 3) if samples else None,
         "reference_ms_median": round(ref_ms, 2),
         "speedup": round(ref_ms / fast_ms, 1),
         "max_rel_error": round(float(np.abs(fast - ref).max()) / scale, 5),
@@ -130,6 +136,8 @@ def bench_drr(
     ``repeats`` calls into a reused buffer, with the circular field mask when ``masked``),
     ``ms_min`` (the fastest call: close to the unloaded machine when others share it),
     ``cpu_ms_median`` (its process CPU time per call), ``threads`` (numba threads),
+    ``samples_per_drr`` (bilinear samples of one masked DRR: the load-free work) and
+    ``ns_per_sample`` (``ms_median`` over them),
     ``reference_ms_median`` (:func:`registration.core.drr.render_reference` at its default step of
     half a voxel, ``reference_repeats`` calls, whole image), ``speedup`` and ``max_rel_error``
     (max |fast - reference| over the reference's maximum, whole image).
