@@ -153,6 +153,8 @@ def register(
             ROADMAP3D_NO_CACHE=1 does the same as this flag).
     """
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
+        if confidence:
+            raise UserError("--confidence works on files only (not with --pacs) for now")
         from app.net_commands import run_register_pacs
 
         return run_register_pacs(

@@ -92,6 +92,9 @@ def test_register_pacs_needs_a_study_and_refuses_url_credentials(capsys) -> None
     code, _, err = _run(["register", "--pacs", "https://u:secret@pacs.example.org/dw", "--study", "1.2",
                          "--volume", "1.2", "--image", "1.3"], capsys)  # fmt: skip
     assert code == 2 and "credentials in the URL are refused" in err and "secret" not in err
+    code, _, err = _run(["register", "--pacs", "https://pacs.example.org/dw", "--study", "1.2",
+                         "--volume", "1.2", "--image", "1.3", "--confidence"], capsys)  # fmt: skip
+    assert code == 2 and "--confidence works on files only" in err
 
 
 def test_track_from_pacs(orthanc: OrthancServer, small_export: Path, tmp_path: Path, capsys, monkeypatch) -> None:
