@@ -29,6 +29,8 @@ from registration.io import dicom
 from registration.sim.threedra import VOLUME_SOURCES, VolumeRecipe
 
 if TYPE_CHECKING:
+    from registration.core.drr import DRRRenderer
+    from registration.core.prepare import PreparedVolume
     from registration.core.volume import Volume
 
 #: Files written by ``roadmap3d phantom`` inside its output folder.
@@ -253,6 +255,59 @@ def _format_offsets(motion: np.ndarray, geometry: CArm) -> str:
 # --------------------------------------------------------------------------------------
 # register
 # --------------------------------------------------------------------------------------
+#: The confidence's evidence renders at the level nearest this many voxels across
+#: (``registration_evidence``'s ``volume_voxels``; its rule was calibrated on such DRRs).
+EVIDENCE_VOXELS = 128
+
+
+#: Kernels every registration runs (numba: compiled on the first run, then loaded from the
+#: on-disk cache beside the modules, ``__pycache__``), by module.
+REGISTRATION_KERNELS = (
+    ("registration.core.drr", ("_ray_setup", "_render_joseph", "_render_joseph_serial")),
+    ("registration.core.similarity", ("_gd_prepared",)),
+)
+
+
+def kernels_to_compile() -> list[str]:
+    """The registration kernels with no usable compiled copy on disk: the first run after an
+    install or an upgrade compiles them (20-60 s on 2 cores). ``[]`` when they are all cached or
+    when numba's cache cannot be inspected."""
+    import importlib
+
+    missing = []
+    for module, names in REGISTRATION_KERNELS:
+        mod = importlib.import_module(module)
+        for name in names:
+            cache = getattr(getattr(mod, name, None), "_cache", None)
+            try:  # numba's index of compiled copies (empty when absent or stale for the source)
+                if cache is not None and not cache._cache_file._load_index():
+                    missing.append(name)
+            except Exception:  # noqa: BLE001 - a hint only; numba's internals may change
+                continue
+    return missing
+
+
+def confidence_renderer(prepared: PreparedVolume) -> DRRRenderer:
+    """The renderer ``register --confidence`` assesses with: the registration's own prepared
+    levels (cropped to what the fields reach over the search, isotropic in mm, cached), with the
+    level below the finest prepared one added when the evidence would render there.
+
+    The rule was calibrated with the index pyramid of whole 3DRAs (``DRRRenderer(volume,
+    levels=3)``): the evidence at the level nearest ``EVIDENCE_VOXELS`` voxels across, the depth
+    probe at level 1. On a 256^3 3DRA the prepared levels 1 and 2 are that pyramid's levels (block
+    averages, cropped); a coarser volume (128^3) needs its level 0 as well, about twice the
+    finest prepared level across; a CT's cropped 2 mm level is already ~128 voxels or more across."""
+    renderer = prepared.renderer
+    finest = next(k for k in range(renderer.n_levels) if renderer.has_level(k))
+    across = max(renderer.level_volume(finest).shape)
+    if finest == 0 or abs(math.log(2 * across / EVIDENCE_VOXELS)) >= abs(math.log(across / EVIDENCE_VOXELS)):
+        return renderer
+    from registration.core.prepare import prepare_volume
+
+    levels = [k for k in range(renderer.n_levels) if renderer.has_level(k)] + [finest - 1]
+    return prepare_volume(prepared.volume, prepared.geometries, reach=prepared.reach, levels=levels).renderer
+
+
 def run_register(
     *,
     volume: Path,
@@ -317,6 +372,7 @@ def run_register(
     from registration.core.register import RegistrationOptions, prepared_volume, register
     from registration.io.cache import PreparationCache
 
+    compiling = kernels_to_compile()
     clock.lap("loading the engine")
     g = xray.geometry
     _say(
@@ -334,6 +390,9 @@ def run_register(
     if len(views) == 2:
         _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
     _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
+    if compiling:
+        _say("first run of this installation: compiling the engine's kernels (numba, once: 20-60 s; "
+             "later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
     # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm)
     prepared = prepared_volume(vol, tuple(views), np.eye(4) if m_init is None else m_init, RegistrationOptions(),
                                store=PreparationCache() if cache else None)  # fmt: skip
@@ -358,8 +417,8 @@ def run_register(
     if confidence and not result.at_bounds:
         from registration.studies.cases import confidence_fields
 
-        # its own renderer: the registration's prepares only the levels the search uses
-        assessed = confidence_fields(vol, views if len(views) == 2 else xray, result)
+        # the registration's prepared levels (cropped, in mm, cached), not a pyramid of the whole volume
+        assessed = confidence_fields(vol, views if len(views) == 2 else xray, result, confidence_renderer(prepared))
         clock.lap("confidence")
         decision = "applied" if assessed["applied"] else f"withheld: {assessed['withheld_reason']}"
         _say(f"confidence {assessed['confidence']:.2f} -> {decision}")

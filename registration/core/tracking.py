@@ -692,8 +692,9 @@ def registration_evidence(
     m = check_rigid(motion, name="motion")
     if renderer is None:
         renderer = DRRRenderer(volume, levels=3)
-    sizes = [max(renderer.level_volume(k).shape) for k in range(renderer.n_levels)]
-    level = int(np.argmin([abs(math.log(s / volume_voxels)) for s in sizes]))
+    # the prepared level nearest ``volume_voxels`` across (a renderer of prepared levels may lack some)
+    sizes = {k: max(renderer.level_volume(k).shape) for k in range(renderer.n_levels) if renderer.has_level(k)}
+    level = min(sizes, key=lambda k: abs(math.log(sizes[k] / volume_voxels)))
     factor = _level_factor(xray.geometry, image_px)
     small_geom = xray.geometry.resized(xray.geometry.rows // factor, xray.geometry.cols // factor)
     lv = _Level(xray, factor, support_mask(volume, small_geom, m, support_margin_mm), 1)
