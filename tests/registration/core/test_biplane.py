@@ -1,10 +1,12 @@
 """Biplane registration (CONVENTIONS §6): tz from two views, the combined measure, the one-view
 path unchanged, the search space and the polish's budget."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from registration.core.anneal import Schedule, polish
+from registration.core.anneal import POLISH_XTOL, Schedule, polish
 from registration.core.geometry import CArm, offsets_to_matrix
 from registration.core.register import Level, RegistrationOptions, register
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
@@ -128,7 +130,7 @@ def test_polish_keeps_its_budget_and_stops_without_exceptions():
     assert stopped.fun == min(float(np.sum((c - 0.3) ** 2)) for c in calls)
 
 
-def test_pair_polish_searches_near_its_start_and_the_single_plane_polish_does_not():
+def test_pair_polish_searches_near_its_start_and_a_range_wide_polish_does_not():
     from registration.core import register as reg
 
     geometry = CArm.for_format(27.0, pixels=64)
@@ -173,9 +175,11 @@ def test_pair_polish_searches_near_its_start_and_the_single_plane_polish_does_no
     points, _, _ = run(True, options, coarse=True)
     assert len(points) == 31
     assert np.all(np.abs(points - start) <= np.where(six.is_translation(), 3.0, 2.0) + 1e-9)
-    # The single-plane polish (pair=False) keeps the whole search range: its line searches open
-    # 7 mm out (fminbound's first points, 38 % into +- 30 mm from the ends).
-    points, single_best, _ = run(False, options)
+    # A single-plane polish (pair=False) over the whole search range (polish_reach None, the
+    # default before the single-plane polish got its own reach): its line searches open 7 mm
+    # out (fminbound's first points, 38 % into +- 30 mm from the ends).
+    wide = replace(options, polish_reach=None, polish_xtol=POLISH_XTOL)
+    points, single_best, _ = run(False, wide)
     assert len(points) == 46
     assert np.max(np.abs(points[:, 0] - start[0])) > 5.0
     # Same budget: the near search ends closer to the optimum (max error over the parameters:

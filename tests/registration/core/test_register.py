@@ -148,3 +148,30 @@ def test_progress_best_never_worsens_within_a_level(setup):
     capture = [p.best_similarity for p in seen if p.level == 0]
     assert len(capture) > 100
     assert all(b >= a for a, b in zip(capture, capture[1:], strict=False))
+
+
+def test_polish_stays_within_its_reach_of_the_annealed_estimate(setup):
+    """The polish searches the annealing's estimate +- polish_reach (mm, deg), not the whole
+    search range: every point it evaluates lies there, and it spends its budget exactly."""
+    from registration.core.search import SearchSpace
+    from registration.sim.xray import simulate_xray
+
+    volume, anatomy = setup
+    geometry = CArm.for_format(27.0, pixels=128)
+    truth = offsets_to_matrix(TABLE_I["T3"], geometry)
+    xray = simulate_xray(anatomy, geometry, motion=truth, kind="fluoro", seed=3)
+    options = RegistrationOptions()
+    seen = []
+    result = register(volume, xray, seed=3, truth=truth, options=options, callback=seen.append)
+    polish_level = len(options.levels)
+    space = SearchSpace(geometry, np.eye(4))
+    annealed = [p for p in seen if p.level == polish_level - 1]
+    polished = [p for p in seen if p.level == polish_level]
+    assert len(polished) == options.polish_evaluations
+    start = space.from_motion(annealed[-1].best_motion)
+    half = np.where(space.is_translation(), *options.polish_reach)
+    for p in polished:
+        x = space.from_motion(p.current_motion)
+        # 1e-9: the offsets come back from 4x4 motions (rounding)
+        assert np.all(np.abs(x - start) <= half + 1e-9), (x, start)
+    assert result.success
