@@ -179,6 +179,9 @@ def register(
         raise UserError("--study, --store and --ca-bundle need --pacs URL")
     if len(image) not in (1, 2):
         raise UserError(f"--image takes one X-ray file, or two (plane A and plane B of one moment); got {len(image)}")
+    from app.prefetch import read_ahead_for_register
+
+    read_ahead_for_register(volume, image)  # the OS reads the files in while the engine is imported
     from app.commands import run_register
 
     return run_register(

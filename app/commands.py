@@ -394,12 +394,16 @@ def run_register(
         _say("first run of this installation: compiling the engine's kernels (numba, once: 20-60 s; "
              "later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
     # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm)
+    # a first run writes the prepared volume to disk while it registers (flushed below)
+    store = PreparationCache(background=True) if cache else None
     prepared = prepared_volume(vol, tuple(views), np.eye(4) if m_init is None else m_init, RegistrationOptions(),
-                               store=PreparationCache() if cache else None)  # fmt: skip
+                               store=store)  # fmt: skip
     renderer = prepared.renderer
     clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
     result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points,
                       renderer=renderer)  # fmt: skip
+    if store is not None:
+        store.flush()
     clock.lap("registration")
     _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")

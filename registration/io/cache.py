@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import tempfile
+import threading
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -86,13 +87,20 @@ class PreparationCache:
     are atomic; a damaged, unreadable or mismatching entry is removed and reported as missing
     (the caller builds and saves it again), never an exception. The entries of this kind are
     kept under ``max_bytes`` together, the least recently used removed first.
-    ``ROADMAP3D_NO_CACHE=1`` turns it off (nothing read, nothing written).
+    ``ROADMAP3D_NO_CACHE=1`` turns it off (nothing read, nothing written). ``background``: each
+    :meth:`save` writes from a thread of its own (the caller goes on registering: the first run
+    on a CT writes ~20 MB) and :meth:`flush` waits for the writes; the arrays given to
+    :meth:`save` must not change afterwards.
     """
 
-    def __init__(self, root: Path | None = None, *, max_bytes: int = PREPARED_MAX_BYTES) -> None:
+    def __init__(self, root: Path | None = None, *, max_bytes: int = PREPARED_MAX_BYTES,
+                 background: bool = False) -> None:  # fmt: skip
         self._root = None if root is None else Path(root)
         self.max_bytes = int(max_bytes)
         self.enabled = os.environ.get("ROADMAP3D_NO_CACHE") != "1"
+        self.background = bool(background)
+        self._writers: list[threading.Thread] = []
+        self._lock = threading.Lock()
 
     @property
     def root(self) -> Path:
@@ -139,6 +147,22 @@ class PreparationCache:
     def save(self, kind: str, key: dict, arrays: dict[str, np.ndarray]) -> None:
         if not self.enabled:
             return
+        if self.background:
+            writer = threading.Thread(target=self._save, args=(kind, key, dict(arrays)), name="roadmap3d-cache-write")
+            with self._lock:
+                self._writers.append(writer)
+            writer.start()
+            return
+        self._save(kind, key, arrays)
+
+    def flush(self) -> None:
+        """Wait for the background writes (nothing to do without ``background``)."""
+        with self._lock:
+            writers, self._writers = self._writers, []
+        for writer in writers:
+            writer.join()
+
+    def _save(self, kind: str, key: dict, arrays: dict[str, np.ndarray]) -> None:
         try:
             path = self.path(kind, key)
             _write_npz_atomic(path, {**arrays, "__key__": self._key_bytes(kind, key)})
@@ -151,6 +175,10 @@ class PreparationCache:
 
     def prune(self, *, keep: Path | None = None) -> None:
         """Remove the least recently used entries until they fit ``max_bytes`` (never ``keep``)."""
+        with self._lock:  # one writer prunes at a time
+            self._prune(keep)
+
+    def _prune(self, keep: Path | None) -> None:
         sized = []
         for p in self.entries():
             try:

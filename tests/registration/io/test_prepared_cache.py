@@ -137,3 +137,18 @@ def test_size_bound_and_switch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) 
     assert _prepared(vol, view, off).base_source == "built"
     assert _prepared(vol, view, off).base_source == "built" and off.entries() == []
     prepare.clear_cache()
+
+
+def test_background_writes_are_the_same_entries(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``roadmap3d register`` writes the prepared volume from threads while it registers: after
+    :meth:`flush` the entries are on disk and a later process reads the same voxels from them."""
+    monkeypatch.delenv("ROADMAP3D_NO_CACHE", raising=False)
+    vol, view = _head(), _view()
+    background = PreparationCache(tmp_path / "cache", background=True)
+    built = _prepared(vol, view, background)
+    background.flush()
+    assert built.base_source == "built" and len(background.entries()) == 2  # the blocks and the levels
+    later = _prepared(vol, view, PreparationCache(tmp_path / "cache"))
+    assert later.base_source == "disk"
+    _assert_same(built, later, view)
+    prepare.clear_cache()
