@@ -270,7 +270,7 @@ REGISTRATION_KERNELS = (
 
 def kernels_to_compile() -> list[str]:
     """The registration kernels with no usable compiled copy on disk: the first run after an
-    install or an upgrade compiles them (20-60 s on 2 cores). ``[]`` when they are all cached or
+    install or an update compiles them (all of them: 20-50 s on 2 cores). ``[]`` when they are all cached or
     when numba's cache cannot be inspected."""
     import importlib
 
@@ -391,8 +391,8 @@ def run_register(
         _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
     _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
     if compiling:
-        _say("first run of this installation: compiling the engine's kernels (numba, once: 20-60 s; "
-             "later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
+        _say("compiling the engine's kernels (numba, once after an install or an update: up to a minute on "
+             "2 cores; later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
     # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm)
     # a first run writes the prepared volume to disk while it registers (flushed below)
     store = PreparationCache(background=True) if cache else None
