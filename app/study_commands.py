@@ -114,8 +114,10 @@ def run_biplane_study(args: BiplaneStudy) -> int:
     ct = None if args.ct is None else str(Path(args.ct).resolve())
     if ct is not None and not Path(ct).is_dir():
         raise ValueError(f"--ct {args.ct}: not a folder of DICOM CT slices")
-    config = biplane.BiplaneConfig.quick_config(args.seed, ct) if args.quick else biplane.BiplaneConfig(
-        seed=args.seed, ct_path=ct
+    config = (
+        biplane.BiplaneConfig.quick_config(args.seed, ct)
+        if args.quick
+        else biplane.BiplaneConfig(seed=args.seed, ct_path=ct)
     )
     if args.registrations is not None:
         if args.registrations < 1:
@@ -213,9 +215,11 @@ def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
         cli = real.get("command_line") or {}
         if "wall_seconds" in cli:
             warm = cli.get("warm", {}).get("wall_seconds")
+            assessed = cli.get("warm_confidence", {}).get("wall_seconds")
             print(
                 f"real CT, new process    roadmap3d register {cli['wall_seconds']:.2f} s (preparation not cached)"
                 + ("" if warm is None else f", {warm:.2f} s (its view-independent part cached on disk)")
+                + ("" if assessed is None else f", {assessed:.2f} s with --confidence")
             )
     if "reconstruction" in out:
         rec = out["reconstruction"]
