@@ -175,3 +175,16 @@ def test_polish_stays_within_its_reach_of_the_annealed_estimate(setup):
         # 1e-9: the offsets come back from 4x4 motions (rounding)
         assert np.all(np.abs(x - start) <= half + 1e-9), (x, start)
     assert result.success
+
+
+@pytest.mark.parametrize(("pixels", "expected"), [(384, 96), (512, 128), (256, 128), (768, 96)])
+def test_refine_level_image_sizes(pixels, expected):
+    """The refine level compares about 96 px where the image divides into blocks of that size
+    (384, 768 px) and 128 px where it does not (512 px: Table I and the bench keep theirs), for
+    the phantom's 2.85 mm and the real CT's 4 mm quarter-resolution voxels alike."""
+    from registration.core.problem import level_factor
+
+    refine = RegistrationOptions().levels[1]
+    geometry = CArm.for_format(27.0, pixels=pixels)
+    for voxel_mm in (2.85, 4.0):
+        assert geometry.cols // level_factor(geometry, refine.image_px, voxel_mm) == expected
