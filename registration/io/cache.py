@@ -148,7 +148,8 @@ class PreparationCache:
         if not self.enabled:
             return
         if self.background:
-            writer = threading.Thread(target=self._save, args=(kind, key, dict(arrays)), name="roadmap3d-cache-write")
+            writer = threading.Thread(target=self._save_quietly, args=(kind, key, dict(arrays)),
+                                      name="roadmap3d-cache-write")  # fmt: skip
             with self._lock:
                 self._writers.append(writer)
             writer.start()
@@ -161,6 +162,14 @@ class PreparationCache:
             writers, self._writers = self._writers, []
         for writer in writers:
             writer.join()
+
+    def _save_quietly(self, kind: str, key: dict, arrays: dict[str, np.ndarray]) -> None:
+        """:meth:`_save` in a writer thread: whatever fails is a warning (the run is prepared
+        either way; the next one builds the entry again), never a thread's traceback."""
+        try:
+            self._save(kind, key, arrays)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("prepared-volume cache not written: %s: %s", type(exc).__name__, exc)
 
     def _save(self, kind: str, key: dict, arrays: dict[str, np.ndarray]) -> None:
         try:
