@@ -41,6 +41,15 @@ The confidence is a logistic function of what the engine knows about the estimat
     estimates grows by 0.051 mm per mm of out-of-plane offset, median, 0.043-0.058
     interquartile, over the 119 of seeds 0-3's 540 registrations with more than 10 mm: beyond
     ~15-18 mm an estimate is a near miss whatever else the engine sees.)
+``depth_scan_tz_mm``
+    Single plane: where along the beam the measure peaks when only tz moves, on the level-0
+    frame and DRR with the scales coarser than the volume's voxel removed
+    (:func:`registration.core.depth.depth_scan`; mm from the estimate, + toward the source),
+    read by the term ``depth_scan`` (revision 3). Blurring the frame to the DRR's resolution
+    does not remove the measure's bias toward the source on FDK volumes, it increases it (the
+    bias lives in the coarse scales); removing those scales and holding the in-plane fit
+    brings the peak at the true pose within 0-5 mm of it
+    (docs/validation/clinical-s6/depth_scan.md).
 
 The rule's coefficients were calibrated on the studies (see ``docs/validation``); records
 report ``confidence`` and ``applied`` beside their residuals, and the summaries the applied
@@ -78,6 +87,7 @@ class Evidence:
     plane_disagreement_mm: float | None = None
     depth_shift_mm: float | None = None
     depth_tz_mm: float | None = None
+    depth_scan_tz_mm: float | None = None
     #: A hard reason to withhold whatever the score (e.g. "no usable pixel", "stopped").
     veto: str | None = None
 
@@ -100,6 +110,9 @@ class ConfidenceRule:
     against it: the default is revision 1's rule again (``pull_weight`` 0), tested on seed 5
     (docs/validation/clinical-s5: 169 applied, 2 wrong, precision 98.8 %, recall 93.3 %; clean
     seeds 3+4+5 pooled: 513 applied, 8 wrong, 98.4 % / 92.3 %: the 99 % target is missed).
+    Revision 3 adds ``depth_scan`` (weight 1 per mm beyond -7 mm), chosen from the physics
+    and seeds 2-5 re-scanned at their recorded estimates (800 registrations; seeds 3-5 are not
+    clean for it any more), frozen before the clean seed 6 (docs/validation/clinical-s6).
     """
 
     bias: float = 3.0
@@ -152,6 +165,22 @@ class ConfidenceRule:
     #: seed 5 is the clean test of that choice. The evidence ``depth_tz_mm`` is recorded.
     pull_weight: float = 0.0
     pull_free_mm: float = -7.0
+    #: per mm that the depth scan (:func:`registration.core.depth.depth_scan`: the level-0
+    #: measure with the scales coarser than the volume's voxel removed, the estimate moved
+    #: along the beam only) peaks away from the source beyond ``scan_free_mm`` (revision 3).
+    #: Physics, checked on seeds 2-5's 800 registrations (their recorded estimates re-scanned,
+    #: docs/validation/clinical-s6/depth_scan.md): the scan recovers 0.71 of the estimate's
+    #: out-of-plane offset + 1.1 mm (27 cm patient; residual 1.9 mm) and 0.45 of it + 4.7 mm
+    #: on the truncated 22 cm one, and the in-plane error grows 0.047 / 0.036 mm per mm of that
+    #: offset; a peak 10 mm away from the source is an estimate ~15 mm toward it, whose
+    #: absorbed magnification (~0.7 mm) and the base error exhaust the 1 mm criterion. Weight
+    #: 1 per mm beyond -7 mm costs the bias (3) at -10 mm. One-sided: the measure's bias is
+    #: toward the source (up to +5 mm on the truncated patient at the truth), so a peak toward
+    #: the source is not evidence. On seeds 2-5 (then no longer clean for this term):
+    #: 672 applied, 9 wrong, precision 98.7 %, recall 91.2 % (against 688 / 14, 98.0 % /
+    #: 92.7 % without it). Frozen before seed 6 (docs/validation/clinical-s6).
+    scan_weight: float = 1.0
+    scan_free_mm: float = -7.0
     threshold: float = 0.5
 
     def terms(self, e: Evidence) -> dict[str, float]:
@@ -173,6 +202,8 @@ class ConfidenceRule:
             out["depth"] = -self.depth_weight * max(0.0, e.depth_shift_mm - self.depth_free_mm)
         if e.depth_tz_mm is not None and self.pull_weight:
             out["depth_pull"] = -self.pull_weight * max(0.0, self.pull_free_mm - e.depth_tz_mm)
+        if e.depth_scan_tz_mm is not None and self.scan_weight:
+            out["depth_scan"] = -self.scan_weight * max(0.0, self.scan_free_mm - e.depth_scan_tz_mm)
         return out
 
     def score(self, e: Evidence) -> float:
@@ -199,6 +230,7 @@ _REASONS = {
     "planes": "the planes disagree",
     "depth": "the in-plane estimate moves when the volume may move along the beam (magnification)",
     "depth_pull": "the measure pulls the volume away from the source (a large out-of-plane offset)",
+    "depth_scan": "the measure peaks far along the beam from the estimate (a large out-of-plane offset)",
 }
 
 

@@ -162,13 +162,14 @@ def confidence_fields(
     start = time.perf_counter()
     views = list(xray) if isinstance(xray, (list, tuple)) else [xray]
     motion = result.patient_motion  # type: ignore[attr-defined]
-    probe = None
+    probe = scan = None
     if len(views) == 1 and "tz" not in tuple(getattr(result, "parameters", ()) or ()):
-        from registration.core.depth import depth_probe
+        from registration.core.depth import depth_probe, depth_scan
         from registration.core.drr import DRRRenderer as _Renderer
 
         renderer = renderer if renderer is not None else _Renderer(volume, levels=3)
         probe = depth_probe(renderer, views[0], _np.asarray(motion))  # type: ignore[arg-type]
+        scan = depth_scan(renderer, views[0], _np.asarray(motion))  # type: ignore[arg-type]
     per_view = [
         registration_evidence(
             volume,
@@ -187,6 +188,7 @@ def confidence_fields(
         # rotations of each other's frame)
         rotation_margin=per_view[0].rotation_margin if len(per_view) == 1 else None,
         edges=float(_np.mean([e.edges for e in per_view])),
+        depth_scan_tz_mm=None if scan is None else float(scan.tz_mm),
     )
     if single_plane_motion is not None:
         g = views[0].geometry  # type: ignore[attr-defined]
@@ -202,6 +204,7 @@ def confidence_fields(
         "confidence_evidence": evidence.to_dict(),
         "confidence_seconds": time.perf_counter() - start,
         **({"depth_probe": probe.to_dict()} if probe is not None else {}),
+        **({"depth_scan": scan.to_dict()} if scan is not None else {}),
     }
 
 

@@ -164,6 +164,7 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     assert result["success"] is True
     # --confidence: one plane is also probed along the beam; the decision printed is the JSON's
     assert result["confidence_evidence"]["depth_shift_mm"] is not None
+    assert result["confidence_evidence"]["depth_scan_tz_mm"] is not None  # and scanned along it
     decision = "applied" if result["applied"] else f"withheld: {result['withheld_reason']}"
     assert f"confidence {result['confidence']:.2f} -> {decision}" in out
     assert "confidence" in timing
@@ -240,6 +241,7 @@ def test_biplane_register_from_exported_files(exported: Path, tmp_path: Path, ca
     assert result["applied"] is True and result["withheld_reason"] == ""
     assert f"confidence {result['confidence']:.2f} -> applied" in out
     assert result["confidence_evidence"]["depth_shift_mm"] is None  # no depth probe for two planes
+    assert result["confidence_evidence"]["depth_scan_tz_mm"] is None
     assert set(result["offsets"]) == {"tx", "ty", "tz", "rx", "ry", "rz"}
     assert [i["plane"] for i in result["images"]] == ["PLANE A", "PLANE B"]
     truth = json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())

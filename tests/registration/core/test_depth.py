@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from registration.core.confidence import DEFAULT_RULE, ConfidenceRule, Evidence
-from registration.core.depth import depth_probe
+from registration.core.depth import depth_probe, depth_scan, high_pass
 from registration.core.geometry import CArm, offsets_to_matrix
 from registration.core.metrics import residuals
 from registration.core.tracking import registration_evidence
@@ -59,6 +59,38 @@ def test_right_pose_is_left_where_it_is_and_applied(scene):
     assert DEFAULT_RULE.assess(e).applied, (e, DEFAULT_RULE.terms(e))
 
 
+def test_depth_scan_finds_the_offset_along_the_beam(scene):
+    volume, xray, renderer = scene
+    g = xray.geometry
+    at_truth = depth_scan(renderer, xray, np.eye(4))
+    # the high-pass scale is the volume's voxel seen at the detector, in the level's pixels
+    voxel_px = float(renderer.level_volume(0).spacing_mm.max()) * g.magnification / max(g.pixel_mm)
+    assert at_truth.sigma_px == pytest.approx(voxel_px)
+    assert at_truth.drr_count == len(at_truth.offsets_mm)
+    # measured -2.8 mm at the truth, -10.8 / +19.2 mm from 15 mm either side (this 128 px frame's
+    # pixel is 2.1 mm at the detector: the measure is shallow along the beam); 5 mm tells 15 mm
+    # off from none, and the sign is right
+    assert abs(at_truth.tz_mm) < 4.0, at_truth
+    for tz in (15.0, -15.0):
+        scan = depth_scan(renderer, xray, offsets_to_matrix([0.0, 0.0, tz, 0.0, 0.0, 0.0], g))
+        assert abs(scan.tz_mm + tz) < 5.0 and np.sign(scan.tz_mm) == -np.sign(tz), (tz, scan)
+    # deterministic
+    assert depth_scan(renderer, xray, np.eye(4)).similarity == at_truth.similarity
+
+
+def test_high_pass_removes_the_smooth_part_inside_the_field_only():
+    yy, xx = np.mgrid[0:64, 0:64]
+    mask = (xx - 32) ** 2 + (yy - 32) ** 2 < 28**2
+    ramp = 0.05 * xx + 3.0  # smooth: a ramp is kept by a Gaussian, so it is removed...
+    out = high_pass(np.where(mask, ramp, 100.0), mask, 2.0)
+    inner = (xx - 32) ** 2 + (yy - 32) ** 2 < 18**2  # ...wherever the smoothing sees only the field
+    assert np.abs(out[inner]).max() < 1e-6
+    assert np.all(out[~mask] == 0.0)
+    # the field's edge does not leak the 100 outside into it (normalised smoothing: 0.075 at the
+    # edge, from the ramp's one-sided mean there; a leak of the outside would be ~50)
+    assert np.abs(out[mask]).max() < 0.2
+
+
 def test_rotation_margin_is_flat_off_the_out_of_plane_rotation(scene):
     volume, xray, renderer = scene
     g = xray.geometry
@@ -81,3 +113,9 @@ def test_rule_terms_are_hinges_with_reasons():
     assert rule.terms(moved)["depth"] == pytest.approx(-rule.depth_weight * 0.5)
     assert not rule.assess(moved).applied
     assert Evidence(depth_shift_mm=0.2, rotation_margin=0.004).to_dict()["depth_shift_mm"] == 0.2
+    # the depth scan: one-sided, only a peak away from the source beyond the free mm costs
+    pulled = Evidence(margin=0.01, edges=0.5, depth_scan_tz_mm=rule.scan_free_mm - 4.0)
+    assert rule.terms(pulled)["depth_scan"] == pytest.approx(-rule.scan_weight * 4.0)
+    assert not rule.assess(pulled).applied and "along the beam" in rule.assess(pulled).reason
+    toward = Evidence(margin=0.01, edges=0.5, depth_scan_tz_mm=20.0)
+    assert rule.terms(toward)["depth_scan"] == 0.0 and rule.assess(toward).applied
