@@ -287,25 +287,42 @@ def kernels_to_compile() -> list[str]:
     return missing
 
 
-def confidence_renderer(prepared: PreparedVolume) -> DRRRenderer:
+def confidence_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRenderer:
     """The renderer ``register --confidence`` assesses with: the registration's own prepared
-    levels (cropped to what the fields reach over the search, isotropic in mm, cached), with the
-    level below the finest prepared one added when the evidence would render there.
+    levels (cropped to what the fields reach over the search, isotropic in mm, cached), and
+    level 0 where the assessment renders there.
 
     The rule was calibrated with the index pyramid of whole 3DRAs (``DRRRenderer(volume,
     levels=3)``): the evidence at the level nearest ``EVIDENCE_VOXELS`` voxels across, the depth
-    probe at level 1. On a 256^3 3DRA the prepared levels 1 and 2 are that pyramid's levels (block
-    averages, cropped); a coarser volume (128^3) needs its level 0 as well, about twice the
-    finest prepared level across; a CT's cropped 2 mm level is already ~128 voxels or more across."""
+    probe at level 1, the depth scan (one plane) at level 0. On a 256^3 3DRA the prepared levels
+    1 and 2 are that pyramid's levels (block averages, cropped); level 0 is the volume's own grid
+    over the prepared box, the body only (as in the prepared levels): needed by one plane's depth
+    scan, and by the evidence of a coarse volume (128^3: level 0 is the one ~128 voxels across).
+    A CT's cropped 2 mm level is ~128 voxels or more across already."""
     renderer = prepared.renderer
+    if renderer.has_level(0):
+        return renderer
     finest = next(k for k in range(renderer.n_levels) if renderer.has_level(k))
     across = max(renderer.level_volume(finest).shape)
-    if finest == 0 or abs(math.log(2 * across / EVIDENCE_VOXELS)) >= abs(math.log(across / EVIDENCE_VOXELS)):
+    finer_wanted = abs(math.log(2 * across / EVIDENCE_VOXELS)) < abs(math.log(across / EVIDENCE_VOXELS))
+    if planes > 1 and not finer_wanted:
         return renderer
-    from registration.core.prepare import prepare_volume
+    from registration.core.drr import DRRRenderer
+    from registration.core.prepare import mask_outside_body, probe_blocks
+    from registration.core.volume import Volume
 
-    levels = [k for k in range(renderer.n_levels) if renderer.has_level(k)] + [finest - 1]
-    return prepare_volume(prepared.volume, prepared.geometries, reach=prepared.reach, levels=levels).renderer
+    volume = prepared.volume
+    lo, hi = np.asarray(prepared.box_lo), np.asarray(prepared.box_hi)  # (i, j, k), inclusive
+    affine = volume.index_to_world.copy()
+    affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
+    data = np.ascontiguousarray(volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1])
+    level0 = Volume(data, affine, label=volume.label, meta=volume.meta)
+    if prepared.body:
+        level0 = mask_outside_body(level0, volume, probe_blocks(volume))
+    levels = [level0] + [
+        renderer.level_volume(k) if renderer.has_level(k) else None for k in range(1, renderer.n_levels)
+    ]
+    return DRRRenderer(volume, levels=levels)
 
 
 def run_register(
@@ -422,7 +439,9 @@ def run_register(
         from registration.studies.cases import confidence_fields
 
         # the registration's prepared levels (cropped, in mm, cached), not a pyramid of the whole volume
-        assessed = confidence_fields(vol, views if len(views) == 2 else xray, result, confidence_renderer(prepared))
+        assessed = confidence_fields(
+            vol, views if len(views) == 2 else xray, result, confidence_renderer(prepared, planes=len(views))
+        )
         clock.lap("confidence")
         decision = "applied" if assessed["applied"] else f"withheld: {assessed['withheld_reason']}"
         _say(f"confidence {assessed['confidence']:.2f} -> {decision}")

@@ -419,3 +419,43 @@ def test_isocenter_explicit_volume_center_or_from_the_files(tmp_path: Path) -> N
         ds.save_as(path)
     with pytest.raises(dicom.DicomError, match=r"IsocenterPosition \(300A,012C\) must hold 3 numbers"):
         dicom.read_volume(folder)
+
+
+@pytest.mark.slow
+def test_register_confidence_on_the_real_ct(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``register --confidence`` on the real CT (skipped without ../shared): the prepared levels
+    lack level 0 (the CT is prepared at 2 and 4 mm), which one plane's depth scan renders at; the
+    assessment gets the CT's own grid over the prepared box for it."""
+    from registration.studies.volume import (
+        REAL_CT_RELATIVE,
+        VolumeImager,
+        VolumeStudyConfig,
+        _views,
+        case_motion,
+        find_real_ct,
+        volume_cases,
+    )
+
+    ct = find_real_ct()
+    if ct is None:
+        pytest.skip(f"the real head CT is not here ({REAL_CT_RELATIVE} beside the project)")
+    monkeypatch.setenv("ROADMAP3D_CACHE", str(tmp_path / "cache"))
+    volume = dicom.read_volume(ct)
+    iso = (247.5, -276.0, -90.0)  # the studies' iso-center inside the skull (head_isocenter_mm)
+    config = VolumeStudyConfig(cases=1, seed=0)
+    case = volume_cases(config)[0]
+    truth = case_motion(case, iso)
+    image = VolumeImager(volume, iso).image(_views(config, case, iso)[0], truth, kind=config.kind, seed=case.seed)
+    dicom.write_xray(image, tmp_path / "xa.dcm", description="fluoro formed from the CT (test)")
+    (tmp_path / "truth.json").write_text(json.dumps({"patient_motion": truth.tolist()}))
+    code, out, _ = run(
+        ["register", "--volume", str(ct), "--image", str(tmp_path / "xa.dcm"), "--truth", str(tmp_path / "truth.json"),
+         "--isocenter", "247.5,-276,-90", "--confidence", "--out", str(tmp_path / "r.json")],
+        capsys,
+    )  # fmt: skip
+    assert code == 0 and "-> success" in out
+    result = json.loads((tmp_path / "r.json").read_text())
+    evidence = result["confidence_evidence"]
+    assert evidence["depth_shift_mm"] is not None and evidence["depth_scan_tz_mm"] is not None
+    # images formed from the CT itself (a best case), registered to 0.1-0.2 mm in-plane: applied
+    assert result["applied"] is True, result
