@@ -147,8 +147,8 @@ def register(
             (Secondary Capture).
         verbose: Print where the time went (start-up, reading, preparing the volume, registration) on stderr.
         confidence: Also assess the estimate (CONVENTIONS §7): its confidence and whether a roadmap would apply or
-            withhold it, and why (the studies' rule, on the registration's prepared levels; a few tenths of a second
-            more; written to --out too).
+            withhold it, and why (the studies' rule, on the registration's prepared levels; a few seconds more on a
+            CT; written to --out too).
         no_cache: Prepare the volume from scratch and keep nothing on disk (default: the view-independent part
             of the preparation is kept in the cache folder, ROADMAP3D_CACHE, by the volume's content;
             ROADMAP3D_NO_CACHE=1 does the same as this flag).
