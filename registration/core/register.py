@@ -81,9 +81,9 @@ def _default_levels() -> tuple[Level, ...]:
     # Steps are given for (tx, ty, rx, ry, rz); a six-parameter search steps tz as tx.
     # The refine level asks for about 96 px (1.9 mm at the iso-center of a 27 cm field, between
     # the capture's 2.85 and the polish's 1.42 mm; its volume has 2.85-4 mm voxels): a 384 px
-    # image is compared at 96 px, 0.56x the pixels of 128; images whose size has no factor
-    # near 96/px (512 px: 5.3, block sizes must divide the image) keep 128 px (level_factor),
-    # so Table I and the bench's T1-T4 (512 px) are unchanged. Same-process A/B against 128,
+    # image is compared at 96 px (blocks of 4), 0.56x the pixels of 128; a 512 px image keeps
+    # 128 px (blocks of 5.3 rounded to 5 do not divide it, level_factor takes 4), so Table I
+    # and the bench's T1-T4 (512 px) are unchanged. Same-process A/B against 128,
     # seed 0: the real CT's 20 `validate volume` cases (384 px) 20/20 both, in-plane median
     # 0.133 / 0.132 mm, worst 0.66 / 0.69, rotation 0.160 / 0.163 deg, DRR samples 0.89x, time
     # 0.93x; the phantom's Table I cases on 384 px images (seeds 0 and 1, 32 cases) 32/32 both,

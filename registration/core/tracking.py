@@ -57,7 +57,7 @@ PATHS = ("check", "refine", "capture")
 def light_capture(options: RegistrationOptions | None = None) -> RegistrationOptions:
     """``options`` (default: register's) with only the first (capture) level and the polish.
 
-    Without register's 128 px annealing level the polish starts from the capture's estimate,
+    Without register's second (refine) annealing level the polish starts from the capture's estimate,
     so it searches the whole range (60 evaluations, Powell's default tolerance) as it did when
     this was measured, not register's +- 2 mm / 1.5 deg around an annealed estimate."""
     from dataclasses import replace
@@ -117,8 +117,8 @@ class TrackingOptions:
     #: frame's pose is the initial pose, as after the roadmap's initial registration).
     register_first: bool = False
     #: Options of the full capture (None: the defaults of :func:`register`). The default
-    #: keeps register's capture level (four runs at 64 px) and polish but not its 128 px
-    #: annealing level: the tracker refines the result at its own level anyway. Measured on
+    #: keeps register's capture level (four runs at 64 px) and polish but not its second
+    #: (refine) annealing level: the tracker refines the result at its own level anyway. Measured on
     #: the quick run's two moves: 1.5-1.65 s CPU instead of 2.4-2.8 s, residuals 0.31/0.35 mm
     #: instead of 0.31/0.30 mm.
     capture: RegistrationOptions | None = field(default_factory=lambda: light_capture())
