@@ -30,8 +30,10 @@ from registration.sim.threedra import VOLUME_SOURCES, VolumeRecipe
 
 if TYPE_CHECKING:
     from registration.core.drr import DRRRenderer
+    from registration.core.images import XRayImage
     from registration.core.prepare import PreparedVolume
     from registration.core.volume import Volume
+    from registration.io.cache import PreparationCache
 
 #: Files written by ``roadmap3d phantom`` inside its output folder.
 PHANTOM_VOLUME_DIR = "volume"
@@ -287,6 +289,31 @@ def kernels_to_compile() -> list[str]:
     return missing
 
 
+def prepare_for_registration(
+    volume: Volume,
+    views: Sequence[XRayImage],
+    initial_motion: np.ndarray | None = None,
+    *,
+    cache: bool = True,
+    background: bool = True,
+) -> tuple[PreparedVolume, PreparationCache | None]:
+    """The volume as ``register`` (and ``track`` and the app's file data) renders it: cropped to
+    what the views' fields reach over the default search from ``initial_motion``, its pyramid
+    levels resampled to isotropic grids in mm (:func:`registration.core.register.prepared_volume`,
+    :mod:`registration.core.prepare`), prepared once per volume and views (kept in memory) and,
+    with ``cache``, its view-independent part kept on disk
+    (:class:`registration.io.cache.PreparationCache`). Returns the preparation and the store;
+    with ``background`` the store writes from threads of its own: ``store.flush()`` before the
+    process exits (a long-running process such as the app need not wait)."""
+    from registration.core.register import RegistrationOptions, prepared_volume
+    from registration.io.cache import PreparationCache
+
+    store = PreparationCache(background=background) if cache else None
+    start = np.eye(4) if initial_motion is None else np.asarray(initial_motion, dtype=np.float64)
+    prepared = prepared_volume(volume, tuple(views), start, RegistrationOptions(), store=store)
+    return prepared, store
+
+
 def confidence_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRenderer:
     """The renderer ``register --confidence`` assesses with: the registration's own prepared
     levels (cropped to what the fields reach over the search, isotropic in mm, cached), and
@@ -386,8 +413,7 @@ def run_register(
         if pts.ndim == 2 and pts.shape[1] == 3 and len(pts) and np.all(np.isfinite(pts)):
             vessel_points = pts
 
-    from registration.core.register import RegistrationOptions, prepared_volume, register
-    from registration.io.cache import PreparationCache
+    from registration.core.register import register
 
     compiling = kernels_to_compile()
     clock.lap("loading the engine")
@@ -412,9 +438,7 @@ def run_register(
              "2 cores; later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
     # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm)
     # a first run writes the prepared volume to disk while it registers (flushed below)
-    store = PreparationCache(background=True) if cache else None
-    prepared = prepared_volume(vol, tuple(views), np.eye(4) if m_init is None else m_init, RegistrationOptions(),
-                               store=store)  # fmt: skip
+    prepared, store = prepare_for_registration(vol, views, m_init, cache=cache)
     renderer = prepared.renderer
     clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
     result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points,

@@ -11,9 +11,9 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 import trimesh
@@ -25,6 +25,9 @@ from registration.io.meshes import cached_surface_meshes, surface_meshes
 from registration.sim.phantom import HeadPhantom, make_head_phantom
 from registration.sim.threedra import FDK, VOLUME_SOURCES, VolumeRecipe
 from registration.sim.xray import simulate_xray
+
+if TYPE_CHECKING:
+    from registration.core.prepare import PreparedVolume
 
 __all__ = ["AppConfig", "DataSource", "FileData", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
 
@@ -96,8 +99,14 @@ class DataSource(Protocol):
         """The registration volume (3DRA)."""
         ...
 
-    def renderer(self, volume_format_cm: float) -> DRRRenderer:
-        """The DRR renderer of :meth:`volume`, prepared once."""
+    def renderer(
+        self,
+        volume_format_cm: float,
+        views: Sequence[XRayImage] | None = None,
+        initial_motion: np.ndarray | None = None,
+    ) -> DRRRenderer:
+        """The DRR renderer of :meth:`volume`, prepared once; ``views`` / ``initial_motion``: what a
+        registration or a run compares with and where it starts (a source may prepare for them)."""
         ...
 
     def meshes(self, volume_format_cm: float) -> dict[str, trimesh.Trimesh]:
@@ -181,7 +190,14 @@ class PhantomData:
             done.set()
             ticker.join()
 
-    def renderer(self, volume_format_cm: float) -> DRRRenderer:
+    def renderer(
+        self,
+        volume_format_cm: float,
+        views: Sequence[XRayImage] | None = None,
+        initial_motion: np.ndarray | None = None,
+    ) -> DRRRenderer:
+        """The index pyramid of the whole 3DRA (``views`` and ``initial_motion`` are not needed: the
+        phantom's 3DRA is the field's size; the studies were calibrated with this pyramid)."""
         with self._lock:
             if volume_format_cm not in self._renderers:
                 volume = self.volume(volume_format_cm)
@@ -234,7 +250,6 @@ class FileData:
         self._volume = volume
         self.fixed_xray = xray
         self._lock = threading.RLock()
-        self._renderer: DRRRenderer | None = None
         self._meshes: dict[str, trimesh.Trimesh] | None = None
 
     @classmethod
@@ -257,11 +272,31 @@ class FileData:
     def volume(self, _volume_format_cm: float | None = None) -> Volume:
         return self._volume
 
-    def renderer(self, _volume_format_cm: float | None = None) -> DRRRenderer:
-        with self._lock:
-            if self._renderer is None:
-                self._renderer = DRRRenderer(self._volume, levels=3)
-            return self._renderer
+    def prepared(
+        self,
+        views: Sequence[XRayImage] | None = None,
+        initial_motion: np.ndarray | None = None,
+    ) -> PreparedVolume:
+        """The volume prepared as ``roadmap3d register`` prepares it (:func:`app.commands.prepare_for_registration`):
+        cropped to what ``views``' fields (default: the user's image) reach over a registration's
+        search from ``initial_motion`` (default: none), levels resampled in mm. Prepared once per
+        views; another start reuses it when the search stays within its reach, else slices the
+        cached levels again (fast). The view-independent part is kept on disk for the next session."""
+        from app.commands import prepare_for_registration
+
+        with self._lock:  # one preparation at a time: a second caller finds the first's in memory
+            prepared, _store = prepare_for_registration(
+                self._volume, list(views) if views else [self.fixed_xray], initial_motion
+            )  # the store writes from its own threads; the app goes on
+            return prepared
+
+    def renderer(
+        self, _volume_format_cm: float | None = None, views: Sequence[XRayImage] | None = None,
+        initial_motion: np.ndarray | None = None,
+    ) -> DRRRenderer:  # fmt: skip
+        """The renderer of :meth:`prepared` (the registration's prepared levels, not a pyramid of
+        the whole volume: a CT's scanner-sized field of view is cropped to the anatomy in the field)."""
+        return self.prepared(views, initial_motion).renderer
 
     @property
     def mesh_steps(self) -> tuple[int, int]:

@@ -240,7 +240,9 @@ class PlaybackPanel(BasePanel):
             vessels = data.meshes(fmt).get("vessels")
             vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
             self._source = (data, fmt)
-            return [self.user_run], data.volume(fmt), data.renderer(fmt), vertices, data.mesh_spacing_mm(fmt)
+            # the user's volume prepared for the run's own field (its angles may not be the image's)
+            renderer = data.renderer(fmt, views=[self.user_run[0]])
+            return [self.user_run], data.volume(fmt), renderer, vertices, data.mesh_spacing_mm(fmt)
         case = self.play_case()
         start = time.perf_counter()
 

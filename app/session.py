@@ -358,7 +358,8 @@ class Session:
                 callback=callback,
                 truth=truth,
                 vessel_points_mm=data.vessel_points_mm(),
-                renderer=data.renderer(volume_format),
+                # the user's volume: prepared for these views and this start (app.data.FileData.prepared)
+                renderer=data.renderer(volume_format, views=views, initial_motion=initial),
             )
         except Exception as exc:  # shown in the page, never a dead worker thread
             with self.lock:

@@ -68,7 +68,7 @@ def run_track(
 
     ``sid_mm``, ``sod_mm`` and ``frame_time_ms`` fill in what a run's files lack
     (:func:`registration.io.dicom.read_xray_run`)."""
-    from app.commands import parse_isocenter
+    from app.commands import parse_isocenter, prepare_for_registration
     from registration.core.metrics import residuals
     from registration.core.tracking import track_run
 
@@ -113,6 +113,18 @@ def run_track(
     )
     # decode every frame first: in the clinic frames arrive decoded; decoding is not the engine's latency
     frames = [r.frames() for r in runs]
+    # the volume prepared as ``register`` prepares it (cropped to what the run's fields reach over
+    # a capture's search from the initial pose, levels in mm, cached on disk): the tracking level
+    # and the captures render these levels, not a pyramid of the whole volume
+    prep_start = time.perf_counter()
+    prepared, store = prepare_for_registration(vol, [f[0] for f in frames])
+    kept = [n for n in prepared.voxels_per_level if n is not None]
+    _err(
+        f"prepared the volume for the run's field{'s' if len(runs) == 2 else ''}: "
+        f"{', '.join(f'{n / 1e6:.2g} M' for n in kept)} voxels per level (the volume: "
+        f"{np.prod(vol.shape) / 1e6:.3g} M) in {time.perf_counter() - prep_start:.1f} s"
+        + (" (from the cache)" if prepared.base_source == "disk" else "")
+    )
     started = time.perf_counter()
     shown = {"n": 0}
 
@@ -126,8 +138,11 @@ def run_track(
                 f"{est.latency_ms:7.1f} ms{conf}{why}"
             )
 
-    result = track_run(vol, frames, times, seed=seed, realtime=not every_frame, on_frame=on_frame)
+    result = track_run(vol, frames, times, seed=seed, realtime=not every_frame, on_frame=on_frame,
+                       renderer=prepared.renderer)  # fmt: skip
     wall = time.perf_counter() - started
+    if store is not None:
+        store.flush()  # a first run writes the prepared volume while it tracks
     summary = result.summary()
     document = result.to_dict()
     document["volume"] = {"path": str(volume), "label": vol.label}

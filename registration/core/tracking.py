@@ -225,9 +225,10 @@ class Tracker:
             raise ValueError("renderer was prepared for another volume")
         self.renderer = renderer
         self.seed = int(seed)
-        # the pyramid level with about volume_voxels across
-        sizes = [max(renderer.level_volume(k).shape) for k in range(renderer.n_levels)]
-        self.volume_level = int(np.argmin([abs(math.log(s / self.options.volume_voxels)) for s in sizes]))
+        # the pyramid level with about volume_voxels across (of the prepared ones: a renderer of
+        # prepared levels, registration.core.prepare, may lack some; ties go to the finer level)
+        sizes = {k: max(renderer.level_volume(k).shape) for k in range(renderer.n_levels) if renderer.has_level(k)}
+        self.volume_level = min(sizes, key=lambda k: abs(math.log(sizes[k] / self.options.volume_voxels)))
         self.threads = max(1, min(2, self.options.threads or os.cpu_count() or 1))
         self._pool = ThreadPoolExecutor(max_workers=self.threads) if self.threads > 1 else None
         self.level: float | None = None
