@@ -82,10 +82,13 @@ class _Registrar:
             return [dicom.read_xray(item.path, **self.distances_mm)]
 
     def _register(self, item: Received) -> None:
+        from app.commands import prepare_for_registration
         from registration.core.register import register
 
         (xray,) = self.read(item)
-        result = register(self.volume, xray)
+        # prepared as ``roadmap3d register`` prepares it (cropped, levels in mm, kept on disk)
+        prepared, _store = prepare_for_registration(self.volume, [xray])
+        result = register(self.volume, xray, renderer=prepared.renderer)
         m = result.patient_motion
         document = result.to_dict()
         document["image"] = {"path": str(item.path), "frame": xray.meta.get("frame", 0)}
@@ -98,11 +101,14 @@ class _Registrar:
 
     def _track(self, item: Received) -> None:
         """A received run: tracked frame by frame (CONVENTIONS §7), every frame (a replay)."""
+        from app.commands import prepare_for_registration
         from registration.core.tracking import track_run
 
         run = self._open_run(item)
         frames = run.frames()
-        result = track_run(self.volume, [frames], run.times_s, realtime=False)
+        # the run's field, as ``roadmap3d track`` prepares it (not a pyramid of the whole volume)
+        prepared, _store = prepare_for_registration(self.volume, [frames[0]])
+        result = track_run(self.volume, [frames], run.times_s, realtime=False, renderer=prepared.renderer)
         document = result.to_dict()
         document["run"] = {"path": str(item.path), "frames": len(frames)}
         document["volume"] = {"label": self.volume.label}
