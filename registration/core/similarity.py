@@ -156,13 +156,19 @@ def _gd_prepared(drr, spans, xv, xh, av, ah, grid, iters, tol, dv, dh):  # pragm
             g = dn[c - 1]
             h = dn[c]
             k = dn[c + 1]
-            gv = (g + 2.0 * h + k) - (a + 2.0 * b + cc)
-            gh = (cc + 2.0 * f + k) - (a + 2.0 * d + g)
-            dv[n + j] = gv
-            dh[n + j] = gh
-            sxd += xv[n + j] * gv + xh[n + j] * gh
-            sdd += gv * gv + gh * gh
+            dv[n + j] = (g + 2.0 * h + k) - (a + 2.0 * b + cc)
+            dh[n + j] = (cc + 2.0 * f + k) - (a + 2.0 * d + g)
         n += spans[run, 2]
+    # The sums in a loop of their own, which only reads: a loop that also stores runs its
+    # vector code only where a run-time check finds the stores clear of the loads (the DRR's
+    # rows), else a scalar copy, and the two group a reassociated sum differently: the
+    # measure would then depend on where the buffers lie in memory (2e-16 between two
+    # evaluators of the same DRR, enough for Powell to take another path).
+    for m in range(n):
+        gv = dv[m]
+        gh = dh[m]
+        sxd += xv[m] * gv + xh[m] * gh
+        sdd += gv * gv + gh * gh
     if not sdd > 0.0:
         return _gd_value(xv, xh, dv, dh, av, ah, 0.0), 0.0
     s_ls = sxd / sdd

@@ -119,3 +119,22 @@ def test_rule_terms_are_hinges_with_reasons():
     assert not rule.assess(pulled).applied and "along the beam" in rule.assess(pulled).reason
     toward = Evidence(margin=0.01, edges=0.5, depth_scan_tz_mm=20.0)
     assert rule.terms(toward)["depth_scan"] == 0.0 and rule.assess(toward).applied
+
+
+def test_the_measure_does_not_depend_on_where_its_buffers_lie(scene):
+    """Same DRR, same value, from every evaluator (each has its own buffers, elsewhere in
+    memory). The gradient difference once summed in the loop that stores the DRR's gradients:
+    LLVM ran its vector code there only where a run-time check found the stores clear of the
+    loads, else a scalar copy, and the two group a reassociated sum differently, so 2 of these
+    24 poses gave two values 2e-16 apart (and the depth probe's Powell another path: the exact
+    equality above failed about every other run)."""
+    from registration.core.problem import LevelProblem
+
+    volume, xray, renderer = scene
+    g = xray.geometry
+    problem = LevelProblem.prepare(renderer, (xray,), image_px=128, volume_level=1, motion=np.eye(4), margin_mm=4.0)
+    rng = np.random.default_rng(0)
+    poses = [offsets_to_matrix(list(rng.uniform(-2.0, 2.0, 6)), g) for _ in range(24)]
+    evaluators = [problem.evaluator() for _ in range(24)]  # all alive: their buffers lie apart
+    values = np.array([[e.similarity(q) for q in poses] for e in evaluators])
+    assert (values == values[0]).all(), [len(set(column)) for column in values.T]
