@@ -162,8 +162,7 @@ class CArm:
             )
         if abs(self.primary_deg) > 360 or abs(self.secondary_deg) > 360:
             raise ValueError(
-                f"angles must lie within +-360 degrees, got primary {self.primary_deg}, "
-                f"secondary {self.secondary_deg}"
+                f"angles must lie within +-360 degrees, got primary {self.primary_deg}, secondary {self.secondary_deg}"
             )
         if int(self.rows) != self.rows or int(self.cols) != self.cols or self.rows < 2 or self.cols < 2:
             raise ValueError(f"rows and cols must be integers >= 2, got {self.rows}x{self.cols}")

@@ -53,9 +53,7 @@ class XRayImage:
             raise ValueError(f"image must be numeric, got dtype {image.dtype}")
         expected = (self.geometry.rows, self.geometry.cols)
         if image.shape != expected:
-            raise ValueError(
-                f"image shape {image.shape} does not match the geometry's rows x cols {expected}"
-            )
+            raise ValueError(f"image shape {image.shape} does not match the geometry's rows x cols {expected}")
         if mask.shape != image.shape:
             raise ValueError(f"mask shape {mask.shape} does not match image shape {image.shape}")
         if mask.dtype != np.bool_:

@@ -576,9 +576,15 @@ def _plane_captures(
                                      margin_mm=options.margin_mm(0))]  # fmt: skip
     pixel_mm = problems[0].views[0].pixel_at_iso_mm
     problems += [
-        LevelProblem.prepare(inputs.renderer, (v,), image_px=level.image_px, volume_level=level.volume_level,
-                             motion=inputs.initial_motion, margin_mm=options.margin_mm(0),
-                             pixel_at_iso_mm=pixel_mm)  # fmt: skip
+        LevelProblem.prepare(
+            inputs.renderer,
+            (v,),
+            image_px=level.image_px,
+            volume_level=level.volume_level,
+            motion=inputs.initial_motion,
+            margin_mm=options.margin_mm(0),
+            pixel_at_iso_mm=pixel_mm,
+        )  # fmt: skip
         for v in planes[1:]
     ]
     geometries = (planes[0].geometry, planes[1].geometry)

@@ -130,9 +130,7 @@ class Volume:
         affine = self.index_to_world.copy()
         affine[:3, :3] = self.index_to_world[:3, :3] * factor
         shift = (factor - 1) / 2.0
-        affine[:3, 3] = (
-            self.index_to_world[:3, :3] @ np.array([shift, shift, shift]) + self.index_to_world[:3, 3]
-        )
+        affine[:3, 3] = self.index_to_world[:3, :3] @ np.array([shift, shift, shift]) + self.index_to_world[:3, 3]
         return Volume(d.astype(np.float32), affine, label=self.label, meta=self.meta)
 
     def pyramid(self, levels: int) -> list[Volume]:

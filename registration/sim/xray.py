@@ -51,6 +51,7 @@ GUIDEWIRE_MU_PER_MM = 1.0
 GUIDEWIRE_TIP_MU_PER_MM = 7.0
 GUIDEWIRE_TIP_MM = 30.0
 
+
 class Attenuator(Protocol):
     """Anything whose attenuation line integrals an image can be formed from."""
 

@@ -77,7 +77,6 @@ CLINICAL_MAX_ROTATION_DEG = 10.0
 CLINICAL_FIRST_PHANTOM_SEED = 1
 
 
-
 def _stable_seed(base: int, key: str) -> int:
     """A per-case seed that depends only on the study seed and the case's identity (not on the
     grid or its resolution: the quick study repeats the full study's draws at lower resolution)."""
@@ -277,8 +276,6 @@ def clinical_tasks(config: ClinicalConfig, options: RegistrationOptions | None =
 # --------------------------------------------------------------------------------------
 
 
-
-
 @dataclass(frozen=True)
 class PatientData:
     """A virtual patient: the rotational run (images, masks, true and calibrated geometries)
@@ -402,7 +399,6 @@ def axis_angle_matrix(axis: Sequence[float], angle_deg: float) -> NDArray[np.flo
     k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
     r = np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
     return rigid(r, None)
-
 
 
 def offset_record(
@@ -723,13 +719,3 @@ def _log_invocation(out: Path, ran: int, wall_seconds: float) -> float:
             except (ValueError, KeyError, TypeError):
                 continue
     return total if total else wall_seconds
-
-
-
-
-
-
-
-
-
-

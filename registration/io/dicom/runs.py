@@ -204,9 +204,7 @@ def frame_times(
     vector = _floats(path, ds, "FrameTimeVector", None, required=False) if "FrameTimeVector" in ds else None
     if vector:
         if len(vector) != frames:
-            raise DicomError(
-                path, f"{tag_name('FrameTimeVector')} holds {len(vector)} values for {frames} frames"
-            )
+            raise DicomError(path, f"{tag_name('FrameTimeVector')} holds {len(vector)} values for {frames} frames")
         steps = np.asarray(vector, dtype=np.float64)
         if np.any(steps[1:] < 0):
             raise DicomError(path, f"{tag_name('FrameTimeVector')} holds a negative time increment")

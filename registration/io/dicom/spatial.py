@@ -227,11 +227,7 @@ def write_registration(
     v_item = Dataset()
     v_item.FrameOfReferenceUID = v_for
     v_item.MatrixRegistrationSequence = Sequence(
-        [
-            _matrix_item(
-                motion, "patient motion M (roadmap3d): volume X is at M @ X in the image", content_based=True
-            )
-        ]
+        [_matrix_item(motion, "patient motion M (roadmap3d): volume X is at M @ X in the image", content_based=True)]
     )
     ds.RegistrationSequence = Sequence([x_item, v_item])
     series = []

@@ -69,11 +69,7 @@ def test_magnification_at_isocenter():
 
 
 def _random_rigid(rng):
-    rot = (
-        rotation_z(rng.uniform(-180, 180))
-        @ rotation_y(rng.uniform(-90, 90))
-        @ rotation_x(rng.uniform(-180, 180))
-    )
+    rot = rotation_z(rng.uniform(-180, 180)) @ rotation_y(rng.uniform(-90, 90)) @ rotation_x(rng.uniform(-180, 180))
     return rigid(rot, rng.uniform(-50, 50, 3))
 
 
@@ -115,9 +111,7 @@ def test_offsets_act_in_view_frame():
 
 
 def test_projection_matrix_with_shifted_detector():
-    g = CArm(
-        30, 20, detector_shift_mm=(1, 2, 3), detector_tilt_deg=(0.5, -0.3, 0.2), source_shift_mm=(2, 0, -1)
-    )
+    g = CArm(30, 20, detector_shift_mm=(1, 2, 3), detector_tilt_deg=(0.5, -0.3, 0.2), source_shift_mm=(2, 0, -1))
     pix = g.pixel_to_world(np.array([10.0, 400.0]), np.array([300.0, 20.0]))
     for t in (0.3, 0.8):
         x = g.source_mm + t * (pix - g.source_mm)

@@ -90,9 +90,7 @@ def test_downsample(head: HeadPhantom, geom: CArm) -> None:
     assert half.geometry.pixel_mm[0] == pytest.approx(2 * geom.pixel_mm[0])
     blocks = img.mask.reshape(PIXELS // 2, 2, PIXELS // 2, 2).all(axis=(1, 3))
     np.testing.assert_array_equal(half.mask, blocks)
-    assert half.image[5, 5 + PIXELS // 4] == pytest.approx(
-        img.image[10:12, 10 + PIXELS // 2 : 12 + PIXELS // 2].mean()
-    )
+    assert half.image[5, 5 + PIXELS // 4] == pytest.approx(img.image[10:12, 10 + PIXELS // 2 : 12 + PIXELS // 2].mean())
     assert np.all(half.image[~half.mask] == 0.0)
     with pytest.raises(ValueError, match="multiple"):
         img.downsample(3)
