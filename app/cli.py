@@ -357,6 +357,7 @@ def app(
     allow: tuple[str, ...] = (),
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    isocenter: str | None = None,
 ) -> int:
     """Start the web app, optionally on your own DICOM data.
 
@@ -375,6 +376,8 @@ def app(
         allow: Calling AE titles the app's DICOM node accepts (needed with --listen-port).
         sid_mm: Source-detector distance for an --image without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for an --image without DistanceSourceToPatient (0018,1111).
+        isocenter: Iso-center of --volume/--image, "x,y,z" mm or "volume-center" (default: IsocenterPosition of the
+            volume, else the origin), as for register.
     """
     if listen_port is not None:
         from app.pacs_panel import ENV_NODE_ALLOW, ENV_NODE_PORT
@@ -405,6 +408,7 @@ def app(
         open_browser=open_browser,
         sid_mm=sid_mm,
         sod_mm=sod_mm,
+        isocenter=isocenter,
     )
 
 

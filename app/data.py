@@ -249,6 +249,9 @@ class FileData:
         self.source = source
         self._volume = volume
         self.fixed_xray = xray
+        iso = xray.geometry.isocenter_mm
+        #: Where the iso-center is and where it came from (printed at start).
+        self.isocenter_text = f"({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from the image's geometry"
         self._lock = threading.RLock()
         self._meshes: dict[str, trimesh.Trimesh] | None = None
 
@@ -256,14 +259,21 @@ class FileData:
     def from_paths(
         cls, volume_path: str | os.PathLike[str], image_path: str | os.PathLike[str], *, frame: int | None,
         config: AppConfig, sid_mm: float | None = None, sod_mm: float | None = None,
+        isocenter: str | None = None,
     ) -> FileData:  # fmt: skip
         """Read with the engine's DICOM readers (their errors name the file and the tag);
-        ``sid_mm`` / ``sod_mm`` for an image that lacks the distances."""
+        ``sid_mm`` / ``sod_mm`` for an image that lacks the distances; ``isocenter`` as
+        ``register --isocenter`` (:func:`app.commands.resolve_isocenter`: "x,y,z" mm,
+        "volume-center", default the volume's IsocenterPosition, else the world origin)."""
+        from app.commands import resolve_isocenter
         from registration.io.dicom import read_volume, read_xray
 
         volume = read_volume(volume_path)
-        xray = read_xray(image_path, frame=frame, sid_mm=sid_mm, sod_mm=sod_mm)
-        return cls(volume, xray, source=f"{volume_path} + {image_path}", config=config)
+        iso, iso_from = resolve_isocenter(isocenter, volume)
+        xray = read_xray(image_path, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
+        data = cls(volume, xray, source=f"{volume_path} + {image_path}", config=config)
+        data.isocenter_text = f"({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}"
+        return data
 
     @property
     def label(self) -> str:

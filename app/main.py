@@ -151,9 +151,12 @@ def run_app(
     open_browser: bool = False,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    isocenter: str | None = None,
 ) -> int:
     """Serve the app until Ctrl-C (or SIGTERM); returns the exit code. ``sid_mm`` / ``sod_mm``
-    supply the distances of an ``image`` that lacks them."""
+    supply the distances of an ``image`` that lacks them; ``isocenter`` places it (as
+    ``register --isocenter``: "x,y,z" mm or "volume-center"; default the volume's
+    IsocenterPosition, else the world origin)."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config = AppConfig.from_env()
     start = time.perf_counter()
@@ -163,10 +166,15 @@ def run_app(
         raise ValueError(f"--max-upload-mb must be positive, got {max_upload_mb}")
     if image is None and (sid_mm is not None or sod_mm is not None):
         raise ValueError("--sid-mm/--sod-mm apply to --volume/--image only")
+    if image is None and isocenter is not None:
+        raise ValueError("--isocenter applies to --volume/--image only")
     data = None
     if volume is not None and image is not None:
         # Read (and reject with a message naming the file and tag) before serving anything.
-        data = FileData.from_paths(volume, image, frame=frame, config=config, sid_mm=sid_mm, sod_mm=sod_mm)
+        data = FileData.from_paths(
+            volume, image, frame=frame, config=config, sid_mm=sid_mm, sod_mm=sod_mm, isocenter=isocenter
+        )
+        print(f"roadmap3d: iso-center {data.isocenter_text}", flush=True)
     server = make_server(host, port, allow_share=allow_share)
     url = url_of(server)
     print(f"roadmap3d: serving on {url}  (Ctrl-C to stop)", flush=True)

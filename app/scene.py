@@ -59,7 +59,9 @@ class Scene:
             cell_color=(60, 64, 72),
             section_color=(80, 86, 96),
         )
-        self.scene.add_icosphere("/isocenter", radius=0.004, color=(255, 255, 255), position=(0.0, 0.0, 0.0))
+        self.isocenter = self.scene.add_icosphere(
+            "/isocenter", radius=0.004, color=(255, 255, 255), position=(0.0, 0.0, 0.0)
+        )  # moved to the C-arm's iso-center by set_carm (a CT's is rarely the world origin)
         self.scene.add_label("/isocenter/label", "iso-center", position=(0.0, 0.0, -0.1), font_screen_scale=0.8)
         self.patient: list = []
         self.ghost: list = []
@@ -158,6 +160,8 @@ class Scene:
         side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else u
         arc = mid - np.cos(t)[:, None] * d * radius + np.sin(t)[:, None] * side * radius * 0.9
         arc_node = self.scene.add_spline_catmull_rom(f"{root}/arc", arc, thickness=0.03, color=CARM_RGB)
+        if not plane_b:
+            self.isocenter.position = tuple(float(x) for x in np.asarray(geometry.isocenter_mm) * M_PER_MM)
         if plane_b:
             self.frustum_b = frustum
             self.plane_b_nodes = [frustum, source_node, detector, arc_node]

@@ -254,7 +254,11 @@ def _unpack_and_read(
     if found["volume"] is None or found["image"] is None:
         missing = "volume" if found["volume"] is None else "XA/RF image"
         raise UploadError(f"{name}: found no {missing}; expected {EXPECTED}")
-    return read_volume(found["volume"]), read_xray(found["image"], frame=None, sid_mm=sid_mm, sod_mm=sod_mm)
+    from app.commands import resolve_isocenter
+
+    volume = read_volume(found["volume"])
+    iso, _ = resolve_isocenter(None, volume)  # the volume's IsocenterPosition, else the origin (as register)
+    return volume, read_xray(found["image"], frame=None, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
 
 
 def shutdown_readers(timeout_s: float = 2.0) -> None:
