@@ -109,6 +109,15 @@ class DataSource(Protocol):
         registration or a run compares with and where it starts (a source may prepare for them)."""
         ...
 
+    def evidence_renderer(
+        self,
+        volume_format_cm: float,
+        views: Sequence[XRayImage],
+        initial_motion: np.ndarray | None = None,
+    ) -> DRRRenderer:
+        """The renderer a registration's confidence is assessed with (the levels its rule reads)."""
+        ...
+
     def meshes(self, volume_format_cm: float) -> dict[str, trimesh.Trimesh]:
         """Vessel and bone surfaces of :meth:`volume` in world mm."""
         ...
@@ -204,6 +213,15 @@ class PhantomData:
                 self.progress("Preparing the DRR renderer", 0.6)
                 self._renderers[volume_format_cm] = DRRRenderer(volume, levels=3)
             return self._renderers[volume_format_cm]
+
+    def evidence_renderer(
+        self,
+        volume_format_cm: float,
+        views: Sequence[XRayImage],
+        initial_motion: np.ndarray | None = None,
+    ) -> DRRRenderer:
+        """The whole 3DRA's index pyramid: the one the confidence rule was calibrated with."""
+        return self.renderer(volume_format_cm)
 
     def meshes(self, volume_format_cm: float) -> dict[str, trimesh.Trimesh]:
         with self._lock:
@@ -307,6 +325,18 @@ class FileData:
         """The renderer of :meth:`prepared` (the registration's prepared levels, not a pyramid of
         the whole volume: a CT's scanner-sized field of view is cropped to the anatomy in the field)."""
         return self.prepared(views, initial_motion).renderer
+
+    def evidence_renderer(
+        self,
+        _volume_format_cm: float | None,
+        views: Sequence[XRayImage],
+        initial_motion: np.ndarray | None = None,
+    ) -> DRRRenderer:
+        """As ``register --confidence`` assesses (:func:`app.commands.confidence_renderer`): the
+        registration's prepared levels, with level 0 over the prepared box where the rule reads it."""
+        from app.commands import confidence_renderer
+
+        return confidence_renderer(self.prepared(views, initial_motion), planes=len(views))
 
     @property
     def mesh_steps(self) -> tuple[int, int]:

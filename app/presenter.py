@@ -386,6 +386,7 @@ class Presenter:
         with s.lock:
             run = s.run
             progress, result, running, error = run.progress, run.result, run.running, run.error
+            assessment = run.assessment
         if residual is None:
             o = matrix_to_offsets(motion, s.geometry())
             readout = (
@@ -404,6 +405,10 @@ class Presenter:
             badge_html = badge("REGISTERING…", "#1c7ed6")
         elif result is not None and getattr(result, "at_bounds", ()):
             badge_html = badge("✗ NOT REGISTERED  (estimate at the search bounds)", "#c92a2a")
+        elif result is not None and assessment is not None and not assessment["applied"]:
+            badge_html = badge(
+                f"MOTION DETECTED, CORRECTION WITHHELD  (confidence {assessment['confidence']:.2f})", "#e8590c"
+            )
         elif residual is None:
             badge_html = badge("REGISTERED" if result is not None else "SENSOR ALIGNMENT ONLY", "#495057")
         elif residual.success:
@@ -419,6 +424,13 @@ class Presenter:
         elif result is not None:
             how = "stopped" if result.stopped else "done"
             lines.append(f"Time {result.seconds:.2f} s · {result.drr_count} DRRs · {how}")
+            if assessment is not None and assessment["applied"]:
+                lines.append(f"Confidence {assessment['confidence']:.2f}: applied")
+            elif assessment is not None:
+                lines.append(
+                    f"Confidence {assessment['confidence']:.2f}: withheld ({assessment['withheld_reason']}); "
+                    "the roadmap keeps its pose"
+                )
             if not running and status.content.startswith("Registering"):
                 status.content = "Ready."
         elif run.abandoned:

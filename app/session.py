@@ -108,6 +108,9 @@ class RunState:
     stop: threading.Event = field(default_factory=threading.Event)
     #: Stop came before the optimizer's first iteration: the run was let go (its result is dropped)
     abandoned: bool = False
+    #: The estimate's confidence and decision (CONVENTIONS §7: ``confidence``, ``applied``,
+    #: ``withheld_reason``), None while running, for a stopped run, or when it could not be assessed
+    assessment: dict | None = None
 
 
 class Session:
@@ -347,6 +350,7 @@ class Session:
                 run.progress = progress
             return run.stop.is_set()
 
+        assessment = None
         try:
             views = self.views()  # biplane: plane A first, offsets in its view frame
             data = self.data
@@ -361,6 +365,8 @@ class Session:
                 # the user's volume: prepared for these views and this start (app.data.FileData.prepared)
                 renderer=data.renderer(volume_format, views=views, initial_motion=initial),
             )
+            if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
+                assessment = self._assess(views, result, volume_format, initial)
         except Exception as exc:  # shown in the page, never a dead worker thread
             with self.lock:
                 if run.abandoned:
@@ -377,6 +383,7 @@ class Session:
                 if run.abandoned:  # Stop already ended this run for the user
                     return
                 run.result = result
+                run.assessment = assessment
                 if not math.isfinite(result.similarity):
                     run.error = "Registration found no usable overlap between the DRR and the image."
                 elif getattr(result, "at_bounds", ()):  # inputs without information drift there
@@ -384,14 +391,32 @@ class Session:
                         f"Not registered: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "
                         "the roadmap keeps its pose."
                     )
-                else:
+                elif assessment is None or assessment["applied"]:
                     self.estimate = np.asarray(result.patient_motion, dtype=np.float64)
+                # withheld: a wrong correction is worse than none, the roadmap keeps its pose
                 if run.stop_requested_s is not None:
                     run.stop_latency_s = time.perf_counter() - run.stop_requested_s
                 run.running = False
                 self._changed()
         if on_done is not None:
             on_done()
+
+    def _assess(
+        self, views: list[XRayImage], result: RegistrationResult, volume_format: float, initial: Array
+    ) -> dict | None:
+        """The estimate's confidence and decision, as ``register --confidence`` and the studies
+        assess it (:func:`registration.studies.cases.confidence_fields`); None (the estimate is
+        applied, as before the rule) when the assessment itself fails, which is logged."""
+        from registration.studies.cases import confidence_fields
+
+        try:
+            renderer = self.data.evidence_renderer(volume_format, views, initial)
+            return confidence_fields(
+                self.data.volume(volume_format), views if len(views) > 1 else views[0], result, renderer
+            )
+        except Exception:  # noqa: BLE001 - the registration stands; the page says it was not assessed
+            log.exception("confidence assessment failed")
+            return None
 
     def stop_registration(self, *, wait: bool = False, timeout: float = 5.0) -> None:
         """Stop the run: at the optimizer's next iteration, or at once if it has not reached one.

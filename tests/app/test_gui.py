@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -41,6 +42,10 @@ def test_t4_then_register_reaches_sub_millimetre(fresh: RoadmapApp) -> None:
     assert rotation < 3.0, app.readout.content
     assert "REGISTERED" in app.badge.content
     assert "DRRs" in app.details.content and "done" in app.details.content
+    # the estimate was assessed as register --confidence assesses it, and applied (it is right)
+    assessment = app.session.run.assessment
+    assert assessment is not None and assessment["applied"], assessment
+    assert f"Confidence {assessment['confidence']:.2f}: applied" in app.details.content
     # The overlay and readout were refreshed live while it ran, each time with the newest of the
     # optimizer's reports: the numbers shown only grow, and every report was drawn or counted as
     # skipped (none queued). How many frames fit depends on the machine, so no rate is asserted
@@ -193,3 +198,32 @@ def test_stop_before_the_first_iteration_lets_the_run_go(fresh: RoadmapApp, monk
     assert wait_until(lambda: not app.register_button.disabled, 3)
     assert app.session.wait(5)  # the let-go worker ends on its own
     assert app.session.run.error is None
+
+
+def test_a_wrong_estimate_is_withheld_and_the_roadmap_keeps_its_pose(fresh: RoadmapApp, monkeypatch) -> None:
+    """The app's Register assesses its estimate (CONVENTIONS §7): here the optimizer's result is
+    replaced by a pose 2 mm / 4 degrees off the truth (a wrong optimum), which the confidence
+    rule withholds (the measure's peak is not there); the roadmap stays where it was."""
+    import app.session as session_module
+    from registration.core.geometry import offsets_to_matrix
+
+    app = fresh
+    app.table_buttons["T4"].value = True
+    assert wait_until(lambda: shown(app), 10)
+    before = app.session.estimate.copy()
+    real_register = session_module.register
+
+    def wrong_register(*args, **kwargs):
+        result = real_register(*args, **kwargs)
+        off = offsets_to_matrix([2.0, 0.0, 0.0, 0.0, 4.0, 0.0], app.session.geometry())
+        return replace(result, patient_motion=off @ app.session.true_motion)
+
+    monkeypatch.setattr(session_module, "register", wrong_register)
+    app.register_button.value = True
+    assert app.session.wait(120), "registration did not finish"
+    assert wait_until(lambda: shown(app) and not app.register_button.disabled, 5)
+    assessment = app.session.run.assessment
+    assert assessment is not None and not assessment["applied"], assessment
+    np.testing.assert_array_equal(app.session.estimate, before)  # not moved to the wrong pose
+    assert "WITHHELD" in app.badge.content
+    assert "withheld" in app.details.content and "the roadmap keeps its pose" in app.details.content
