@@ -765,6 +765,13 @@ class DRRRenderer:
         """Whether ``level`` exists and was prepared."""
         return 0 <= level < len(self._levels) and self._levels[level] is not None
 
+    def level_nearest(self, voxels_across: float) -> int:
+        """The prepared level whose largest dimension is nearest ``voxels_across`` (in ratio; a
+        renderer of prepared levels, :mod:`registration.core.prepare`, may lack some; ties go to
+        the finer level)."""
+        sizes = {k: max(lev.volume.shape) for k, lev in enumerate(self._levels) if lev is not None}
+        return min(sizes, key=lambda k: abs(math.log(sizes[k] / voxels_across)))
+
     def _level(self, level: int) -> _Level:
         if isinstance(level, bool) or int(level) != level or not 0 <= level < len(self._levels):
             raise ValueError(f"level must be an integer in [0, {len(self._levels) - 1}], got {level}")

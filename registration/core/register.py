@@ -584,7 +584,7 @@ def _plane_captures(
             motion=inputs.initial_motion,
             margin_mm=options.margin_mm(0),
             pixel_at_iso_mm=pixel_mm,
-        )  # fmt: skip
+        )
         for v in planes[1:]
     ]
     geometries = (planes[0].geometry, planes[1].geometry)

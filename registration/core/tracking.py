@@ -225,10 +225,7 @@ class Tracker:
             raise ValueError("renderer was prepared for another volume")
         self.renderer = renderer
         self.seed = int(seed)
-        # the pyramid level with about volume_voxels across (of the prepared ones: a renderer of
-        # prepared levels, registration.core.prepare, may lack some; ties go to the finer level)
-        sizes = {k: max(renderer.level_volume(k).shape) for k in range(renderer.n_levels) if renderer.has_level(k)}
-        self.volume_level = min(sizes, key=lambda k: abs(math.log(sizes[k] / self.options.volume_voxels)))
+        self.volume_level = renderer.level_nearest(self.options.volume_voxels)
         self.threads = max(1, min(2, self.options.threads or os.cpu_count() or 1))
         self._pool = ThreadPoolExecutor(max_workers=self.threads) if self.threads > 1 else None
         self.level: float | None = None
@@ -700,9 +697,7 @@ def registration_evidence(
     m = check_rigid(motion, name="motion")
     if renderer is None:
         renderer = DRRRenderer(volume, levels=3)
-    # the prepared level nearest ``volume_voxels`` across (a renderer of prepared levels may lack some)
-    sizes = {k: max(renderer.level_volume(k).shape) for k in range(renderer.n_levels) if renderer.has_level(k)}
-    level = min(sizes, key=lambda k: abs(math.log(sizes[k] / volume_voxels)))
+    level = renderer.level_nearest(volume_voxels)
     factor = _level_factor(xray.geometry, image_px)
     small_geom = xray.geometry.resized(xray.geometry.rows // factor, xray.geometry.cols // factor)
     lv = _Level(xray, factor, support_mask(volume, small_geom, m, support_margin_mm), 1)
