@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app import status
 from app.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL, Layout, format_cm, format_option, offset_limit
-from app.session import Session
+from app.session import RunState, Session
 from app.upload import limit_uploads
 from registration.core.geometry import clinically_relevant
 
@@ -66,6 +67,10 @@ class Controller:
         self.autocorrect_due: float | None = None
         self._sync_depth = 0
         self._sync_lock = threading.RLock()
+        #: The run whose outcome the status line told last (each run's is told once, when drawn).
+        self._announced: RunState | None = None
+        #: A later preparation (another volume format) is showing its progress in the status line.
+        self._preparing = False
 
     # ----- binding ----------------------------------------------------------------------
     def guarded(self, fn: Callable[..., None]) -> Callable[..., None]:
@@ -91,9 +96,11 @@ class Controller:
         for slider in ui.offset_sliders:
             slider.on_update(on(self._on_offsets))
         for name, button in ui.table_buttons.items():
-            button.on_click(on(lambda _e, name=name: self._moved(lambda: s.apply_table_offset(name))))
-        ui.random_button.on_click(on(lambda _e: self._moved(s.random_offset)))
-        ui.reset_button.on_click(on(lambda _e: self._moved(s.reset)))
+            button.on_click(
+                on(lambda _e, name=name: self._moved(lambda: s.apply_table_offset(name), f"{name} (Table I)"))
+            )
+        ui.random_button.on_click(on(lambda _e: self._moved(s.random_offset, "Random")))
+        ui.reset_button.on_click(on(lambda _e: self._moved(s.reset, "Reset")))
         for control in ui.carm_controls:
             control.on_update(on(self._on_carm))
         ui.register_button.on_click(on(lambda _e: self.start_registration()))
@@ -119,11 +126,23 @@ class Controller:
             return
         self.session.set_offsets([s.value for s in self.layout.offset_sliders])
         self.patient_moved()
+        self._tell_moved("Patient motion" if self.session.has_truth else "Roadmap offset", restarted=False)
 
-    def _moved(self, action: Callable[[], object]) -> None:
+    def _moved(self, action: Callable[[], object], what: str) -> None:
         action()
         self.sync_controls()
         self.patient_moved()
+        self._tell_moved(what, restarted=True)
+
+    def _tell_moved(self, what: str, *, restarted: bool) -> None:
+        """The status line after the motion controls: what moved, by how much, what comes next."""
+        s = self.session
+        self.message(
+            status.moved_text(
+                what, s.offsets(), has_truth=s.has_truth, autocorrect=bool(self.layout.autocorrect.value),
+                restarted=restarted,
+            )
+        )  # fmt: skip
 
     def patient_moved(self) -> None:
         """Schedule Auto-correct (if on)."""
@@ -250,12 +269,14 @@ class Controller:
         ui.show_ghost.disabled = not self.session.has_truth
 
     # ----- registration -----------------------------------------------------------------
-    def start_registration(self) -> bool:
+    def start_registration(self, *, trigger: str = "Register") -> bool:
+        """Start a registration (``trigger``: "Register" or "Auto-correct", told in the status line)."""
         self.autocorrect_due = None
-        started = self.session.start_registration(on_done=self.wake)
+        started = self.session.start_registration(on_done=self.wake, trigger=trigger)
         if started:
             self.set_running_ui(True)
-            self.message("Registering…")
+            auto = trigger == "Auto-correct"
+            self.message("Auto-correct: the patient moved; registering…" if auto else "Registering…")
         return started
 
     def set_running_ui(self, running: bool) -> None:
@@ -269,15 +290,44 @@ class Controller:
         ui.register_button.disabled = running
         ui.stop_button.disabled = not running
 
-    def tick(self, now: float) -> None:
-        """Called by the presenter after each frame: the controls follow a run that ended, and a
-        due Auto-correct starts."""
+    def tick(self, now: float, drawn: bool = True) -> None:
+        """Called by the presenter after each frame (``drawn``: the session's current state is on
+        screen): the controls follow a run that ended, the status line tells its outcome once,
+        with the frame that shows it, and a due Auto-correct starts."""
         if not self.session.running and self.ui_running:
             self.set_running_ui(False)
+        if drawn:
+            self._announce_outcome()
+            if self._preparing:
+                self._preparing = False
+                fmt = self.session.settings.volume_format_cm
+                what = "your volume" if self.session.data.fixed_xray is not None else f"the {fmt:g} cm volume"
+                self.message(f"Ready: {what} and its surfaces are loaded.")
         due = self.autocorrect_due
         if due is not None and now >= due and self.layout.autocorrect.value and not self.session.running:
             self.autocorrect_due = None
-            self.start_registration()
+            self.start_registration(trigger="Auto-correct")
+
+    def _announce_outcome(self) -> None:
+        """Tell a registration's outcome (applied, withheld, stopped, failed) in the status line,
+        once per run, in the words of the badge (:func:`app.status.run_outcome`)."""
+        s = self.session
+        with s.lock:
+            run = s.run
+            if run is self._announced or run.running:
+                return
+            self._announced = run
+            if run.result is None and run.error is None and not run.abandoned:
+                return  # a fresh state (the patient moved, new data): nothing ran
+            residual = s.residual() if s.has_truth else None
+            text, error = status.run_outcome(run, residual, biplane=s.biplane)
+        self.message(text, error=error)
+
+    def preparing(self, text: str) -> None:
+        """A later preparation (another volume format) reports here; once its frame is drawn the
+        status line says it is ready."""
+        self._preparing = True
+        self.message(f"{text}…")
 
     def message(self, text: str, *, error: bool = False) -> None:
         self.layout.status.content = f"<span style='color:#ff6b6b'>⚠ {text}</span>" if error else text

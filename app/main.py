@@ -131,12 +131,15 @@ def build_app(
     bar.remove()
     app = RoadmapApp(server, session, phantom=phantom, max_upload_mb=max_upload_mb)
     # Later preparations (another volume format) report in the status line.
-    phantom.progress = lambda message, _fraction: app.message(f"{message}…")
-    app.start()
+    phantom.progress = lambda message, _fraction: app.controller.preparing(message)
+    # Said before the presenter starts: its first frame must not overwrite it (it restores what it found).
     if data is None:
         app.message("Ready. Press **T4**, then **Register**.")
     else:
-        app.message("Your data is loaded. Press **Register** to correct the roadmap.")
+        app.message(
+            f"Your data is loaded (iso-center {data.isocenter_text}). Press **Register** to correct the roadmap."
+        )
+    app.start()
     return app
 
 

@@ -38,7 +38,8 @@ import viser
 from app import views
 from app.panels import BasePanel, PanelContext
 from app.presenter import FollowedPose
-from registration.core.geometry import CArm, apply, invert_rigid, matrix_to_offsets, rotation_angle_deg
+from app.status import corrected_text, correction
+from registration.core.geometry import CArm, matrix_to_offsets
 
 if TYPE_CHECKING:
     from registration.core.tracking import FrameEstimate
@@ -57,12 +58,9 @@ GREEN, ORANGE, GRAY = (64, 192, 87), (253, 126, 20), (134, 142, 150)
 
 
 def motion_message(est: FrameEstimate, previous: np.ndarray, geometry: CArm) -> tuple[str, tuple[int, int, int]]:
-    """The product's message for one frame and its colour."""
+    """The product's message for one frame and its colour (the words of :mod:`app.status`)."""
     if est.status == "applied":
-        change = est.patient_motion @ invert_rigid(previous)
-        iso = np.asarray(geometry.isocenter_mm)
-        mm = float(np.linalg.norm(apply(change, iso) - iso))
-        return f"motion corrected {mm:.1f} mm, {rotation_angle_deg(change):.1f}°", GREEN
+        return corrected_text(*correction(previous, est.patient_motion, geometry.isocenter_mm)), GREEN
     if est.status == "withheld":
         return "motion detected, correction withheld", ORANGE
     return "no motion", GRAY
@@ -166,6 +164,8 @@ class PlaybackPanel(BasePanel):
         #: How many planes the last run played had (1, or 2 for a biplane run).
         self.planes = 0
         self.last_message = ""
+        #: The last correction or withholding told in the status line ("frame 65 at 4.33 s: ...").
+        self.last_told = ""
         self.finished = threading.Event()
         self._source: tuple[Any, float] = (ctx.phantom, self.case.volume_format_cm)
         self._followed: FollowedPose | None = None  # what the 3-D scene was last asked to show
@@ -191,6 +191,8 @@ class PlaybackPanel(BasePanel):
             self._thread = threading.Thread(target=self._run_guarded, name="play-run", daemon=True)
             self._thread.start()
         self._buttons(playing=True)
+        what = f"the run {self.user_run.name}" if self.user_run is not None else "the phantom's run"
+        self.ctx.message(f"Play run: playing {what}, the roadmap follows it (Play run tab).")
 
     def toggle_pause(self) -> None:
         if not self.playing:
@@ -332,6 +334,7 @@ class PlaybackPanel(BasePanel):
         times = run.times_s
         n = len(run)
         self.frames_shown, self.skipped, self.estimates = 0, 0, []
+        self.last_told = ""
         self._followed = None
         self.planes = len(runs)
         chart: dict[str, list[float]] = {k: [] for k in ("t", "true_x", "shown_x", "true_y", "shown_y", "ms")}
@@ -379,6 +382,8 @@ class PlaybackPanel(BasePanel):
             f"{'Stopped' if self._stop.is_set() else 'Finished'}: {self.frames_shown} frames shown, "
             f"{self.skipped} skipped (arrived while busy); {applied} corrections applied, {withheld} withheld."
         )
+        last = f" Last: {self.last_told}." if self.last_told else ""
+        self.ctx.message(f"Play run {self.stats.content[0].lower()}{self.stats.content[1:]}{last}")
 
     def _show_frame(self, runs: list[Any], i: int, est: FrameEstimate, text: str, color: tuple[int, int, int],
                     vertices: np.ndarray, spacing: float) -> None:  # fmt: skip
@@ -410,6 +415,10 @@ class PlaybackPanel(BasePanel):
         self.ctx.follow(self._followed)
         run = runs[0]
         self.last_message = text
+        if est.status in ("applied", "withheld"):  # an event: the status line tells it (not every frame)
+            why = f" ({est.reason})" if est.status == "withheld" and est.reason else ""
+            self.last_told = f"frame {i} at {est.t_s:.2f} s: {text}{why}"
+            self.ctx.message(f"Play run, {self.last_told}.")
         self.message.content = (
             f"**{text}** · frame {i}/{len(run) - 1} at {est.t_s:.2f} s · {est.path} {est.latency_ms:.0f} ms"
             + (f" · confidence {est.confidence:.2f}" if est.confidence is not None else "")

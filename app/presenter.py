@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app import views
+from app import status, views
 from app.layout import Layout, badge
 from app.scene import Scene
 from app.session import Session
@@ -71,7 +71,7 @@ class Presenter:
         scene: Scene,
         *,
         message: Callable[..., None],
-        tick: Callable[[float], None],
+        tick: Callable[[float, bool], None],
         show_source: Callable[[], None],
     ) -> None:
         self.server = server
@@ -79,7 +79,9 @@ class Presenter:
         self.layout = layout
         self.scene = scene
         self.message = message
-        self.tick = tick  # the controller's per-frame hook (run ended, Auto-correct due)
+        #: the controller's per-frame hook (run ended, Auto-correct due); its second argument: the
+        #: session's current state is on screen
+        self.tick = tick
         self.show_source = show_source
         self.panels: Sequence[Panel] = ()
         self.shown_version = -1
@@ -182,7 +184,7 @@ class Presenter:
             if followed is not None and followed is not self._shown_followed:
                 with self.server.atomic():
                     self._show_followed(followed)
-            self.tick(now)
+            self.tick(now, self.shown_version == s.version)
             return
         if followed is None:
             self._show_anatomy(s.data, settings.volume_format_cm)
@@ -211,7 +213,7 @@ class Presenter:
             self._last_live = now
             self.live_updates.append(now)
             self._count_live(run, reports)
-        self.tick(now)
+        self.tick(now, self.shown_version == s.version)
 
     def _show_anatomy(self, data: DataSource, volume_format_cm: float) -> None:
         mesh_key = (id(data), volume_format_cm)
@@ -381,12 +383,13 @@ class Presenter:
         self._plotted = n > 0
 
     def _texts(self, motion: np.ndarray, truth: np.ndarray | None) -> tuple[str, str, str]:
-        s, status = self.session, self.layout.status
+        s = self.session
         residual = s.residual(motion)
         with s.lock:
             run = s.run
             progress, result, running, error = run.progress, run.result, run.running, run.error
             assessment = run.assessment
+            badge_text, badge_color = status.badge_state(run, residual, biplane=s.biplane)
         if residual is None:
             o = matrix_to_offsets(motion, s.geometry())
             readout = (
@@ -400,21 +403,7 @@ class Presenter:
             )
         else:
             readout = f"**{residual.readout()}**"
-        criterion = "3-D" if s.biplane else ""
-        if running:
-            badge_html = badge("REGISTERING…", "#1c7ed6")
-        elif result is not None and getattr(result, "at_bounds", ()):
-            badge_html = badge("✗ NOT REGISTERED  (estimate at the search bounds)", "#c92a2a")
-        elif result is not None and assessment is not None and not assessment["applied"]:
-            badge_html = badge(
-                f"MOTION DETECTED, CORRECTION WITHHELD  (confidence {assessment['confidence']:.2f})", "#e8590c"
-            )
-        elif residual is None:
-            badge_html = badge("REGISTERED" if result is not None else "SENSOR ALIGNMENT ONLY", "#495057")
-        elif residual.success:
-            badge_html = badge(f"✓ REGISTERED  (< 1 mm{' ' + criterion if criterion else ''}, < 3°)", "#2b8a3e")
-        else:
-            badge_html = badge(f"✗ MISALIGNED  (≥ 1 mm{' ' + criterion if criterion else ''} or ≥ 3°)", "#c92a2a")
+        badge_html = badge(badge_text, badge_color)
         lines = []
         if running and progress is not None:
             lines.append(
@@ -431,14 +420,10 @@ class Presenter:
                     f"Confidence {assessment['confidence']:.2f}: withheld ({assessment['withheld_reason']}); "
                     "the roadmap keeps its pose"
                 )
-            if not running and status.content.startswith("Registering"):
-                status.content = "Ready."
         elif run.abandoned:
             lines.append("Stopped before the first iteration.")
         else:
             lines.append("Roadmap from the C-arm sensors (machine-based registration).")
         if error:
             lines.append(f"<span style='color:#ff6b6b'>⚠ {error}</span>")
-        if self._mesh_key is not None and status.content.startswith("Loading"):
-            status.content = "Ready."
         return readout, badge_html, "  \n".join(lines)

@@ -111,6 +111,11 @@ class RunState:
     #: The estimate's confidence and decision (CONVENTIONS §7: ``confidence``, ``applied``,
     #: ``withheld_reason``), None while running, for a stopped run, or when it could not be assessed
     assessment: dict | None = None
+    #: The roadmap's pose when the run started (the correction is measured from it) and the
+    #: iso-center it is measured at (mm, world); who started the run ("Register", "Auto-correct").
+    initial_motion: Array | None = None
+    isocenter_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    trigger: str = "Register"
 
 
 class Session:
@@ -304,15 +309,17 @@ class Session:
     def running(self) -> bool:
         return self.run.running
 
-    def start_registration(self, on_done: Callable[[], None] | None = None) -> bool:
-        """Start registering on a worker thread; False if one is already running."""
+    def start_registration(self, on_done: Callable[[], None] | None = None, *, trigger: str = "Register") -> bool:
+        """Start registering on a worker thread; False if one is already running. ``trigger``
+        names who started it ("Register", "Auto-correct") for the status line."""
         with self.lock:
             if self.run.running:
                 return False
-            self.run = RunState(
-                running=True, iterations=[], similarity=[], temperature=[], started_s=time.perf_counter()
-            )
             initial = self.estimate.copy()
+            self.run = RunState(
+                running=True, iterations=[], similarity=[], temperature=[], started_s=time.perf_counter(),
+                initial_motion=initial.copy(), isocenter_mm=self.geometry().isocenter_mm, trigger=trigger,
+            )  # fmt: skip
             truth = self.true_motion.copy() if self.has_truth else None
             volume_format = self.settings.volume_format_cm
             run = self.run

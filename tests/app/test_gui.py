@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from app.gui import RoadmapApp
+from app.status import correction
 from registration.core.geometry import TABLE_I
 
 from .conftest import parse_readout, wait_until
@@ -46,6 +47,18 @@ def test_t4_then_register_reaches_sub_millimetre(fresh: RoadmapApp) -> None:
     assessment = app.session.run.assessment
     assert assessment is not None and assessment["applied"], assessment
     assert f"Confidence {assessment['confidence']:.2f}: applied" in app.details.content
+    # The status line tells what happened, with the result's numbers (not "Ready." or the start's hint):
+    # the roadmap's move from the sensor pose at the iso-center, the decision, the residual to the truth.
+    result = app.session.run.result
+    mm, deg = correction(np.eye(4), result.patient_motion, app.session.geometry().isocenter_mm)
+    assert mm > 3.0  # T4 moved the head 5.7 mm at the iso-center: the correction is of that size
+    assert wait_until(lambda: app.status.content.startswith("Registered in"), 5), app.status.content
+    assert app.status.content == (
+        f"Registered in {result.seconds:.2f} s: motion corrected {mm:.1f} mm, {deg:.1f}° "
+        f"(confidence {assessment['confidence']:.2f}, applied) · now {inplane:.2f} mm in-plane, "
+        f"{rotation:.2f}° from the truth."
+    )
+    assert f"MOTION CORRECTED {mm:.1f} mm, {deg:.1f}°" in app.badge.content  # the badge says the same
     # The overlay and readout were refreshed live while it ran, each time with the newest of the
     # optimizer's reports: the numbers shown only grow, and every report was drawn or counted as
     # skipped (none queued). How many frames fit depends on the machine, so no rate is asserted
@@ -118,6 +131,13 @@ def test_stop_cancels_quickly(fresh: RoadmapApp) -> None:
     assert latency < 1.0, f"stop took {latency:.2f} s"  # the issue asks 0.5 s; margin for a loaded CI machine
     assert app.session.run.result is not None and app.session.run.result.stopped
     assert wait_until(lambda: not app.register_button.disabled, 3)
+    result = app.session.run.result
+    mm, deg = correction(np.eye(4), result.patient_motion, (0.0, 0.0, 0.0))
+    assert wait_until(lambda: "stopped after" in app.status.content, 5), app.status.content
+    assert app.status.content.startswith(
+        f"Registration stopped after {result.seconds:.2f} s: the roadmap shows the best pose so far, "
+        f"motion corrected {mm:.1f} mm, {deg:.1f}° (not assessed)"
+    ), app.status.content
 
 
 def test_carm_change_keeps_the_patient_in_the_room(fresh: RoadmapApp) -> None:
@@ -175,6 +195,10 @@ def test_autocorrect_reregisters_when_the_patient_moves(fresh: RoadmapApp) -> No
     assert wait_until(lambda: shown(app), 10)
     inplane, _, _ = parse_readout(app.readout.content)
     assert inplane < 1.0
+    # told as Auto-correct's, with its numbers: 6 mm along the image columns corrected
+    assert wait_until(lambda: app.status.content.startswith("Auto-corrected in"), 5), app.status.content
+    mm, _ = correction(app.session.run.initial_motion, app.session.run.result.patient_motion, (0.0, 0.0, 0.0))
+    assert abs(mm - 6.0) < 1.0 and f"motion corrected {mm:.1f} mm" in app.status.content  # < 1 mm: success
     app.autocorrect.value = False
 
 
@@ -227,3 +251,13 @@ def test_a_wrong_estimate_is_withheld_and_the_roadmap_keeps_its_pose(fresh: Road
     np.testing.assert_array_equal(app.session.estimate, before)  # not moved to the wrong pose
     assert "WITHHELD" in app.badge.content
     assert "withheld" in app.details.content and "the roadmap keeps its pose" in app.details.content
+    # the status line: the decision, why, and how far the withheld estimate would have moved the roadmap
+    wrong = app.session.run.result.patient_motion
+    mm, deg = correction(before, wrong, (0.0, 0.0, 0.0))
+    assert wait_until(lambda: app.status.content.startswith("Registration withheld:"), 5), app.status.content
+    assert app.status.content.startswith(
+        f"Registration withheld: {assessment['withheld_reason']} (confidence {assessment['confidence']:.2f})."
+    )
+    assert f"Motion detected ({mm:.1f} mm, {deg:.1f}°), correction withheld: the roadmap keeps its pose" in (
+        app.status.content
+    )

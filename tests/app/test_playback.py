@@ -41,6 +41,15 @@ def test_play_run_shows_every_frame_or_skips_it(fresh) -> None:
     assert message == "no motion" or message.startswith(("motion corrected", "motion detected"))
     assert "frames shown" in panel.stats.content
     assert not panel.play_button.disabled and panel.stop_button.disabled
+    # the status line tells the run's end with its counts, and the last correction (or withholding)
+    applied = sum(e.status == "applied" for e in panel.estimates)
+    withheld = sum(e.status == "withheld" for e in panel.estimates)
+    status = fresh.status.content
+    assert status.startswith(f"Play run finished: {panel.frames_shown} frames shown, {panel.skipped} skipped"), status
+    assert f"{applied} corrections applied, {withheld} withheld." in status
+    events = [e for e in panel.estimates if e.status in ("applied", "withheld")]
+    if events:
+        assert f"Last: frame {events[-1].frame} at {events[-1].t_s:.2f} s: motion" in status, status
 
 
 #: SHORT with read-out glitches (frames the tracker must withhold) in its still start and after its
