@@ -21,9 +21,7 @@ def _result(motion: np.ndarray, *, seconds: float = 0.42, stopped: bool = False)
 
 
 def _run(motion: np.ndarray, *, iso=(0.0, 0.0, 0.0), assessment=None, **kwargs) -> RunState:
-    return RunState(
-        result=_result(motion, **kwargs), assessment=assessment, initial_motion=np.eye(4), isocenter_mm=iso
-    )
+    return RunState(result=_result(motion, **kwargs), assessment=assessment, initial_motion=np.eye(4), isocenter_mm=iso)
 
 
 def test_correction_of_known_motions() -> None:
