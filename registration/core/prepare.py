@@ -53,6 +53,7 @@ import json
 import math
 import threading
 import time
+import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -64,7 +65,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import CArm, check_rigid, rotation_angle_deg
+from registration.core.geometry import CArm, check_rigid, invert_rigid, rotation_angle_deg
 from registration.core.volume import Volume
 
 Array = NDArray[np.float64]
@@ -139,14 +140,24 @@ class Reach:
         t_search = bound_mm * math.sqrt(translations)
         # three Euler angles of at most b each compose to a rotation of at most ~ sqrt(3) b
         theta_search = min(180.0, bound_deg * math.sqrt(3.0) * 1.05)
-        t_init, theta_init = 0.0, 0.0
-        if initial_motion is not None:
-            m = check_rigid(initial_motion, name="initial motion")
-            c = np.asarray(isocenter_mm, dtype=np.float64)
-            t_init = float(np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c))
-            theta_init = rotation_angle_deg(m)
-        lever = 2.0 * math.sin(math.radians(theta_search) / 2.0) * t_init  # the search rotates the moved iso-center
-        return cls(t_search + t_init + lever, min(180.0, theta_search + theta_init))
+        search = cls(t_search, theta_search)
+        return search if initial_motion is None else search.around(initial_motion, isocenter_mm)
+
+    def around(self, motion: ArrayLike, isocenter_mm: ArrayLike = (0.0, 0.0, 0.0)) -> Reach:
+        """The reach of this search started at ``motion`` instead of at the volume's pose: the
+        motion's shift of the iso-center c and its rotation added (and the search's rotation of
+        the moved iso-center)."""
+        m = check_rigid(motion, name="initial motion")
+        c = np.asarray(isocenter_mm, dtype=np.float64)
+        t_init = float(np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c))
+        theta_init = rotation_angle_deg(m)
+        # the search rotates the moved iso-center
+        lever = 2.0 * math.sin(math.radians(self.rotation_deg) / 2.0) * t_init
+        return Reach(self.translation_mm + t_init + lever, min(180.0, self.rotation_deg + theta_init))
+
+    def grown(self, translation_mm: float, rotation_deg: float) -> Reach:
+        """This reach with some slack added."""
+        return Reach(self.translation_mm + translation_mm, min(180.0, self.rotation_deg + rotation_deg))
 
     def covers(self, other: Reach) -> bool:
         return self.translation_mm >= other.translation_mm - 1e-9 and self.rotation_deg >= other.rotation_deg - 1e-9
@@ -324,6 +335,7 @@ def needed_box(
     margin_mm: float = 0.0,
     tissue_hu: float = TISSUE_HU,
     blocks: ProbeBlocks | None = None,
+    center_motion: ArrayLike | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
     """Index box (lo, hi inclusive, as (i, j, k)) of the tissue some field ray can reach.
 
@@ -332,7 +344,9 @@ def needed_box(
     diagonal) and the box grows by ``margin_mm`` on every side (the partial-volume edge of the
     tissue and interpolation). None when no tissue is within reach. ``blocks``: the probe
     blocks (:func:`probe_blocks`) when the caller has them; with a body, only its blocks count
-    (a CT's couch and the air around the patient are not kept).
+    (a CT's couch and the air around the patient are not kept). ``center_motion``: the reach
+    is about this motion of the patient (motions ``S @ center_motion`` with S within ``reach``:
+    a crop around where a tracked patient is now) instead of about the volume's own pose.
     """
     if not geometries:
         raise ValueError("at least one view geometry is needed to crop a volume")
@@ -344,10 +358,13 @@ def needed_box(
     si, sj, sk = (int(x) for x in step)
     needed = blocks.needed
     half_diagonal = 0.5 * float(np.linalg.norm(step * spacing))
+    center = None if center_motion is None else check_rigid(center_motion, name="center motion")
 
     def any_kept(kk: NDArray[np.int64], jj: NDArray[np.int64], ii: NDArray[np.int64]) -> bool:
         centers = np.stack([(ii + 0.5) * si - 0.5, (jj + 0.5) * sj - 0.5, (kk + 0.5) * sk - 0.5], axis=1)
         world = centers @ volume.index_to_world[:3, :3].T + volume.index_to_world[:3, 3]
+        if center is not None:
+            world = world @ center[:3, :3].T + center[:3, 3]  # where the moved patient has them
         return bool(_reach_mask(world, geometries, reach, margin_mm + half_diagonal).any())
 
     # The box is the extent of the kept blocks: along each axis, from either end, the first slab
@@ -488,6 +505,8 @@ class PreparedVolume:
     body: bool = False
     #: Where the view-independent part came from: "built", "memory" or "disk" (a store).
     base_source: str = "built"
+    #: What the levels hold (:class:`Crop`; also :func:`crop_of` the renderer).
+    crop: Crop | None = field(default=None, repr=False)
 
     @property
     def voxels_per_level(self) -> list[int | None]:
@@ -506,6 +525,7 @@ class PreparedVolume:
             "body_only": self.body,
             "base_source": self.base_source,
             "prepare_seconds": self.seconds,
+            "complete": None if self.crop is None else self.crop.complete,
         }
 
 
@@ -796,23 +816,102 @@ def _prepare(
     base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()))
     targets = {lv: base_mm * 2**lv for lv in levels}
     base = _base(volume, blocks, targets, margin, body, store, remember, digest)
-    # this view's crop: the base levels' voxels that cover its box
+    return _assemble(volume, geometries, reach, np.eye(4), levels, base, margin, lo, hi, start)
+
+
+def _assemble(
+    volume: Volume, geometries: tuple[CArm, ...], reach: Reach, center: Array, levels: tuple[int, ...],
+    base: PreparedBase, margin_mm: float, lo: NDArray[np.int64], hi: NDArray[np.int64], start: float,
+) -> PreparedVolume:  # fmt: skip
+    """The view's crop ``lo..hi``: the base levels' voxels that cover it, their renderer, and
+    the :class:`Crop` that says what they hold (kept for :func:`crop_of`)."""
     sliced = {lv: _slice_level(v, volume, lo, hi) for lv, v in base.levels.items()}
     pyramid = tuple(sliced.get(lv) for lv in range(max(levels) + 1))
     renderer = DRRRenderer(volume, levels=list(pyramid))
+    tissue = _tissue_box(volume, base.blocks, margin_mm)
+    complete = tissue is None or bool(np.all(lo <= tissue[0]) and np.all(hi >= tissue[1]))
+    crop = Crop(
+        volume=volume, geometries=geometries, reach=reach, center_motion=np.array(center, dtype=np.float64),
+        levels=levels, box_lo=tuple(int(x) for x in lo), box_hi=tuple(int(x) for x in hi),  # type: ignore[arg-type]
+        complete=complete, margin_mm=float(margin_mm), base=base,
+    )  # fmt: skip
+    with _CACHE_LOCK:
+        _CROPS[renderer] = crop
     return PreparedVolume(
         volume=volume,
         levels=pyramid,
         spacing_mm=tuple(None if v is None else float(v.spacing_mm.max()) for v in pyramid),
-        box_lo=tuple(int(x) for x in lo),  # type: ignore[arg-type]
-        box_hi=tuple(int(x) for x in hi),  # type: ignore[arg-type]
+        box_lo=crop.box_lo,
+        box_hi=crop.box_hi,
         reach=reach,
         geometries=geometries,
         seconds=time.perf_counter() - start,
         renderer=renderer,
-        body=blocks.body is not None,
+        body=base.blocks.body is not None,
         base_source=base.source,
+        crop=crop,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class Crop:
+    """What a preparation's levels hold: the tissue of the volume's index box ``box_lo..box_hi``
+    ((i, j, k), inclusive), which holds everything a ray through ``geometries`` meets while the
+    patient's motion is ``S @ center_motion`` with S within ``reach`` (about the views'
+    iso-center, CONVENTIONS §4). Outside that the levels may lack anatomy: a DRR at such a
+    motion can be missing tissue at the field's edge. ``complete``: the box holds all of the
+    body's tissue (no motion can need more). ``base``: the levels it was sliced from (a new
+    crop is sliced from them too: :func:`recrop`)."""
+
+    volume: Volume = field(repr=False)
+    geometries: tuple[CArm, ...]
+    reach: Reach
+    center_motion: Array
+    levels: tuple[int, ...]
+    box_lo: tuple[int, int, int]
+    box_hi: tuple[int, int, int]
+    complete: bool
+    margin_mm: float
+    base: PreparedBase = field(repr=False)
+
+    def margin(self, motion: ArrayLike, search: Reach) -> tuple[float, float]:
+        """What is left of the crop's reach (mm at the iso-center, degrees) when a search of
+        ``search`` starts at the patient motion ``motion``; negative: that search can render
+        anatomy the crop lacks. Infinite for a complete crop."""
+        if self.complete:
+            return math.inf, math.inf
+        m = check_rigid(motion, name="motion")
+        need = search.around(m @ invert_rigid(self.center_motion), self.geometries[0].isocenter_mm)
+        return self.reach.translation_mm - need.translation_mm, self.reach.rotation_deg - need.rotation_deg
+
+
+#: The crop behind each prepared renderer (weak: a renderer no longer used is forgotten).
+_CROPS: weakref.WeakKeyDictionary[DRRRenderer, Crop] = weakref.WeakKeyDictionary()
+
+
+def crop_of(renderer: DRRRenderer) -> Crop | None:
+    """The :class:`Crop` of a renderer made by :func:`prepare_volume` or :func:`recrop` (None
+    for any other renderer, e.g. a pyramid of the whole volume: nothing is missing from it)."""
+    with _CACHE_LOCK:
+        return _CROPS.get(renderer)
+
+
+def recrop(crop: Crop, center_motion: ArrayLike, reach: Reach) -> PreparedVolume:
+    """The crop's levels again, around the patient motion ``center_motion`` and for ``reach``
+    about it: the same grids (slices of the same base levels, so a DRR of anatomy both crops
+    hold is the same), another box. Not cached. Used by a tracker whose patient moved toward
+    the crop's edge (:mod:`registration.core.tracking`)."""
+    start = time.perf_counter()
+    center = check_rigid(center_motion, name="center motion")
+    volume = crop.volume
+    found = needed_box(volume, crop.geometries, reach, margin_mm=crop.margin_mm, blocks=crop.base.blocks,
+                       center_motion=center)  # fmt: skip
+    if found is None:  # no tissue within reach of the fields: keep all of it
+        found = _tissue_box(volume, crop.base.blocks, crop.margin_mm)
+    if found is None:
+        found = (np.asarray(crop.box_lo, dtype=np.int64), np.asarray(crop.box_hi, dtype=np.int64))
+    lo, hi = found
+    return _assemble(volume, crop.geometries, reach, center, crop.levels, crop.base, crop.margin_mm, lo, hi, start)
 
 
 _CACHE: OrderedDict[tuple, tuple[Volume, PreparedVolume]] = OrderedDict()

@@ -21,6 +21,14 @@ applied pose and says why. Frames with no detected motion are ``unchanged``.
 :func:`track_run` replays a run at its frame times: a frame that arrives while the engine is
 still busy is **skipped**, never queued (the roadmap must follow the newest frame), and counted.
 One view searches the paper's five parameters; two views (biplane) all six.
+
+A renderer of prepared levels (:func:`registration.core.prepare.prepare_volume`) holds a crop
+of the volume: what the field reaches over one capture's search from the pose it was prepared
+at. The tracker keeps the crop's margin for a capture from the applied pose
+(:meth:`registration.core.prepare.Crop.margin`, a few 4x4 products when the pose changed) and,
+when it falls short, prepares the crop again around the applied pose in a thread of its own
+(:func:`registration.core.prepare.recrop`: slices of the same levels), swapped in at the first
+frame after it is ready; that frame says so (``reprepared``). A crop of the whole body never is.
 """
 
 from __future__ import annotations
@@ -42,6 +50,7 @@ from registration.core.depth import DepthProbe
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, apply, check_rigid, invert_rigid, offsets_to_matrix, rotation_angle_deg
 from registration.core.images import XRayImage
+from registration.core.prepare import Crop, PreparedVolume, Reach, crop_of, recrop
 from registration.core.register import RegistrationOptions, register, support_mask
 from registration.core.similarity import GradientDifference
 from registration.core.volume import Volume
@@ -125,6 +134,21 @@ class TrackingOptions:
     #: Threads that render probes side by side (None: one per core, at most 2).
     threads: int | None = None
     rule: ConfidenceRule = DEFAULT_RULE
+    #: A renderer of prepared levels (:mod:`registration.core.prepare`) holds the anatomy of a
+    #: crop: what the field reaches while the patient stays within one capture's search of
+    #: where the crop was prepared. When the applied pose leaves the next capture too little of
+    #: that reach, the crop is prepared again around the applied pose (in a thread of its own,
+    #: swapped in when ready), with this much slack (mm, deg) beyond the capture's search.
+    #: A crop that holds the whole body never is. False: never re-prepare. The margin may fall
+    #: ``reprepare_tolerance_mm`` / ``_deg`` short first: then only a capture's farthest poses
+    #: could render that much of the anatomy the crop lacks, beyond the two coarsest voxels the
+    #: crop keeps past its reach anyway (a still patient's applied pose never moves: its crop is
+    #: never prepared again).
+    reprepare: bool = True
+    reprepare_slack_mm: float = 10.0
+    reprepare_slack_deg: float = 5.0
+    reprepare_tolerance_mm: float = 1.0
+    reprepare_tolerance_deg: float = 0.5
 
     def __post_init__(self) -> None:
         if self.image_px < 16 or self.volume_voxels < 8:
@@ -136,6 +160,10 @@ class TrackingOptions:
             raise ValueError(f"level_memory must lie in [0, 1), got {self.level_memory}")
         if self.refine_iterations < 1:
             raise ValueError(f"refine_iterations must be >= 1, got {self.refine_iterations}")
+        for name in ("reprepare_slack_mm", "reprepare_slack_deg", "reprepare_tolerance_mm", "reprepare_tolerance_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {value}")
 
 
 @dataclass
@@ -160,9 +188,17 @@ class FrameEstimate:
     #: CPU time of the process over the frame (ms, all threads): the work, whatever else
     #: shares the machine (on a busy machine ``latency_ms`` grows, this does not).
     cpu_ms: float = 0.0
+    #: The volume's crop was prepared again (around the applied pose) and used from this frame
+    #: on; ``crop`` then says what it holds and when it was started.
+    reprepared: bool = False
+    crop: dict | None = None
+    #: What the crop leaves the next capture from the applied pose (mm at the iso-center, deg;
+    #: None when nothing is cropped away: a whole volume's pyramid or a crop of the whole body).
+    crop_margin_mm: float | None = None
+    crop_margin_deg: float | None = None
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "frame": self.frame,
             "t_s": self.t_s,
             "status": self.status,
@@ -177,7 +213,13 @@ class FrameEstimate:
             "drop_sigmas": self.drop_sigmas,
             "drr_count": self.drr_count,
             "evidence": self.evidence,
+            "reprepared": self.reprepared,
+            "crop_margin_mm": self.crop_margin_mm,
+            "crop_margin_deg": self.crop_margin_deg,
         }
+        if self.crop is not None:
+            out["crop"] = self.crop
+        return out
 
 
 class _Level:
@@ -205,6 +247,12 @@ class Tracker:
 
     ``process(views, frame, t_s)`` takes one frame per plane (taken at the same moment) and
     returns a :class:`FrameEstimate`; ``shown_pose`` is the last applied pose.
+
+    A renderer of prepared (cropped) levels is watched (:class:`_CropWatch`): after each frame,
+    the crop's margin for a capture from the applied pose; when it falls short, the crop is
+    prepared again around that pose in a thread while frames go on being processed with the old
+    one, and swapped in at the first frame after it is ready (``wait_for_preparation``: that
+    frame waits for it, so a replay's decisions do not depend on the machine's speed).
     """
 
     def __init__(
@@ -215,6 +263,7 @@ class Tracker:
         initial_motion: ArrayLike | None = None,
         renderer: DRRRenderer | None = None,
         seed: int = 0,
+        wait_for_preparation: bool = False,
     ) -> None:
         self.volume = volume
         self.options = options or TrackingOptions()
@@ -241,13 +290,22 @@ class Tracker:
         self._cpu_start = time.process_time()
         #: Biplane: each plane's own level.
         self.plane_levels: list[float] | None = None
+        capture = self.options.capture or RegistrationOptions()
+        self._frame_views: list[XRayImage] = []
+        self._crop_watch = _CropWatch(crop_of(renderer), capture, self.options, wait=wait_for_preparation)
 
     @property
     def shown_pose(self) -> Array:
         """The pose the roadmap shows: the last applied estimate (CONVENTIONS §4)."""
         return self.pose @ self._bias
 
+    @property
+    def repreparations(self) -> int:
+        """How many times the crop was prepared again and swapped in."""
+        return self._crop_watch.swaps
+
     def close(self) -> None:
+        self._crop_watch.close()
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
@@ -358,6 +416,10 @@ class Tracker:
         if not 1 <= len(views) <= 2:
             raise ValueError(f"one or two views per frame, got {len(views)}")
         o = self.options
+        swapped = self._crop_watch.take()
+        if swapped is not None:  # the crop prepared around the applied pose: from this frame on
+            self.renderer = swapped.renderer
+        self._frame_views = views
         drrs0 = self.renderer.count
         levels = self._levels(views)
         f0_planes = self._per_plane(levels, self.pose)
@@ -523,6 +585,11 @@ class Tracker:
         drrs0: int,
         evidence: dict,
     ) -> FrameEstimate:
+        # the pose is decided: does the next capture from it still find the anatomy in the crop?
+        views = self._frame_views
+        margin = self._crop_watch.check(self.shown_pose, views[0].geometry.isocenter_mm, len(views), frame)
+        event = self._crop_watch.event
+        self._crop_watch.event = None
         return FrameEstimate(
             frame=int(frame),
             t_s=float(t_s),
@@ -538,7 +605,105 @@ class Tracker:
             drop_sigmas=float(drop),
             drr_count=self.renderer.count - drrs0,
             evidence=evidence,
+            reprepared=event is not None and "error" not in event,
+            crop=event,
+            crop_margin_mm=None if margin is None else margin[0],
+            crop_margin_deg=None if margin is None else margin[1],
         )
+
+
+class _CropWatch:
+    """The tracker's crop: its margin at the applied pose and its re-preparation in a thread.
+
+    ``check`` (after a frame, cheap: a few 4x4 products) starts :func:`registration.core.prepare.recrop`
+    around the applied pose when a capture from it would search beyond the crop's reach
+    (:meth:`registration.core.prepare.Crop.margin` < 0 in mm or degrees); ``take`` (before a
+    frame) returns the new preparation once it is ready (``wait``: waits for a pending one)."""
+
+    def __init__(self, crop: Crop | None, capture: RegistrationOptions, options: TrackingOptions, *,
+                 wait: bool) -> None:  # fmt: skip
+        self.crop = crop
+        self.active = options.reprepare
+        self.capture = capture
+        self.slack = (options.reprepare_slack_mm, options.reprepare_slack_deg)
+        self.tolerance = (options.reprepare_tolerance_mm, options.reprepare_tolerance_deg)
+        self.wait = wait
+        self.swaps = 0
+        #: What the frame that swapped a crop in reports (FrameEstimate.crop).
+        self.event: dict | None = None
+        self._thread: threading.Thread | None = None
+        self._done: PreparedVolume | BaseException | None = None
+        self._started: tuple[int, float] = (0, 0.0)
+        self._failed = False
+        #: The last pose checked and its margin (the applied pose changes only when an estimate is applied).
+        self._last: tuple[Array, int, tuple[float, float]] | None = None
+
+    def search(self, planes: int) -> Reach:
+        c = self.capture
+        return Reach.of_search(c.bound_mm, c.bound_deg, translations=3 if c.optimizes_tz(planes) else 2)
+
+    def check(self, pose: Array, isocenter_mm: ArrayLike, planes: int, frame: int) -> tuple[float, float] | None:
+        """The crop's margin for a capture from ``pose`` (None: nothing is cropped away);
+        starts a re-preparation when it is negative."""
+        crop = self.crop
+        if crop is None or crop.complete:
+            return None
+        last = self._last
+        if last is not None and last[1] == planes and np.array_equal(last[0], pose):
+            mm, deg = last[2]
+        else:
+            mm, deg = crop.margin(pose, self.search(planes))
+            self._last = (np.array(pose, dtype=np.float64), planes, (mm, deg))
+        short = mm < -self.tolerance[0] or deg < -self.tolerance[1]
+        if short and self.active and self._thread is None and not self._failed:
+            reach = self.search(planes).grown(*self.slack)
+            center = np.array(pose, dtype=np.float64)
+            self._started = (int(frame), time.perf_counter())
+
+            def job() -> None:
+                try:
+                    self._done = recrop(crop, center, reach)
+                except BaseException as exc:  # noqa: BLE001 - reported by the frame that takes it
+                    self._done = exc
+
+            self._thread = threading.Thread(target=job, name="roadmap3d-recrop", daemon=True)
+            self._thread.start()
+        return mm, deg
+
+    def take(self) -> PreparedVolume | None:
+        """The new preparation, once ready (None otherwise); records the event."""
+        thread = self._thread
+        if thread is None:
+            return None
+        if self.wait:
+            thread.join()
+        elif thread.is_alive():
+            return None
+        thread.join()
+        done, self._done, self._thread = self._done, None, None
+        frame, t0 = self._started
+        if not isinstance(done, PreparedVolume):
+            self._failed = True  # keep the old crop; do not retry on every frame
+            self.event = {"error": f"the crop could not be prepared again: {done}", "started_frame": frame}
+            return None
+        self.swaps += 1
+        self.crop = done.crop
+        self._last = None
+        self.event = {
+            "started_frame": frame,
+            "ready_after_ms": (time.perf_counter() - t0) * 1e3,
+            "prepare_ms": done.seconds * 1e3,
+            "box_lo": list(done.box_lo),
+            "box_hi": list(done.box_hi),
+            "voxels_per_level": done.voxels_per_level,
+            "complete": done.crop.complete if done.crop is not None else None,
+            "reach": {"translation_mm": done.reach.translation_mm, "rotation_deg": done.reach.rotation_deg},
+        }
+        return done
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
 
 
 # --------------------------------------------------------------------------------------
@@ -574,6 +739,7 @@ class TrackingRun:
             "unchanged": sum(f.status == "unchanged" for f in self.frames),
             "captures": sum(f.path == "capture" for f in self.frames),
             "refines": sum(f.path == "refine" for f in self.frames),
+            "reprepared": sum(f.reprepared for f in self.frames),
             "ms_per_frame_median": q(lat, 50),
             "ms_per_frame_p95": q(lat, 95),
             "refine_path_ms_median": q(refine, 50),
@@ -634,7 +800,9 @@ def track_run(
     clock = clock or time.perf_counter
     estimates: list[FrameEstimate] = []
     skipped: list[int] = []
-    tracker = Tracker(volume, options=options, initial_motion=initial_motion, renderer=renderer, seed=seed)
+    # a replay's decisions must not depend on how fast a crop is prepared again: it waits for it
+    tracker = Tracker(volume, options=options, initial_motion=initial_motion, renderer=renderer, seed=seed,
+                      wait_for_preparation=not realtime)  # fmt: skip
     tracker.warm_up([r[0] for r in runs])
     wall0 = time.perf_counter()
     try:
