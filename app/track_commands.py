@@ -130,6 +130,13 @@ def run_track(
 
     def on_frame(est: Any) -> None:
         shown["n"] += 1
+        if est.reprepared:  # the applied pose neared the crop's edge: prepared again around it
+            c = est.crop
+            _err(
+                f"  frame {est.frame:4d} t={est.t_s:6.2f} s crop prepared again around the applied pose (started at "
+                f"frame {c['started_frame']}, ready after {c['ready_after_ms']:.0f} ms): "
+                f"{', '.join(f'{n / 1e6:.2g} M' for n in c['voxels_per_level'] if n is not None)} voxels per level"
+            )
         if est.status != "unchanged" or shown["n"] % 30 == 0:
             conf = "" if est.confidence is None else f" confidence {est.confidence:.2f}"
             why = f" ({est.reason})" if est.reason else ""
@@ -177,10 +184,16 @@ def run_track(
             applied_recall=rc,
         )
         document["summary"] = summary
+    crop = prepared.crop
     _say(
         f"{summary['frames']} frames: {summary['processed']} processed, {summary['skipped']} skipped "
         f"(arrived while busy); {summary['applied']} applied, {summary['withheld']} withheld, "
-        f"{summary['unchanged']} unchanged; {summary['captures']} full captures"
+        f"{summary['unchanged']} unchanged; {summary['captures']} full captures; "
+        + (
+            "the crop holds the whole body (never prepared again)"
+            if crop is None or crop.complete
+            else f"the crop prepared again {summary['reprepared']} time(s) around the applied pose"
+        )
     )
     med, p95 = summary["ms_per_frame_median"], summary["ms_per_frame_p95"]
     _say(f"latency: median {med:.1f} ms, p95 {p95:.1f} ms per frame; {wall:.1f} s in all")

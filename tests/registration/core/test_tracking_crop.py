@@ -200,3 +200,34 @@ def test_live_run_keeps_processing_frames_while_the_crop_is_prepared(tall, monke
     assert first.frame == start + 4, (start, first.frame)
     assert [f.frame for f in result.frames if start < f.frame < first.frame] == [start + 1, start + 2, start + 3]
     assert not result.skipped
+
+
+@pytest.mark.slow
+def test_real_ct_crop_holds_the_whole_body() -> None:
+    """The shared head CT (23.5 M voxels; skipped without ../shared) as ``roadmap3d track``
+    prepares it (register's default search from the initial pose): the crop is the body's box
+    whole, so no motion can take the anatomy out of it (a DRR 60 mm and 10 deg away equals the
+    whole body's) and a tracker never prepares it again."""
+    from registration.core.register import prepared_volume
+    from registration.io import dicom
+    from registration.studies.runs import axis_angle_matrix
+    from registration.studies.volume import find_real_ct
+
+    path = find_real_ct()
+    if path is None:
+        pytest.skip("the real head CT is not here (../shared/data/real-ct/head-neck-ct)")
+    volume = dicom.read_volume(path)
+    iso = (247.5, -276.0, -90.0)  # the studies' iso-center inside the skull
+    g = replace(CArm.for_format(27.0, pixels=128, primary_deg=20.0, secondary_deg=-10.0), isocenter_mm=iso)
+    image = XRayImage(np.zeros((g.rows, g.cols), np.float32), g.field_mask(), g, "fluoro", {})
+    prepared = prepared_volume(volume, (image,), np.eye(4), RegistrationOptions())
+    crop = prepared.crop
+    assert crop is not None and crop.complete, prepared.summary()
+    c = np.asarray(iso)
+    far = rigid(None, (0.0, 20.0, 60.0)) @ rigid(None, c) @ axis_angle_matrix((1.0, 0.0, 0.0), 10.0) @ rigid(None, -c)
+    assert crop.margin(far, Reach.of_search(30.0, 15.0)) == (np.inf, np.inf)
+    level = prepared.renderer.level_nearest(64)
+    whole = DRRRenderer(volume, levels=[None] + [crop.base.levels[k] for k in (1, 2)])
+    small = g.resized(64, 64)
+    np.testing.assert_allclose(prepared.renderer.render(small, far, level=level), whole.render(small, far, level=level),
+                               rtol=0, atol=1e-5)  # fmt: skip
