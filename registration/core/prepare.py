@@ -147,7 +147,9 @@ class Reach:
         """The reach of this search started at ``motion`` instead of at the volume's pose: the
         motion's shift of the iso-center c and its rotation added (and the search's rotation of
         the moved iso-center)."""
-        m = check_rigid(motion, name="initial motion")
+        return self._moved(check_rigid(motion, name="initial motion"), isocenter_mm)
+
+    def _moved(self, m: Array, isocenter_mm: ArrayLike) -> Reach:
         c = np.asarray(isocenter_mm, dtype=np.float64)
         t_init = float(np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c))
         theta_init = rotation_angle_deg(m)
@@ -880,8 +882,9 @@ class Crop:
         anatomy the crop lacks. Infinite for a complete crop."""
         if self.complete:
             return math.inf, math.inf
-        m = check_rigid(motion, name="motion")
-        need = search.around(m @ invert_rigid(self.center_motion), self.geometries[0].isocenter_mm)
+        # a tracker asks after every applied frame: its poses are rigid already (no check_rigid)
+        moved = np.asarray(motion, dtype=np.float64) @ invert_rigid(self.center_motion)
+        need = search._moved(moved, self.geometries[0].isocenter_mm)
         return self.reach.translation_mm - need.translation_mm, self.reach.rotation_deg - need.rotation_deg
 
 

@@ -637,10 +637,16 @@ class _CropWatch:
         self._failed = False
         #: The last pose checked and its margin (the applied pose changes only when an estimate is applied).
         self._last: tuple[Array, int, tuple[float, float]] | None = None
+        self._searches: dict[int, Reach] = {}
 
     def search(self, planes: int) -> Reach:
-        c = self.capture
-        return Reach.of_search(c.bound_mm, c.bound_deg, translations=3 if c.optimizes_tz(planes) else 2)
+        """The reach of a capture's search of ``planes`` views (about the pose it starts from)."""
+        reach = self._searches.get(planes)
+        if reach is None:
+            c = self.capture
+            reach = Reach.of_search(c.bound_mm, c.bound_deg, translations=3 if c.optimizes_tz(planes) else 2)
+            self._searches[planes] = reach
+        return reach
 
     def check(self, pose: Array, isocenter_mm: ArrayLike, planes: int, frame: int) -> tuple[float, float] | None:
         """The crop's margin for a capture from ``pose`` (None: nothing is cropped away);
