@@ -231,3 +231,23 @@ def test_real_ct_crop_holds_the_whole_body() -> None:
     small = g.resized(64, 64)
     np.testing.assert_allclose(prepared.renderer.render(small, far, level=level), whole.render(small, far, level=level),
                                rtol=0, atol=1e-5)  # fmt: skip
+
+
+def test_biplane_recrop_holds_both_planes(tall) -> None:
+    """Two planes (frontal and lateral): the crop and its re-preparation hold what both fields
+    reach (a capture of two planes searches tz too: three translations)."""
+    volume, _ = tall
+    a, b = _geometry(), CArm.for_format(FORMAT_CM, pixels=PIXELS, primary_deg=90.0)
+    search = Reach.of_search(BOUND_MM, BOUND_DEG, translations=3)
+    prepared = prepare_volume(volume, [a, b], reach=search, levels=[1, 2], cache=False)
+    crop = prepared.crop
+    assert not crop.complete and len(crop.geometries) == 2
+    level = prepared.renderer.level_nearest(64)
+    whole = DRRRenderer(volume, levels=[None] + [crop.base.levels[k] for k in (1, 2)])
+    moved = rigid(None, (0.0, 0.0, 80.0))
+    again = recrop(crop, moved, search)
+    for g in (a, b):
+        mask = g.field_mask()
+        truth = whole.render(g, moved, level=level)[mask]
+        assert np.abs(truth - prepared.renderer.render(g, moved, level=level)[mask]).max() > 0.1 * truth.max()
+        np.testing.assert_allclose(again.renderer.render(g, moved, level=level)[mask], truth, rtol=0, atol=1e-5)
