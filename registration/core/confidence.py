@@ -287,17 +287,31 @@ def edge_fraction(image: ArrayLike, mask: ArrayLike, *, noise_sigmas: float = 3.
     return float(np.mean(mag > noise_sigmas * noise))
 
 
-def capture_agreement(motions: list[NDArray[np.float64]], best: NDArray[np.float64], iso_mm: ArrayLike) -> float:
-    """Fraction of ``motions`` within AGREE_MM / AGREE_DEG of ``best`` (at the iso-center)."""
+def capture_agreement(
+    motions: list[NDArray[np.float64]],
+    best: NDArray[np.float64],
+    iso_mm: ArrayLike,
+    direction: ArrayLike | None = None,
+) -> float:
+    """Fraction of ``motions`` within AGREE_MM / AGREE_DEG of ``best`` (at the iso-center).
+
+    ``direction``: a single view's central ray; the displacement is then compared across it
+    only (a single-plane capture keeps the initial pose's tz, and a depth-corrected estimate
+    moved it: CONVENTIONS §4's in-plane part). For estimates that all keep tz this is the same
+    number as the whole displacement's."""
     from registration.core.geometry import apply, invert_rigid, rotation_angle_deg
 
     if not motions:
         return 1.0
     iso = np.asarray(iso_mm, dtype=np.float64)
+    d = None if direction is None else np.asarray(direction, dtype=np.float64)
     ok = 0
     for m in motions:
         err = m @ invert_rigid(best)
-        if np.linalg.norm(apply(err, iso) - iso) < AGREE_MM and rotation_angle_deg(err) < AGREE_DEG:
+        shift = apply(err, iso) - iso
+        if d is not None:
+            shift = shift - (shift @ d) * d
+        if np.linalg.norm(shift) < AGREE_MM and rotation_angle_deg(err) < AGREE_DEG:
             ok += 1
     return ok / len(motions)
 

@@ -63,6 +63,25 @@ DEPTH_EVALUATIONS = 120
 SCAN_TZ_MM = tuple(float(v) for v in np.arange(-24.0, 24.1, 2.0))
 SCAN_IMAGE_PX = 256
 SCAN_VOLUME_LEVEL = 0
+#: The depth-corrected registration's scan (:func:`scan_level`): the prepared level whose voxel
+#: is nearest this size (mm, in ratio), compared at about the polish's image size.
+CORRECTION_VOXEL_MM = 1.0
+
+
+def scan_level(renderer: DRRRenderer, voxel_mm: float = CORRECTION_VOXEL_MM) -> int:
+    """The prepared level of ``renderer`` whose voxel (its largest spacing) is nearest
+    ``voxel_mm`` in ratio (ties: the finer): a scan level chosen in millimetres, not by index.
+    On the clinical study's 128^3 FDK volumes (its own pyramid, level 0 of 1.2-1.6 mm voxels)
+    that is level 0, where the high-passed scan was measured to see the offset
+    (docs/validation/clinical-s6/depth_scan.md); on a CT prepared by
+    :func:`registration.core.prepare.prepare_volume` (levels 1 and 2 only) it is the polish's
+    level 1 (1.4-2 mm), and rendering a 23.5 M-voxel level 0 is never asked for."""
+    if not voxel_mm > 0:
+        raise ValueError(f"voxel_mm must be positive, got {voxel_mm}")
+    sizes = {
+        k: float(renderer.level_volume(k).spacing_mm.max()) for k in range(renderer.n_levels) if renderer.has_level(k)
+    }
+    return min(sizes, key=lambda k: (abs(np.log(sizes[k] / voxel_mm)), k))
 
 
 @dataclass(frozen=True)
@@ -193,6 +212,7 @@ def depth_scan(
     volume_level: int = SCAN_VOLUME_LEVEL,
     margin_mm: float | None = DEPTH_MARGIN_MM,
     sigma_px: float | None = None,
+    pixel_at_iso_mm: float | None = None,
 ) -> DepthScan:
     """The high-passed gradient difference of ``xray`` at ``motion`` moved along the beam by each
     of ``offsets_mm`` (nothing else moves), and where it peaks (see the module's docstring).
@@ -200,12 +220,21 @@ def depth_scan(
     ``sigma_px``: the high-pass scale; by default the volume level's voxel as the detector sees
     it at the iso-center, in the level's pixels (2.96 px for the clinical study's 22 cm patient:
     1.72 mm voxels, magnification 1.48, 0.86 mm pixels): the scales coarser than what the
-    volume resolves are removed from both images. Deterministic."""
+    volume resolves are removed from both images. ``pixel_at_iso_mm``: compare at the block
+    size whose pixel at the iso-center is nearest this without being coarser
+    (:func:`registration.core.problem.matched_factor`) instead of ``image_px``'s rule.
+    Deterministic."""
     m = check_rigid(motion, name="motion")
     g = xray.geometry
     count0 = renderer.count
     problem = LevelProblem.prepare(
-        renderer, (xray,), image_px=image_px, volume_level=volume_level, motion=m, margin_mm=margin_mm
+        renderer,
+        (xray,),
+        image_px=image_px,
+        volume_level=volume_level,
+        motion=m,
+        margin_mm=margin_mm,
+        pixel_at_iso_mm=pixel_at_iso_mm,
     )
     view = problem.views[0]
     factor = xray.shape[0] // view.geometry.rows

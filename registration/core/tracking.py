@@ -75,7 +75,9 @@ def light_capture(options: RegistrationOptions | None = None) -> RegistrationOpt
     margins = None if o.support_margin_mm is None else (o.support_margin_mm[0], o.support_margin_mm[-1])
     if options is None:
         o = replace(o, polish_reach=None, polish_evaluations=60, polish_xtol=POLISH_XTOL)
-    return replace(o, levels=o.levels[:1], support_margin_mm=margins)
+    # no depth correction: the tracker refines the capture's estimate at its own level, five
+    # parameters (validate tracking was measured without it)
+    return replace(o, levels=o.levels[:1], support_margin_mm=margins, depth_correction=False)
 
 
 @dataclass(frozen=True)
@@ -854,6 +856,7 @@ def registration_evidence(
     volume_voxels: int = 128,
     support_margin_mm: float = 4.0,
     depth: DepthProbe | None = None,
+    agreement_in_plane: bool = False,
 ) -> Evidence:
     """What the engine can tell about one registration result without a run around it.
 
@@ -864,7 +867,9 @@ def registration_evidence(
     fraction; ``agreement``: the capture runs' agreement with the result (when
     ``capture_motions`` are given); ``depth``: a
     :class:`~registration.core.depth.DepthProbe` of the result (its ``shift_mm`` and ``tz_mm``
-    become the evidence ``depth_shift_mm`` and ``depth_tz_mm``).
+    become the evidence ``depth_shift_mm`` and ``depth_tz_mm``); ``agreement_in_plane``: the
+    capture runs compared across the beam only (a single-plane result, whose tz the captures do
+    not estimate: :func:`registration.core.confidence.capture_agreement`).
     """
     from registration.core.confidence import PERTURB_DEG, PERTURB_MM, ROTATION_PROBE_DEG, capture_agreement
 
@@ -899,7 +904,8 @@ def registration_evidence(
     rotation_margins = [margin(slot, ROTATION_PROBE_DEG) for slot in (3, 4)]
     agreement = None
     if capture_motions:
-        agreement = capture_agreement([np.asarray(c) for c in capture_motions], m, geometry.isocenter_mm)
+        along = geometry.direction if agreement_in_plane else None
+        agreement = capture_agreement([np.asarray(c) for c in capture_motions], m, geometry.isocenter_mm, along)
     return Evidence(
         margin=float(np.mean(margins)) / max(abs(f_est), 1e-12),
         rotation_margin=float(min(rotation_margins)) / max(abs(f_est), 1e-12),

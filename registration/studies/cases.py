@@ -178,6 +178,7 @@ def confidence_fields(
             renderer=renderer,
             capture_motions=getattr(result, "capture_motions", None),
             depth=probe,
+            agreement_in_plane=probe is not None,  # single plane: its captures keep tz
         )
         for v in views
     ]
@@ -257,6 +258,11 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         "similarity": result.similarity,
         "volume_label": result.volume_label,
         "version": __version__,
+        **(
+            {}
+            if result.depth_tz_mm is None
+            else {"depth_tz_mm": result.depth_tz_mm, "depth_moves_mm": list(result.depth_moves_mm)}
+        ),  # fmt: skip
         **confidence_fields(volume, xray, result, renderer),
     }
 

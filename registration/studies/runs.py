@@ -438,7 +438,18 @@ def offset_record(
         "drr_count": result.drr_count,
         "similarity": result.similarity,
         "volume_label": result.volume_label,
+        **depth_correction_fields(result),
     }
+
+
+def depth_correction_fields(result: Any) -> dict:
+    """A depth-corrected single-plane result's tz (``depth_tz_mm``: mm along the beam in the view
+    frame, + toward the source, held in ``patient_motion``) and its scans' moves; nothing for a
+    result without the correction (RegistrationOptions.depth_correction off, two views)."""
+    tz = getattr(result, "depth_tz_mm", None)
+    if tz is None:
+        return {}
+    return {"depth_tz_mm": float(tz), "depth_moves_mm": [float(m) for m in result.depth_moves_mm]}
 
 
 def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None = None) -> dict:
