@@ -110,6 +110,8 @@ class Controller:
         ui.autocorrect.on_update(on(lambda _e: self._on_autocorrect()))
         ui.upload.on_upload(on(self._on_upload))
         ui.phantom_button.on_click(on(lambda _e: self.use_data(self.phantom)))
+        ui.isocenter_button.on_click(on(lambda _e: self.set_isocenter(str(ui.isocenter_field.value))))
+        ui.volume_center_button.on_click(on(lambda _e: self.set_isocenter("volume center")))
         self.show_source()
 
         def refused(_client_id: Any, text: str) -> None:
@@ -267,6 +269,50 @@ class Controller:
         )
         ui.phantom_button.visible = data is not self.phantom
         ui.show_ghost.disabled = not self.session.has_truth
+        self.show_isocenter()
+
+    # ----- the iso-center -------------------------------------------------------------------
+    def show_isocenter(self) -> None:
+        """The Data tab's iso-center: where it is, where it came from, the field showing it."""
+        ui, data = self.layout, self.session.data
+        from app.data import FileData
+
+        if isinstance(data, FileData):
+            iso = data.isocenter_mm
+            ui.isocenter_info.content = f"**Iso-center:** {data.isocenter_text}"
+            ui.isocenter_field.value = f"{iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}"
+        else:
+            ui.isocenter_info.content = (
+                "**Iso-center:** (0.00, 0.00, 0.00) mm, the world origin: the phantom is imaged about it "
+                "<small>(the field below is for your data)</small>"
+            )
+            ui.isocenter_field.value = "0.00, 0.00, 0.00"
+        self._enable_isocenter(self.session.running)
+
+    def _enable_isocenter(self, running: bool) -> None:
+        from app.data import FileData
+
+        fixed = not isinstance(self.session.data, FileData)
+        for control in self.layout.isocenter_controls:
+            control.disabled = running or fixed
+
+    def set_isocenter(self, text: str) -> None:
+        """The iso-center typed into the Data tab (or "volume center"): checked against the volume
+        (:func:`app.upload.isocenter_field`), then the user's image is placed about it, the scene's
+        marker moves there and the next Register uses it. A bad value changes nothing: it is said
+        in the page (the guard turns the ValueError into a red status line and a notification)."""
+        from app.upload import isocenter_field
+
+        s = self.session
+        iso, source = isocenter_field(text, s.data.volume(s.settings.volume_format_cm))
+        s.set_isocenter(iso, source)
+        self.sync_controls()
+        self.show_isocenter()
+        self._tell_panels()
+        self.message(
+            f"Iso-center set to ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {source}: the image is placed "
+            "about it and the roadmap restarts from the sensor pose. Press **Register**."
+        )
 
     # ----- registration -----------------------------------------------------------------
     def start_registration(self, *, trigger: str = "Register") -> bool:
@@ -287,6 +333,7 @@ class Controller:
             control.disabled = running or fixed_geometry
         for control in ui.motion_controls:
             control.disabled = running
+        self._enable_isocenter(running)
         ui.register_button.disabled = running
         ui.stop_button.disabled = not running
 

@@ -12,7 +12,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
@@ -262,16 +262,38 @@ class FileData:
 
     has_truth = False
 
-    def __init__(self, volume: Volume, xray: XRayImage, *, source: str, config: AppConfig) -> None:
+    def __init__(
+        self, volume: Volume, xray: XRayImage, *, source: str, config: AppConfig,
+        isocenter_from: str = "the image's geometry",
+    ) -> None:  # fmt: skip
         self.config = config
         self.source = source
         self._volume = volume
         self.fixed_xray = xray
-        iso = xray.geometry.isocenter_mm
-        #: Where the iso-center is and where it came from (printed at start).
-        self.isocenter_text = f"({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from the image's geometry"
+        #: Where the iso-center came from: "--isocenter", the volume's IsocenterPosition tag, the
+        #: center of its grid, the world origin (default), the Data tab.
+        self.isocenter_from = isocenter_from
         self._lock = threading.RLock()
         self._meshes: dict[str, trimesh.Trimesh] | None = None
+
+    @property
+    def isocenter_mm(self) -> tuple[float, float, float]:
+        """The C-arm's iso-center (mm, world): the image is placed about it (CONVENTIONS §1)."""
+        return self.fixed_xray.geometry.isocenter_mm
+
+    @property
+    def isocenter_text(self) -> str:
+        """Where the iso-center is and where it came from (printed at start, shown in the Data tab)."""
+        iso = self.isocenter_mm
+        return f"({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {self.isocenter_from}"
+
+    def set_isocenter(self, isocenter_mm: tuple[float, float, float], source: str) -> None:
+        """Place the user's image about another iso-center (mm, world; ``source`` says where it came
+        from): the image's geometry changes, so the next preparation and registration use it."""
+        with self._lock:
+            geometry = replace(self.fixed_xray.geometry, isocenter_mm=tuple(float(v) for v in isocenter_mm))
+            self.fixed_xray = replace(self.fixed_xray, geometry=geometry)
+            self.isocenter_from = source
 
     @classmethod
     def from_paths(
@@ -289,9 +311,7 @@ class FileData:
         volume = read_volume(volume_path)
         iso, iso_from = resolve_isocenter(isocenter, volume)
         xray = read_xray(image_path, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
-        data = cls(volume, xray, source=f"{volume_path} + {image_path}", config=config)
-        data.isocenter_text = f"({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}"
-        return data
+        return cls(volume, xray, source=f"{volume_path} + {image_path}", config=config, isocenter_from=iso_from)
 
     @property
     def label(self) -> str:

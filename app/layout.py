@@ -192,6 +192,19 @@ class Layout:
                 "a value here replaces the file's (with a warning). Empty: from the file.",
             )
             gui.add_markdown("<small>SID/SOD: only for images that lack the distances; then upload again.</small>")
+            self.isocenter_info = gui.add_markdown("")
+            self.isocenter_field = gui.add_text(
+                "Iso-center (mm)",
+                "",
+                hint="x, y, z in mm, the volume's patient coordinates (LPS), or 'volume center'; the image is "
+                "placed about it and the next Register uses it",
+            )
+            self.isocenter_button = gui.add_button(
+                "Set iso-center", icon=viser.Icon.CROSSHAIR, hint="Use the iso-center typed above"
+            )
+            self.volume_center_button = gui.add_button(
+                "Iso-center at the volume center", hint="The center of the volume's voxel grid"
+            )
             self.phantom_button = gui.add_button("Back to the phantom", visible=False)
         with tabs.add_tab("Display", viser.Icon.EYE):
             self.show_ghost = gui.add_checkbox("True position (ghost)", False)
@@ -203,6 +216,8 @@ class Layout:
             self.primary, self.secondary, self.sid, self.image_format, self.volume_format,
             self.kind, self.contrast, self.catheter, self.biplane, self.primary_b, self.secondary_b,
         ]  # fmt: skip
+        #: Disabled during a run, and for the phantom (imaged about the world origin).
+        self.isocenter_controls: list[Any] = [self.isocenter_field, self.isocenter_button, self.volume_center_button]
         #: Disabled during a run.
         self.motion_controls: list[Any] = [
             *self.offset_sliders,

@@ -181,6 +181,7 @@ class PacsPanel(BasePanel):
     # ----- loading -----------------------------------------------------------------------
     def load_selected(self) -> None:
         """Retrieve the chosen series (WADO-RS) and show them as the app's data."""
+        from app.commands import resolve_isocenter
         from app.data import FileData
         from registration.io import dicom
 
@@ -201,12 +202,13 @@ class PacsPanel(BasePanel):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 volume = dicom.read_volume(volume_folder)
-                xray = dicom.read_xray(images[0], frame=frame)
+                iso, iso_from = resolve_isocenter(None, volume)  # its IsocenterPosition, else the origin (as register)
+                xray = dicom.read_xray(images[0], frame=frame, isocenter_mm=iso)
         except BaseException:
             shutil.rmtree(work, ignore_errors=True)
             raise
         source = f"PACS {pacs.name}: {vol_s.label()} + {img_s.label()}" + (f" frame {frame}" if frame else "")
-        data = FileData(volume, xray, source=source, config=self.ctx.session.config)
+        data = FileData(volume, xray, source=source, config=self.ctx.session.config, isocenter_from=iso_from)
         self.ctx.session.use_data(data)
         with self._lock:
             old, self._work = self._work, work
@@ -306,6 +308,7 @@ class PacsPanel(BasePanel):
 
     def show_received(self) -> None:
         """The received image (a run: its last frame) with the volume now shown."""
+        from app.commands import resolve_isocenter
         from app.data import FileData
         from registration.io import dicom
 
@@ -314,11 +317,15 @@ class PacsPanel(BasePanel):
             raise ValueError("No image received yet.")
         session = self.ctx.session
         volume = session.data.volume(session.settings.volume_format_cm)
+        if isinstance(session.data, FileData):  # the iso-center the user's volume is shown about now
+            iso, iso_from = session.data.isocenter_mm, session.data.isocenter_from
+        else:
+            iso, iso_from = resolve_isocenter(None, volume)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            xray = dicom.read_xray(item.path, frame=item.frames - 1 if item.frames > 1 else None)
+            xray = dicom.read_xray(item.path, frame=item.frames - 1 if item.frames > 1 else None, isocenter_mm=iso)
         source = f"C-arm {item.calling_ae} (DICOM node) + {volume.label}"
-        session.use_data(FileData(volume, xray, source=source, config=session.config))
+        session.use_data(FileData(volume, xray, source=source, config=session.config, isocenter_from=iso_from))
         self.ctx.layout.source.content = f"**Showing:** {source}"
         self.ctx.layout.phantom_button.visible = True
         self.ctx.refresh()

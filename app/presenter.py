@@ -230,7 +230,7 @@ class Presenter:
         """The scene at a played run's frame (inside the caller's ``server.atomic()``)."""
         self._show_anatomy(followed.data, followed.volume_format_cm)
         g = followed.geometry
-        carm_key = ("run", g.primary_deg, g.secondary_deg, g.sid_mm, round(g.field_diameter_mm, 3))
+        carm_key = ("run", g.primary_deg, g.secondary_deg, g.sid_mm, round(g.field_diameter_mm, 3), g.isocenter_mm)
         if self._shown_carm != carm_key:
             self.scene.set_carm(g, followed.detector_image)
             self._shown_carm = carm_key
@@ -327,7 +327,9 @@ class Presenter:
             g1 = views.label(views.gray_rgb(gradient), "gradient: image")
             g2 = views.label(views.gray_rgb(views.resize(views.gradient_image(drr, drr_mask), size)), "gradient: DRR")
             composite = views.stacked(composite, views.side_by_side(g1, g2))
-        carm_key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, round(geometry.field_diameter_mm, 3))
+        # the iso-center too: a CT's is moved in the Data tab, and the C-arm and its marker follow it
+        carm_key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, round(geometry.field_diameter_mm, 3),
+                    geometry.isocenter_mm)  # fmt: skip
         carm_b_key = None if xray_b is None else (xray_b.geometry.primary_deg, xray_b.geometry.secondary_deg)
 
         readout, badge_html, details = self._texts(motion, truth)

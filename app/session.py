@@ -161,6 +161,25 @@ class Session:
             self.run = RunState()
             self._changed()
 
+    def set_isocenter(self, isocenter_mm: tuple[float, float, float], source: str) -> None:
+        """Place the user's image about another iso-center (mm, world; ``source``: where it came
+        from). The roadmap restarts from the sensor pose: a pose found about the old iso-center
+        belongs to another geometry. Refused while a registration runs and for the phantom (its
+        C-arm's iso-center is the world origin, where its images are formed)."""
+        from app.data import FileData
+
+        with self.lock:
+            self._refuse_while_running()
+            if not isinstance(self.data, FileData):
+                raise ValueError(
+                    "the phantom is imaged about the world origin: the iso-center field is for your data "
+                    "(--volume/--image, an upload or the PACS)"
+                )
+            self.data.set_isocenter(isocenter_mm, source)
+            self.estimate = np.eye(4)
+            self.run = RunState()
+            self._changed()
+
     @property
     def biplane(self) -> bool:
         """Biplane mode is on (never for the user's data: one file, one plane)."""

@@ -292,6 +292,42 @@ def distance_mm(text: str, what: str) -> float | None:
     return value
 
 
+#: How far outside the volume's voxel grid (mm) a typed iso-center may lie: the C-arm's iso-center
+#: is inside the anatomy, and a typo (a dropped minus, a missing decimal point) lands far outside.
+ISOCENTER_MARGIN_MM = 50.0
+#: The Data tab's keyword for the center of the volume's grid (as ``--isocenter volume-center``).
+VOLUME_CENTER_WORDS = ("volume center", "volume-center", "volume centre", "volume-centre")
+
+
+def isocenter_field(text: str, volume: Any) -> tuple[tuple[float, float, float], str]:
+    """The iso-center typed into the Data tab: ``"x, y, z"`` in mm (the volume's patient
+    coordinates, LPS; commas or spaces, an optional "mm") or "volume center", and where it came
+    from. ValueError (a message for the page) unless three finite numbers within
+    :data:`ISOCENTER_MARGIN_MM` of the volume's grid."""
+    raw = text.strip()
+    if raw.lower() in VOLUME_CENTER_WORDS:
+        center = [float(v) for v in volume.center_mm]
+        return (center[0], center[1], center[2]), "the center of the volume's grid (Data tab)"
+    parts = raw.removesuffix("mm").replace(",", " ").split()
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"Iso-center: expected three numbers 'x, y, z' in mm or 'volume center', got {text!r}")
+    corners = np.asarray(volume.world_corners_mm())
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    iso = np.asarray(values)
+    outside = float(np.linalg.norm(np.maximum(lo - iso, 0.0) + np.maximum(iso - hi, 0.0)))
+    if outside > ISOCENTER_MARGIN_MM:
+        box = ", ".join(f"{axis} {a:.0f}..{b:.0f}" for axis, a, b in zip("xyz", lo, hi, strict=True))
+        raise ValueError(
+            f"Iso-center ({values[0]:g}, {values[1]:g}, {values[2]:g}) mm lies {outside:.0f} mm outside the volume "
+            f"({box} mm; at most {ISOCENTER_MARGIN_MM:g} mm outside): not changed"
+        )
+    return (values[0], values[1], values[2]), "the Data tab"
+
+
 def read_upload(
     name: str, content: bytes, *, max_bytes: int, config: AppConfig, timeout_s: float | None = None,
     memory_bytes: int | None = None, reader: Callable[[Path, Path, str, int], tuple[Any, Any]] | None = None,
@@ -315,7 +351,12 @@ def read_upload(
         name, content=content, max_bytes=max_bytes, timeout_s=timeout_s, memory_bytes=memory_bytes, reader=reader,
         distances_mm=(sid_mm, sod_mm), file_name="upload.zip",
     )  # fmt: skip
-    return FileData(volume, xray, source=f"upload {name}", config=config)
+    from app.commands import resolve_isocenter
+
+    iso, iso_from = resolve_isocenter(None, volume)  # how the reader placed the image (as register)
+    if not np.allclose(xray.geometry.isocenter_mm, iso):
+        iso_from = "the image's geometry"
+    return FileData(volume, xray, source=f"upload {name}", config=config, isocenter_from=iso_from)
 
 
 def _check_size(name: str, size: int, max_bytes: int) -> None:

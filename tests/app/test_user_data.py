@@ -44,6 +44,8 @@ def test_upload_registers_the_users_data(fresh: RoadmapApp, exported: Path) -> N
     app = fresh
     data = read_upload("case.zip", zipped(exported, ["volume.npz", "image.dcm"]), max_bytes=10**9, config=TEST_CONFIG)
     assert isinstance(data, FileData) and data.fixed_xray is not None
+    # the .npz has no IsocenterPosition: placed about the world origin, and the Data tab says so
+    assert data.isocenter_text == "(0.00, 0.00, 0.00) mm, from the world origin (default)"
     try:
         app._use_data(data)  # noqa: SLF001 - what the upload callback does after reading
         assert all(c.disabled for c in app.carm_controls)  # the file sets the C-arm
