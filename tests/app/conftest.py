@@ -60,4 +60,8 @@ def fresh(app: RoadmapApp) -> RoadmapApp:
     app.volume_format.value = "27 cm"
     app.kind.value = "fluoro"
     app.reset_button.value = True
+    # On screen before the test acts: the presenter draws these changes in its own thread (a new
+    # volume format loads its surfaces and says so in the status line, which a test reading the
+    # status right after its own action would otherwise see).
+    assert wait_until(lambda: app._shown_version == app.session.version, 60)  # noqa: SLF001
     return app
