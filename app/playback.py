@@ -17,7 +17,9 @@ Play, Pause and Stop control one shared playback: every browser tab watches the 
 (the panel's widgets are server-level). The work runs on the panel's own thread. "Upload a
 run (.dcm)" plays the user's multi-frame XA/RF run (read with its frame times by
 :func:`registration.io.dicom.read_xray_run`, then the temporary file is deleted) against the
-session's current volume; it has no truth, so the strip chart shows the roadmap's motion only.
+session's current volume, about the iso-center a registration of that data uses (the data's:
+``--isocenter``, the volume's IsocenterPosition, the Data tab's field); it has no truth, so the
+strip chart shows the roadmap's motion only.
 A multi-frame run the app's DICOM node receives (``roadmap3d app --listen-port P --allow AE``)
 becomes the run to play the same way, read in the same sandbox (:meth:`PlaybackPanel.load_run_file`, wired
 in :mod:`app.gui`).
@@ -84,6 +86,16 @@ class UploadedRun:
 
     def __init__(self, frames: list, times_s: np.ndarray, geometry: CArm, name: str) -> None:
         self.frames, self.times_s, self.geometry, self.name = frames, times_s, geometry, name
+
+    def about(self, isocenter_mm: tuple[float, float, float]) -> UploadedRun:
+        """The run with every frame's C-arm placed about ``isocenter_mm`` (mm, world): what
+        :func:`registration.io.dicom.read_xray_run` gives with that iso-center (the file does not
+        state it; the reader places the frames about the world origin unless told)."""
+        iso = tuple(float(v) for v in isocenter_mm)
+        frames = [
+            dataclasses.replace(f, geometry=dataclasses.replace(f.geometry, isocenter_mm=iso)) for f in self.frames
+        ]
+        return UploadedRun(frames, self.times_s, frames[0].geometry, self.name)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -191,7 +203,10 @@ class PlaybackPanel(BasePanel):
             self._thread = threading.Thread(target=self._run_guarded, name="play-run", daemon=True)
             self._thread.start()
         self._buttons(playing=True)
-        what = f"the run {self.user_run.name}" if self.user_run is not None else "the phantom's run"
+        what = "the phantom's run"
+        if self.user_run is not None:
+            iso = self.ctx.session.geometry().isocenter_mm
+            what = f"the run {self.user_run.name} about the iso-center ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm"
         self.ctx.message(f"Play run: playing {what}, the roadmap follows it (Play run tab).")
 
     def toggle_pause(self) -> None:
@@ -237,14 +252,19 @@ class PlaybackPanel(BasePanel):
         from registration.studies.tracking import case_runs
 
         if self.user_run is not None:
-            data = self.ctx.session.data
-            fmt = self.ctx.session.settings.volume_format_cm
+            session = self.ctx.session
+            data = session.data
+            fmt = session.settings.volume_format_cm
+            # About the iso-center a single registration of this data uses (the data's: --isocenter,
+            # the volume's IsocenterPosition, the Data tab; the phantom's world origin), as
+            # ``roadmap3d track`` reads a run: the tracker, the messages and the chart read it there.
+            run = self.user_run.about(session.geometry().isocenter_mm)
             vessels = data.meshes(fmt).get("vessels")
             vertices = np.zeros((0, 3)) if vessels is None else np.asarray(vessels.vertices)
             self._source = (data, fmt)
             # the user's volume prepared for the run's own field (its angles may not be the image's)
-            renderer = data.renderer(fmt, views=[self.user_run[0]])
-            return [self.user_run], data.volume(fmt), renderer, vertices, data.mesh_spacing_mm(fmt)
+            renderer = data.renderer(fmt, views=[run[0]])
+            return [run], data.volume(fmt), renderer, vertices, data.mesh_spacing_mm(fmt)
         case = self.play_case()
         start = time.perf_counter()
 

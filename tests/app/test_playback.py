@@ -207,3 +207,74 @@ def test_uploaded_run_plays_without_truth(fresh, tmp_path) -> None:
     assert np.all(np.isfinite(panel.chart.data[2]))
     panel.phantom_run_button.value = True
     assert panel.user_run is None and not panel.phantom_run_button.visible
+
+
+#: Where the C-arm's iso-center was when the uploaded run was taken (mm): the user's data is the
+#: phantom moved there, so the phantom's run is what that C-arm saw (the run's file does not say it).
+RUN_ISO = (10.0, -5.0, 8.0)
+
+
+def test_an_uploaded_run_is_read_about_the_datas_isocenter(fresh, tmp_path, monkeypatch) -> None:
+    """An uploaded run is tracked and read out about the iso-center a single registration of the
+    data uses (the data's, here the volume's IsocenterPosition), not about the world origin."""
+    from dataclasses import replace
+
+    import app.playback
+    from app.data import FileData
+    from app.status import correction
+    from registration.core.geometry import matrix_to_offsets, rigid
+    from registration.core.metrics import residuals
+    from registration.core.volume import Volume
+    from registration.io import dicom
+    from registration.studies.tracking import case_runs
+    from tests.app.conftest import TEST_CONFIG
+
+    seen: list[tuple[float, ...]] = []  # the iso-centers the Play run's messages were taken at
+
+    def spy(before, after, isocenter_mm):
+        seen.append(tuple(float(v) for v in isocenter_mm))
+        return correction(before, after, isocenter_mm)
+
+    monkeypatch.setattr(app.playback, "correction", spy)
+    panel = fresh.playback
+    run = case_runs(SHORT)[0]  # the phantom imaged about the world origin, its truth per frame
+    to_iso, from_iso = rigid(None, RUN_ISO), rigid(None, -np.asarray(RUN_ISO))
+    phantom = fresh._phantom_data.volume(SHORT.volume_format_cm)  # noqa: SLF001
+    moved = Volume(phantom.data, to_iso @ phantom.index_to_world, label="the phantom moved to RUN_ISO",
+                   meta={"isocenter_mm": RUN_ISO, "isocenter_from": "IsocenterPosition of the volume"})  # fmt: skip
+    # The same anatomy RUN_ISO further: a C-arm about RUN_ISO sees it as the run's C-arm saw the
+    # phantom, and the patient's motion, conjugated, is the run's truth.
+    truth = [to_iso @ m @ from_iso for m in run.truth]
+    image = replace(run[0], geometry=replace(run[0].geometry, isocenter_mm=RUN_ISO))
+    data = FileData(moved, image, source="test", config=TEST_CONFIG, isocenter_from="IsocenterPosition of the volume")
+    fresh._use_data(data)  # noqa: SLF001 - what an upload does once read
+    try:
+        assert wait_until(lambda: fresh._shown_version == fresh.session.version, 60)  # noqa: SLF001
+        path = dicom.write_xray_run(list(run), tmp_path / "run.dcm", times_s=run.times_s)
+        assert panel.load_run("run.dcm", path.read_bytes())
+        panel.play_button.value = True
+        assert wait_until(lambda: panel.finished.is_set() and not panel.playing, 240.0)
+        geometry = fresh.session.geometry()
+        assert geometry.isocenter_mm == RUN_ISO
+        # CONVENTIONS §4 at the iso-center, one plane: the roadmap's last pose < 1 mm in-plane and
+        # < 3 deg from the truth (the success criterion). Read about the world origin, the run's C-arm
+        # stood |RUN_ISO| = 13 mm from where it was: no frame applied (withheld or unchanged), the
+        # roadmap left at the start, 4.1 mm in-plane and 2.7 deg from the truth after the run's move.
+        last = panel.estimates[-1]
+        residual = residuals(last.patient_motion, truth[last.frame], geometry)
+        statuses = [(e.frame, e.status, e.reason) for e in panel.estimates]
+        assert residual.inplane_mm < 1.0 and residual.rotation_deg < 3.0, (residual, statuses)
+        applied = [e for e in panel.estimates if e.status == "applied"]
+        assert applied, statuses
+        # The strip chart's roadmap tx, ty are view-frame offsets about RUN_ISO: the last frame's
+        # within 1 mm of the truth's (the in-plane bound above: their difference is the in-plane
+        # residual up to the residual rotation, ~0.1 deg, times the run's ~10 mm move, < 0.05 mm).
+        true_tx_ty = matrix_to_offsets(truth[last.frame], geometry)[:2]
+        shown_tx_ty = np.array([panel.chart.data[2][-1], panel.chart.data[4][-1]])
+        assert np.linalg.norm(shown_tx_ty - true_tx_ty) < 1.0, (shown_tx_ty, true_tx_ty)
+        assert np.all(np.isnan(panel.chart.data[1]))  # the app has no truth for an upload
+        # Each message's magnitude ('motion corrected x mm, y°') is taken at RUN_ISO (CONVENTIONS §4).
+        assert seen and all(iso == RUN_ISO for iso in seen), set(seen)
+    finally:
+        panel.use_phantom_run()
+        fresh.phantom_button.value = True  # back to the phantom for the other tests
