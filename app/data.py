@@ -366,8 +366,12 @@ class FileData:
     def meshes(self, _volume_format_cm: float | None = None) -> dict[str, trimesh.Trimesh]:
         with self._lock:
             if self._meshes is None:
-                vessel_step, bone_step = self.mesh_steps
-                self._meshes = surface_meshes(self._volume, step=vessel_step, bone_step=bone_step)
+                # The bone in near-cubic cells across the bone itself (skull_detail of them), small
+                # components dropped: a CT's grid is anisotropic and far larger than the head, and a
+                # step of its voxels broke the skull into floating plates.
+                self._meshes = surface_meshes(
+                    self._volume, step=self.mesh_steps[0], bone_cells_across=self.config.skull_detail
+                )
             return self._meshes
 
     def mesh_spacing_mm(self, _volume_format_cm: float | None = None) -> float:

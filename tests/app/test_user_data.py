@@ -94,3 +94,29 @@ def test_bad_upload_through_the_gui_shows_a_message(fresh: RoadmapApp) -> None:
     assert not app.load_upload("evil.zip", b"PK\x03\x04 broken")  # what the upload button calls
     assert "⚠" in app.status.content
     assert app.session.data is before
+
+
+def test_the_users_skull_is_drawn_whole_on_a_ct_like_grid() -> None:
+    """A CT's grid (1.25 x 1.25 x 3 mm voxels, a field twice the skull's width): the app's bone
+    surface is the skull in one closed piece (its outer and inner surfaces), not plates. The app
+    strided the voxels (ceil(240 / skull_detail 32) = 8: 10 x 10 x 24 mm cells) and drew the 3 mm
+    shell as dozens of loose plates."""
+    from app.scene import _decimated
+    from registration.core.geometry import CArm
+    from registration.core.images import XRayImage
+    from tests.registration.io.test_meshes import SHELL_RADIUS_MM, _components, _ct_like_skull
+
+    volume, _parts = _ct_like_skull()
+    geometry = CArm.for_format(27.0, pixels=64)
+    image = XRayImage(np.zeros((64, 64), np.float32), np.ones((64, 64), bool), geometry)
+    data = FileData(volume, image, source="CT-like skull (test)", config=TEST_CONFIG)
+    bone = data.meshes()["bone"]
+    # outer and inner surface of the shell and the small bone, each closed with a sphere's topology
+    assert len(_components(bone)) == 3 and bone.is_watertight and bone.euler_number == 6
+    # drawn as extracted: under the scene's face budget (its fallback decimation would punch holes)
+    assert _decimated(bone, 120_000) is bone
+    r = np.linalg.norm(np.asarray(bone.vertices) - volume.center_mm, axis=1)
+    # the shell where it is: vertices within a cell (6.25 mm) of its 68.5..71.5 mm (see the
+    # registration test of bone_surface for the reason)
+    shell = r[r < SHELL_RADIUS_MM + 20.0]
+    assert shell.min() > 68.5 - 6.25 and shell.max() < 71.5 + 6.25

@@ -8,6 +8,7 @@ arteries (also where they enter the volume) and drop the rest.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from registration.core.volume import Volume
@@ -59,3 +60,73 @@ def test_vessels_keep_the_artery_and_drop_noise_and_rings() -> None:
     assert vessels.is_watertight
     for name in ("speck", "streak", "top_ring", "edge_ring"):
         assert _inside(verts, parts[name], volume) == 0, name
+
+
+# --------------------------------------------------------------------------------------
+# The bone surface for display (bone_surface)
+# --------------------------------------------------------------------------------------
+#: A skull-like shell (mm): 3 mm of cortical bone about a 70 mm radius, in a CT-like grid of
+#: 1.25 x 1.25 x 3 mm voxels whose field of view is twice the shell's width.
+SHELL_RADIUS_MM, SHELL_MM = 70.0, 3.0
+CT_SPACING_MM = (1.25, 1.25, 3.0)
+
+
+def _ct_like_skull() -> tuple[Volume, dict[str, np.ndarray]]:
+    ni, nk = 240, 60  # 300 x 300 x 180 mm
+    k, j, i = np.ogrid[0:nk, 0:ni, 0:ni]
+    x, y, z = ((i - (ni - 1) / 2) * CT_SPACING_MM[0], (j - (ni - 1) / 2) * CT_SPACING_MM[1], (k - (nk - 1) / 2) * 3.0)
+    r = np.sqrt(x**2 + y**2 + z**2)
+    hu = np.zeros((nk, ni, ni), np.float32)  # water
+    parts = {
+        "shell": np.abs(r - SHELL_RADIUS_MM) < SHELL_MM / 2,
+        # CT noise: a bright speck of 2 x 2 x 1 voxels (19 mm^3) far from the skull
+        "speck": (k == 30) & (j >= 10) & (j < 12) & (i >= 10) & (i < 12),
+        # a small bone of its own (10 x 10 x 9 mm, 900 mm^3: the hyoid's size), clear of the shell
+        "small_bone": (k >= 2) & (k < 5) & (j >= 200) & (j < 208) & (i >= 200) & (i < 208),
+    }
+    for mask in parts.values():
+        hu[np.broadcast_to(mask, hu.shape)] = 1500.0
+    return Volume.from_grid(hu, CT_SPACING_MM), parts
+
+
+def _components(mesh) -> list[int]:
+    import trimesh
+
+    return sorted((len(c) for c in trimesh.graph.connected_components(mesh.face_adjacency, min_len=1)), reverse=True)
+
+
+def test_the_display_bone_surface_keeps_a_thin_skull_whole_on_an_anisotropic_grid() -> None:
+    from registration.io.meshes import BONE_HU, bone_surface
+
+    volume, parts = _ct_like_skull()
+    # Striding the voxels as the app did (ceil(240 voxels / 32 cells) = 8: 10 x 10 x 24 mm)
+    # broke the shell into plates: dozens of pieces, the largest a small part of the whole.
+    strided = surface_meshes(volume, step=8, bone_step=8)["bone"]
+    pieces = _components(strided)
+    assert len(pieces) > 20 and pieces[0] < 0.5 * len(strided.faces), pieces[:5]
+
+    bone = bone_surface(volume, cells_across=32)
+    # 32 cells across the kept bone's largest extent (181 mm along x, shell and small bone): 5.7 mm,
+    # in whole voxels per axis (5, 5, 2): 6.25 x 6.25 x 6 mm
+    assert bone.metadata["cell_mm"] == (6.25, 6.25, 6.0)
+    # The shell's outer and inner surfaces and the small bone, each a closed surface of a sphere's
+    # topology (Euler characteristic 2 each): no perforation, no loose plate; the speck is gone.
+    assert len(_components(bone)) == 3 and bone.is_watertight and bone.euler_number == 6, _components(bone)
+    verts = np.asarray(bone.vertices)
+    assert not np.any(np.linalg.norm(verts - [-136.25, -136.25, 0.0], axis=1) < 15.0)  # the speck's place
+    r = np.linalg.norm(verts - volume.center_mm, axis=1)
+    r = r[r < SHELL_RADIUS_MM + 20.0]  # the shell's vertices (the small bone is 160 mm out)
+    # Against the shell's true surfaces (r = 68.5 and 71.5 mm): the box (one cell) and the Gaussian
+    # (half a cell) spread the bone fraction by about a cell on either side and the 0.1 level lies
+    # within that: every vertex within one cell's largest side (6.25 mm) of the bone; the filters
+    # being symmetric, the mean radius is the shell's middle within a quarter cell (1.5 mm; the
+    # outer surface's larger area pulls it out a little: 70.5 mm when measured).
+    cell = max(bone.metadata["cell_mm"])
+    assert r.min() > SHELL_RADIUS_MM - SHELL_MM / 2 - cell and r.max() < SHELL_RADIUS_MM + SHELL_MM / 2 + cell
+    assert abs(np.mean(r) - SHELL_RADIUS_MM) < 1.5, np.mean(r)
+    assert bone_surface(Volume.from_grid(np.where(parts["speck"], 1500.0, 0.0), CT_SPACING_MM), cells_across=32) is None
+    # without the size rule the far speck would also set the bone's extent, hence coarser cells
+    noisy = bone_surface(volume, cells_across=32, bone_hu=BONE_HU, min_component_mm3=0.0)
+    assert max(noisy.metadata["cell_mm"]) > cell, noisy.metadata
+    with pytest.raises(ValueError, match="cells_across"):
+        bone_surface(volume, cells_across=0)
