@@ -113,7 +113,7 @@ def test_the_users_skull_is_drawn_whole_on_a_ct_like_grid() -> None:
     bone = data.meshes()["bone"]
     # outer and inner surface of the shell and the small bone, each closed with a sphere's topology
     assert len(_components(bone)) == 3 and bone.is_watertight and bone.euler_number == 6
-    # drawn as extracted: under the scene's face budget (its fallback decimation would punch holes)
+    # drawn as extracted: under the scene's face budget (not simplified)
     assert _decimated(bone, 120_000) is bone
     r = np.linalg.norm(np.asarray(bone.vertices) - volume.center_mm, axis=1)
     # the shell where it is: vertices within a cell (6.25 mm) of its 68.5..71.5 mm (see the
