@@ -190,6 +190,7 @@ def confidence_fields(
         rotation_margin=per_view[0].rotation_margin if len(per_view) == 1 else None,
         edges=float(_np.mean([e.edges for e in per_view])),
         depth_scan_tz_mm=None if scan is None else float(scan.tz_mm),
+        rival_gain=rival_gain(result),
     )
     if single_plane_motion is not None:
         g = views[0].geometry  # type: ignore[attr-defined]
@@ -209,9 +210,17 @@ def confidence_fields(
     }
 
 
+def rival_gain(result: object) -> float | None:
+    """The rotation check's ``rival_gain`` of a single-plane result (None: no check ran, or every
+    polish came back): :attr:`registration.core.register.RegistrationResult.rotation_check`."""
+    check = getattr(result, "rotation_check", None)
+    return None if check is None or check.rival_gain is None else float(check.rival_gain)
+
+
 def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
     """Simulate the X-ray image of the moved phantom and register the 3DRA to it."""
     from registration.sim.xray import simulate_xray
+    from registration.studies.runs import depth_correction_fields
 
     geometry = CArm.for_format(
         case.image_format_cm,
@@ -258,11 +267,7 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         "similarity": result.similarity,
         "volume_label": result.volume_label,
         "version": __version__,
-        **(
-            {}
-            if result.depth_tz_mm is None
-            else {"depth_tz_mm": result.depth_tz_mm, "depth_moves_mm": list(result.depth_moves_mm)}
-        ),  # fmt: skip
+        **depth_correction_fields(result),
         **confidence_fields(volume, xray, result, renderer),
     }
 

@@ -445,11 +445,16 @@ def offset_record(
 def depth_correction_fields(result: Any) -> dict:
     """A depth-corrected single-plane result's tz (``depth_tz_mm``: mm along the beam in the view
     frame, + toward the source, held in ``patient_motion``) and its scans' moves; nothing for a
-    result without the correction (RegistrationOptions.depth_correction off, two views)."""
+    result without the correction (RegistrationOptions.depth_correction off, two views); and
+    the rotation check's outcome (``rotation_check``) when it ran."""
     tz = getattr(result, "depth_tz_mm", None)
     if tz is None:
         return {}
-    return {"depth_tz_mm": float(tz), "depth_moves_mm": [float(m) for m in result.depth_moves_mm]}
+    out = {"depth_tz_mm": float(tz), "depth_moves_mm": [float(m) for m in result.depth_moves_mm]}
+    check = getattr(result, "rotation_check", None)
+    if check is not None:
+        out["rotation_check"] = check.to_dict()
+    return out
 
 
 def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None = None) -> dict:

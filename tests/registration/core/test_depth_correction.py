@@ -15,7 +15,8 @@ from registration.core.register import RegistrationOptions, register
 
 #: (tx, ty, tz, rx, ry, rz): in-plane and rotation offsets as Table I's T4, 20 mm along the beam
 OFFSET = (3.0, -2.0, 20.0, 2.0, -1.0, 3.0)
-ON = RegistrationOptions()
+# the correction alone: the rotation check after it has its own tests (test_rotation_check.py)
+ON = RegistrationOptions(rotation_check=False)
 OFF = RegistrationOptions(depth_correction=False)
 
 
