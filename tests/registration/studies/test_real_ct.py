@@ -51,4 +51,7 @@ def test_real_ct_registers_within_the_targets(ct) -> None:
         # only the body is rendered (the couch and the air around it are exact air the rays leap
         # over): the work of a registration, counted in DRR samples whatever the machine's load,
         # was 488 M median with the couch and 214-312 M over the 20 cases of docs/validation/real-ct
-        assert 0 < record["drr_samples"] < 400e6, record["drr_samples"]
+        # before the single-plane depth correction and rotation check, whose polishes at the
+        # polish's level (2 mm voxels here) take it to 446 and 622 M on these two cases (280 and
+        # 392 M without the check): 800 M is that with room, below what the couch would add
+        assert 0 < record["drr_samples"] < 800e6, record["drr_samples"]
