@@ -210,6 +210,21 @@ def confidence_fields(
     }
 
 
+def depth_correction_fields(result: object) -> dict:
+    """A depth-corrected single-plane result's tz (``depth_tz_mm``: mm along the beam in the view
+    frame, + toward the source, held in ``patient_motion``) and its scans' moves; nothing for a
+    result without the correction (RegistrationOptions.depth_correction off, two views); and
+    the rotation check's outcome (``rotation_check``) when it ran."""
+    tz = getattr(result, "depth_tz_mm", None)
+    if tz is None:
+        return {}
+    out = {"depth_tz_mm": float(tz), "depth_moves_mm": [float(m) for m in result.depth_moves_mm]}
+    check = getattr(result, "rotation_check", None)
+    if check is not None:
+        out["rotation_check"] = check.to_dict()
+    return out
+
+
 def rival_gain(result: object) -> float | None:
     """The rotation check's ``rival_gain`` of a single-plane result (None: no check ran, or every
     polish came back): :attr:`registration.core.register.RegistrationResult.rotation_check`."""
@@ -220,7 +235,6 @@ def rival_gain(result: object) -> float | None:
 def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
     """Simulate the X-ray image of the moved phantom and register the 3DRA to it."""
     from registration.sim.xray import simulate_xray
-    from registration.studies.runs import depth_correction_fields
 
     geometry = CArm.for_format(
         case.image_format_cm,

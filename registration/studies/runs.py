@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from registration import __version__
 from registration.core.geometry import IMAGE_FORMATS_CM, TABLE_I, CArm, clinically_relevant, rigid
 from registration.core.register import RegistrationOptions
-from registration.studies.cases import Case, _translation, case_volume, run_case
+from registration.studies.cases import Case, _translation, case_volume, depth_correction_fields, run_case
 
 if TYPE_CHECKING:
     from registration.core.volume import Volume
@@ -440,21 +440,6 @@ def offset_record(
         "volume_label": result.volume_label,
         **depth_correction_fields(result),
     }
-
-
-def depth_correction_fields(result: Any) -> dict:
-    """A depth-corrected single-plane result's tz (``depth_tz_mm``: mm along the beam in the view
-    frame, + toward the source, held in ``patient_motion``) and its scans' moves; nothing for a
-    result without the correction (RegistrationOptions.depth_correction off, two views); and
-    the rotation check's outcome (``rotation_check``) when it ran."""
-    tz = getattr(result, "depth_tz_mm", None)
-    if tz is None:
-        return {}
-    out = {"depth_tz_mm": float(tz), "depth_moves_mm": [float(m) for m in result.depth_moves_mm]}
-    check = getattr(result, "rotation_check", None)
-    if check is not None:
-        out["rotation_check"] = check.to_dict()
-    return out
 
 
 def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None = None) -> dict:
