@@ -717,7 +717,14 @@ def run_mesh(
     step: int = 1,
 ) -> int:
     """Write the vessel and bone surfaces of a volume file to STL, PLY or GLB."""
-    from registration.io.meshes import BONE_HU, MESH_SUFFIXES, VESSEL_HU, surface_meshes, write_meshes
+    from registration.io.meshes import (
+        BONE_HU,
+        MESH_SUFFIXES,
+        NO_VESSELS_NOTE,
+        VESSEL_HU,
+        surface_meshes,
+        write_meshes,
+    )
 
     out = Path(out)
     if out.suffix.lower() not in MESH_SUFFIXES:
@@ -740,6 +747,6 @@ def run_mesh(
     write_meshes(meshes, out)
     parts = ", ".join(f"{name}: {len(m.vertices)} vertices, {len(m.faces)} faces" for name, m in meshes.items())
     if "vessels" not in meshes:
-        _say("note: no contrast-filled vessels found (no voxels above the vessel threshold away from bone)")
+        _say(f"note: {NO_VESSELS_NOTE}")
     _say(f"wrote {out} ({parts})")
     return 0

@@ -38,7 +38,7 @@ PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel, PlaybackPanel)
 
 #: Handles of the layout that are also reachable as ``app.<name>`` (tests, scripts, panels).
 _LAYOUT_HANDLES = frozenset(
-    """images badge readout details plot view_panel volume_info register_button stop_button autocorrect
+    """images badge readout details plot view_panel volume_info vessel_info register_button stop_button autocorrect
     status offset_sliders table_buttons random_button reset_button primary secondary sid image_format
     volume_format kind contrast catheter source upload phantom_button show_ghost show_skull show_gradients
     carm_controls motion_controls view_tabs control_tabs upload_sid upload_sod biplane primary_b secondary_b

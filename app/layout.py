@@ -110,6 +110,8 @@ class Layout:
         # Right: the controls.
         gui.add_markdown("**3D roadmap** · automatic patient-motion correction")
         self.volume_info = gui.add_markdown("")
+        #: Empty, or why the volume has no vessel surface (a CT without contrast).
+        self.vessel_info = gui.add_markdown("")
         self.register_button = gui.add_button("Register", color="green", icon=viser.Icon.TARGET)
         self.stop_button = gui.add_button("Stop", color="red", icon=viser.Icon.PLAYER_STOP, disabled=True)
         self.autocorrect = gui.add_checkbox(

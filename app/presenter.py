@@ -24,6 +24,7 @@ from app.layout import Layout, badge
 from app.scene import Scene
 from app.session import Session
 from registration.core.geometry import CArm, matrix_to_offsets
+from registration.io.meshes import NO_VESSELS_NOTE
 
 if TYPE_CHECKING:
     import viser
@@ -220,7 +221,11 @@ class Presenter:
         if mesh_key != self._mesh_key:
             before = self.layout.status.content
             self.message("Loading the volume and its surfaces…")
-            self.scene.set_anatomy(data.meshes(volume_format_cm))
+            meshes = data.meshes(volume_format_cm)
+            self.scene.set_anatomy(meshes)
+            self.layout.vessel_info.content = (
+                "" if "vessels" in meshes else f"<small>⚠ {NO_VESSELS_NOTE[:1].upper() + NO_VESSELS_NOTE[1:]}.</small>"
+            )
             if self.layout.status.content.startswith("Loading the volume"):
                 self.layout.status.content = before  # the status stayed on "Loading…" after an upload
             self._mesh_key = mesh_key
@@ -298,7 +303,8 @@ class Presenter:
             views.draw_outline(fluoro, silhouette, thickness=1 if size <= 400 else 2)
         prefix = f"PLANE {plane}  " if plane else ""
         views.label(fluoro, f"{prefix}{xray.kind.upper()}  {views.angles_text(geometry)}")
-        views.label(fluoro, "red: roadmap at the estimate", corner="bottom-left")
+        outline = "red: roadmap at the estimate" if vessels is not None else "no roadmap: no vessels in the volume"
+        views.label(fluoro, outline, corner="bottom-left")
 
         # The DRR thumbnail: coarser while the optimizer runs (it competes for the same cores).
         drr_px = size // 3 if live else size // 2

@@ -160,3 +160,13 @@ def test_the_real_cts_skull_is_drawn_in_one_piece(ct) -> None:
     # metal marker on the head holder, bits of facial bone), none of them noise specks
     assert pieces[0] > 0.9 * len(bone.faces), pieces[:5]
     assert len(bone.faces) < 120_000  # drawn as extracted (the scene's face budget)
+
+
+def test_the_real_ct_without_contrast_has_no_vessel_surface(ct) -> None:
+    """The shared CT has no contrast agent: the app draws no vessels for it. Before the vessel rules
+    of registration.io.meshes (bone distance, soft-tissue surround, length) it drew 24 red pieces
+    (10,184 voxels of bone partial volume and a calcification) about the face, sinuses and spine."""
+    volume, imager = ct
+    image = imager.image(replace(CArm.for_format(27.0, pixels=64), isocenter_mm=ISO), np.eye(4), kind="fluoro", seed=0)
+    meshes = FileData(volume, image, source="real CT (test)", config=AppConfig()).meshes()
+    assert "vessels" not in meshes and "bone" in meshes

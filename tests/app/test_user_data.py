@@ -68,6 +68,31 @@ def test_upload_registers_the_users_data(fresh: RoadmapApp, exported: Path) -> N
         assert not any(c.disabled for c in app.carm_controls)
 
 
+def test_a_volume_without_contrast_shows_no_vessels_and_says_why(fresh: RoadmapApp) -> None:
+    """The user's volume without contrast agent (the phantom with blood, not iodine, in its
+    arteries): no vessel surface in the scene, and the panel says why; back on the phantom
+    (contrast) its vessels and no note."""
+    from app.data import simulate_xray
+    from registration.sim.phantom import make_head_phantom, registration_volume
+
+    app = fresh
+    plain = make_head_phantom(seed=0, contrast=False)
+    volume = registration_volume(plain, 27.0, voxels=TEST_CONFIG.voxels)
+    xray = simulate_xray(plain, app.session.settings.geometry(TEST_CONFIG.pixels))
+    data = FileData(volume, xray, source="phantom without contrast (test)", config=TEST_CONFIG)
+    try:
+        app._use_data(data)  # noqa: SLF001 - what the upload callback does after reading
+        assert wait_until(lambda: app._shown_version == app.session.version, 30)  # noqa: SLF001
+        assert "vessels" not in data.meshes() and "bone" in data.meshes()
+        assert "No contrast-filled vessels found in this volume" in app.vessel_info.content
+        assert [h.name for h in app.scene.patient] == ["/patient/bone"]
+    finally:
+        app.phantom_button.value = True  # back to the phantom for the other tests
+    assert wait_until(lambda: app._shown_version == app.session.version, 30)  # noqa: SLF001
+    assert app.vessel_info.content == ""
+    assert "/patient/vessels" in [h.name for h in app.scene.patient]
+
+
 @pytest.mark.parametrize(
     ("name", "content", "expected"),
     [

@@ -712,26 +712,31 @@ def test_upload_of_a_written_phantom_is_classified(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------------------
 # Surface meshes
 # --------------------------------------------------------------------------------------
-def test_surface_meshes_of_a_ball_and_a_shell(tmp_path: Path) -> None:
+def test_surface_meshes_of_a_tube_and_a_shell(tmp_path: Path) -> None:
     import trimesh
 
     from registration.io.meshes import surface_meshes, write_meshes
 
-    n, spacing = 48, 0.5
+    n, spacing = 80, 0.5
     z, y, x = (np.mgrid[0:n, 0:n, 0:n] - (n - 1) / 2.0) * spacing
     r = np.sqrt(x**2 + y**2 + z**2)
     hu = np.zeros((n, n, n), np.float32)
-    hu[r < 4.0] = 500.0  # a contrast-filled "vessel" ball, radius 4 mm
-    hu[(r > 9.0) & (r < 10.5)] = 1500.0  # a bone shell
+    # A contrast-filled "vessel": a tube of radius 2 mm, 24 mm long along x, in soft tissue, its
+    # ends 4 mm inside a bone shell (a vessel runs, away from bone: surface_meshes' vessel rules).
+    tube = (np.hypot(y, z) < 2.0) & (np.abs(x) < 12.0)
+    hu[tube] = 500.0
+    hu[(r > 16.0) & (r < 17.5)] = 1500.0  # a bone shell
     vol = Volume.from_grid(hu, spacing, center_mm=(10.0, -5.0, 3.0))
     meshes = surface_meshes(vol)
     assert set(meshes) == {"vessels", "bone"}
-    ball = meshes["vessels"]
-    assert ball.is_watertight
-    # The 250 HU iso-surface of a voxelised ball sits at its radius within half a voxel.
-    radius = (3.0 * ball.volume / (4.0 * math.pi)) ** (1.0 / 3.0)
-    assert abs(radius - 4.0) < spacing / 2
-    np.testing.assert_allclose(ball.centroid, (10.0, -5.0, 3.0), atol=0.05)
+    vessel = meshes["vessels"]
+    assert vessel.is_watertight
+    # The 250 HU iso-surface of a voxelised tube sits at its radius within half a voxel: its
+    # volume is that of a cylinder of radius 2 mm, 24 mm long (its ends, within half a voxel of
+    # where they are, change the radius by < 1 %).
+    radius = math.sqrt(vessel.volume / (math.pi * 24.0))
+    assert abs(radius - 2.0) < spacing / 2
+    np.testing.assert_allclose(vessel.centroid, (10.0, -5.0, 3.0), atol=0.05)
     for suffix in (".stl", ".ply", ".glb"):
         out = write_meshes(meshes, tmp_path / f"m{suffix}")
         loaded = trimesh.load(out, force="mesh")
@@ -739,5 +744,5 @@ def test_surface_meshes_of_a_ball_and_a_shell(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="mesh format"):
         write_meshes(meshes, tmp_path / "m.obj")
     coarse = surface_meshes(vol, bone_step=2)
-    assert len(coarse["vessels"].faces) == len(ball.faces)
+    assert len(coarse["vessels"].faces) == len(vessel.faces)
     assert len(coarse["bone"].faces) < len(meshes["bone"].faces) / 2
