@@ -359,9 +359,9 @@ class FileData:
         return confidence_renderer(self.prepared(views, initial_motion), planes=len(views))
 
     @property
-    def mesh_steps(self) -> tuple[int, int]:
-        voxels = max(self._volume.shape)
-        return max(1, round(voxels / 200)), max(1, math.ceil(voxels / self.config.skull_detail))
+    def vessel_step(self) -> int:
+        """The vessels' marching-cubes step (voxels); the bone has its own cells (below)."""
+        return max(1, round(max(self._volume.shape) / 200))
 
     def meshes(self, _volume_format_cm: float | None = None) -> dict[str, trimesh.Trimesh]:
         with self._lock:
@@ -370,12 +370,12 @@ class FileData:
                 # components dropped: a CT's grid is anisotropic and far larger than the head, and a
                 # step of its voxels broke the skull into floating plates.
                 self._meshes = surface_meshes(
-                    self._volume, step=self.mesh_steps[0], bone_cells_across=self.config.skull_detail
+                    self._volume, step=self.vessel_step, bone_cells_across=self.config.skull_detail
                 )
             return self._meshes
 
     def mesh_spacing_mm(self, _volume_format_cm: float | None = None) -> float:
-        return float(np.mean(self._volume.spacing_mm)) * self.mesh_steps[0]
+        return float(np.mean(self._volume.spacing_mm)) * self.vessel_step
 
     def vessel_points_mm(self) -> None:
         return None

@@ -365,8 +365,9 @@ def test_vessel_surfaces_follow_the_phantom_arteries(exported: Path) -> None:
     centerline = make_head_phantom(seed=0).vessel_centerline_mm()
     distance, _ = cKDTree(centerline).query(vessels.vertices)
     # Arteries are at most ~2 mm in radius (aneurysm 3.5 mm) and the voxels 1.4 mm: a vertex of
-    # a true vessel surface lies within 6 mm of a centerline. Facial bone and sinus walls are
-    # gone; a small partial-volume bone speck may remain (seen: the dens tip, ~2 % of vertices).
+    # a true vessel surface lies within 6 mm of a centerline. Facial bone, sinus walls and the
+    # partial-volume speck at the dens tip (~2 % of vertices before 3af5024's length and
+    # soft-tissue rules) are gone; 0.95 leaves room for a vessel's partial-volume rim.
     assert np.mean(distance < 6.0) > 0.95, np.percentile(distance, [50, 99, 100])
 
 
