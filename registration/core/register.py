@@ -392,10 +392,10 @@ class RegistrationResult:
     depth_tz_mm: float | None = None
     depth_moves_mm: tuple[float, ...] = ()
     #: The rotation check (:attr:`RegistrationOptions.rotation_check`, one view): how many
-    #: checks ran, how many moved the estimate, and the last check's ``rival_gain`` (the best
-    #: measure its polishes reached more than ``RIVAL_DISTINCT_DEG`` from the estimate, over the
-    #: estimate's, relative: > 0 a rival still beats it; None: every polish came back). None:
-    #: no check ran.
+    #: checks ran, how many moved the estimate, and the last check's ``rival_gain``
+    #: (:class:`RotationCheck`: the best other optimum against the kept estimate, relative,
+    #: <= 0; > 0 only when the last check still moved the estimate; None: every polish came
+    #: back). None: no check ran.
     rotation_check: RotationCheck | None = None
 
     @property
