@@ -254,18 +254,31 @@ def _transfer_syntax(ds: Dataset) -> UID | None:
     return UID(str(ts)) if ts else None
 
 
-#: The decoding plugin preferred for compressed pixel data: pylibjpeg with its libjpeg (JPEG
-#: baseline/extended/lossless, JPEG-LS), openjpeg (JPEG 2000) and rle plugins; see the README.
-PREFERRED_DECODER = "pylibjpeg"
-#: The pylibjpeg plugin (a Python distribution) that decodes each family of transfer syntaxes.
-_PYLIBJPEG_PLUGINS = {"JPEG 2000": "pylibjpeg-openjpeg", "RLE": "pylibjpeg-rle"}
+#: pydicom decoding plugins in order of preference, by family of transfer syntax. All are
+#: permissively licensed: GDCM (python-gdcm) for JPEG and JPEG-LS, pylibjpeg's openjpeg and rle
+#: plugins for JPEG 2000 and RLE. pylibjpeg-libjpeg (GPL-3.0) is an optional extra
+#: (``roadmap3d[gpl-jpeg]``), used only where GDCM cannot decode: 12-bit JPEG extended.
+_PREFERENCE = {
+    "JPEG 2000": ("pylibjpeg", "gdcm", "pillow"),
+    "RLE": ("pylibjpeg", "pydicom"),
+    "": ("gdcm", "pylibjpeg", "pillow"),
+}
+#: The distribution behind each plugin, by family (for the description users see).
+_PACKAGES = {"gdcm": "python-gdcm", "pillow": "pillow", "pydicom": "pydicom"}
+_PYLIBJPEG_PLUGINS = {"JPEG 2000": "pylibjpeg-openjpeg", "RLE": "pylibjpeg-rle", "": "pylibjpeg-libjpeg"}
+_GPL_HINT = "pip install 'roadmap3d[gpl-jpeg]' adds pylibjpeg-libjpeg (GPL-3.0), which decodes it"
+
+
+def _family(ts: UID) -> str:
+    return next((k for k in ("JPEG 2000", "RLE") if ts.name.startswith(k)), "")
 
 
 def pixel_decoder(ds: Dataset) -> tuple[str, str]:
     """The pydicom decoding plugin that reads ``ds``'s pixel data and a description for users.
 
     ``("", "native (uncompressed)")`` for uncompressed data; ``("", "none installed ...")``
-    when no plugin can decode the transfer syntax.
+    when no plugin can decode the transfer syntax. 12-bit JPEG extended, which GDCM does not
+    decode, goes to pylibjpeg-libjpeg when that optional plugin is installed.
     """
     ts = _transfer_syntax(ds)
     if ts is None or not ts.is_transfer_syntax or not ts.is_compressed:  # is_compressed raises on other UIDs
@@ -278,24 +291,34 @@ def pixel_decoder(ds: Dataset) -> tuple[str, str]:
         return "", f"none: pydicom has no decoder for {ts.name}"
     plugins = tuple(decoder.available_plugins)
     if not plugins:
-        return "", f"none installed for {ts.name} (pip install pylibjpeg pylibjpeg-libjpeg pylibjpeg-openjpeg)"
-    plugin = PREFERRED_DECODER if PREFERRED_DECODER in plugins else plugins[0]
-    if plugin != "pylibjpeg":
-        return plugin, plugin
+        return "", f"none installed for {ts.name} (pip install python-gdcm pylibjpeg pylibjpeg-openjpeg)"
+    family = _family(ts)
+    order = _PREFERENCE[family]
+    if ts.name.startswith("JPEG Extended") and _int_or(ds, "BitsStored", 8) > 8:
+        order = ("pylibjpeg", *order)
+    plugin = next((p for p in order if p in plugins), plugins[0])
     from importlib.metadata import PackageNotFoundError, version
 
-    family = next((k for k in _PYLIBJPEG_PLUGINS if ts.name.startswith(k)), "")
-    package = _PYLIBJPEG_PLUGINS.get(family, "pylibjpeg-libjpeg")
+    package = _PYLIBJPEG_PLUGINS[family] if plugin == "pylibjpeg" else _PACKAGES.get(plugin, plugin)
     try:
-        return plugin, f"pylibjpeg {version('pylibjpeg')} with {package} {version(package)}"
+        if plugin == "pylibjpeg":
+            return plugin, f"pylibjpeg {version('pylibjpeg')} with {package} {version(package)}"
+        return plugin, f"{plugin} ({package} {version(package)})"
     except PackageNotFoundError:
-        return plugin, "pylibjpeg"
+        return plugin, plugin
+
+
+def _int_or(ds: Dataset, keyword: str, default: int) -> int:
+    try:
+        return int(ds.get(keyword) or default)
+    except (TypeError, ValueError):
+        return default
 
 
 def _pixels(path: Path, ds: Dataset, index: int | None = None) -> NDArray[Any]:
     """Decoded stored values (all frames, or frame ``index``), as pydicom gives them.
 
-    Compressed data is decoded by :func:`pixel_decoder`'s plugin (pylibjpeg when installed).
+    Compressed data is decoded by :func:`pixel_decoder`'s plugin.
     """
     plugin, _ = pixel_decoder(ds)
     try:
@@ -308,7 +331,9 @@ def _pixels(path: Path, ds: Dataset, index: int | None = None) -> NDArray[Any]:
         if ts is not None and not ts.is_transfer_syntax:
             what = f"{tag_name('TransferSyntaxUID')} {str(ts)[:64]!r}, which is not a transfer syntax"
         if ts is not None and ts.is_transfer_syntax and ts.is_compressed and not plugin:
-            hint = "; compressed pixel data needs a decoder (pip install pylibjpeg pylibjpeg-libjpeg)"
+            hint = "; compressed pixel data needs a decoder (pip install python-gdcm pylibjpeg pylibjpeg-openjpeg)"
+        elif ts is not None and ts.name.startswith("JPEG Extended") and plugin != "pylibjpeg":
+            hint = f"; GDCM does not decode 12-bit JPEG extended: {_GPL_HINT}"
         else:
             hint = ""
         raise DicomError(path, f"cannot decode {tag_name('PixelData')} in {what}: {_short(exc)}{hint}") from None
