@@ -38,6 +38,14 @@ LOSSLESS = [
 ]
 
 
+@pytest.fixture(autouse=True)
+def _gdcm_installed() -> None:
+    from importlib.util import find_spec
+
+    if find_spec("gdcm") is None:
+        pytest.fail("python-gdcm, a dependency, is missing: reinstall with pip install -e '.[test]' -c constraints.txt")
+
+
 def _gpl_jpeg_installed() -> bool:
     from importlib.metadata import PackageNotFoundError, version
 
