@@ -1,0 +1,216 @@
+"""Biplane: each plane's own capture side by side, combined geometrically, checked for agreement."""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.core.anneal import AnnealResult, AnnealState, anneal
+from registration.core.geometry import CArm, invert_rigid, rigid, rotation_angle_deg
+from registration.core.problem import LevelProblem
+from registration.core.register.inputs import Inputs
+from registration.core.register.monitor import _cost, _Monitor
+from registration.core.register.options import Level, RegistrationOptions
+from registration.core.search import FIVE_PARAMETERS, SearchSpace
+
+Array = NDArray[np.float64]
+
+
+def _plane_captures(
+    inputs: Inputs, space: SearchSpace, options: RegistrationOptions, rng: np.random.Generator, monitor: _Monitor
+) -> tuple[list[Array], float]:
+    """Each of the first two planes' own single-plane capture, side by side, combined into the
+    start of the pair's six-parameter search (:attr:`RegistrationOptions.plane_captures`) and its
+    cost. Each plane's best estimate (lowest cost of its own measure) counts; when the two
+    disagree (:func:`plane_disagreement`) another round follows, cross-seeded; after
+    :data:`PLANE_CAPTURE_ROUNDS` rounds without agreement, the starts of the pair's capture level
+    instead (three: the bests' combination, each plane's best alone)."""
+    level = options.levels[0]
+    runs = options.plane_capture_runs
+    planes = inputs.views[:2]
+    spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg)
+              for v in planes]  # fmt: skip
+    # plane B's capture compares its image at plane A's pixel size at the iso-center, as the pair does
+    problems = [LevelProblem.prepare(inputs.renderer, planes[:1], image_px=level.image_px,
+                                     volume_level=level.volume_level, motion=inputs.initial_motion,
+                                     margin_mm=options.margin_mm(0))]  # fmt: skip
+    pixel_mm = problems[0].views[0].pixel_at_iso_mm
+    problems += [
+        LevelProblem.prepare(
+            inputs.renderer,
+            (v,),
+            image_px=level.image_px,
+            volume_level=level.volume_level,
+            motion=inputs.initial_motion,
+            margin_mm=options.margin_mm(0),
+            pixel_at_iso_mm=pixel_mm,
+        )
+        for v in planes[1:]
+    ]
+    geometries = (planes[0].geometry, planes[1].geometry)
+    pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
+                                volume_level=level.volume_level, motion=inputs.initial_motion,
+                                margin_mm=options.margin_mm(0))  # fmt: skip
+    cost = _cost(pair, space, monitor, None)
+    per_plane: list[list[Array]] = [[] for _ in planes]
+    single_costs: list[list[float]] = [[] for _ in planes]
+    starts = [[sp.start()] * runs for sp in spaces]
+    for _round in range(PLANE_CAPTURE_ROUNDS):
+        for plane, motion, f_plane in _capture_planes(problems, spaces, level, starts, rng, monitor, options.threads):
+            per_plane[plane].append(motion)
+            single_costs[plane].append(f_plane)
+        if monitor.stopped:
+            return [space.start()], math.inf
+        # Each plane's estimate of lowest cost (its own measure) so far: where those two agree,
+        # their combination starts the pair.
+        best = [int(np.argmin(c)) for c in single_costs]
+        ends = (per_plane[0][best[0]], per_plane[1][best[1]])
+        x = space.from_motion(combine_plane_estimates(inputs.initial_motion, ends, geometries))
+        x = np.clip(x, space.bounds[:, 0], space.bounds[:, 1])
+        monitor.captures = [combine_plane_estimates(inputs.initial_motion, (a, b), geometries)
+                            for a in per_plane[0][-runs:] for b in per_plane[1][-runs:]]  # fmt: skip
+        shared_mm, rotation_deg = plane_disagreement(ends, geometries)
+        if shared_mm <= PLANES_AGREE_MM and rotation_deg <= PLANES_AGREE_DEG:
+            return [x], cost(x)
+        # They do not: a capture traded a rotation for a translation (both runs of a plane can
+        # fall into the same wrong basin). Another round, each plane's runs now starting from
+        # the other plane's best estimate (its rotation and the displacement both see): the
+        # plane that failed starts near the right rotation.
+        # What the other plane cannot see (the displacement along its beam) is spread over the
+        # runs: +- CROSS_START_MM along it, the rest of the start from its estimate of lowest cost.
+        starts = []
+        for p in range(2):
+            other = best[1 - p]
+            along = np.asarray(geometries[1 - p].direction, dtype=np.float64)
+            along = along - (along @ geometries[p].direction) * np.asarray(geometries[p].direction)
+            along /= max(float(np.linalg.norm(along)), 1e-12)
+            shifts = np.linspace(-CROSS_START_MM, CROSS_START_MM, runs) if runs > 1 else np.zeros(1)
+            starts.append([
+                np.clip(spaces[p].from_motion(rigid(None, t * along) @ per_plane[1 - p][other]),
+                        spaces[p].bounds[:, 0], spaces[p].bounds[:, 1])
+                for t in shifts
+            ])  # fmt: skip
+    # Still none: the pair's capture runs start from the bests' combination and from each
+    # plane's best estimate alone (the other plane's out-of-plane offset at the initial pose).
+    alone = [np.clip(space.from_motion(m), space.bounds[:, 0], space.bounds[:, 1]) for m in ends]
+    return [x, *alone], cost(x)
+
+
+#: Rounds of plane captures (each ``plane_capture_runs`` runs per plane) before the pair's own
+#: capture level is run instead: a round whose pairings all disagree is followed by another.
+PLANE_CAPTURE_ROUNDS = 3
+#: The second round's runs start this far either side (mm) along the other plane's beam.
+CROSS_START_MM = 12.0
+
+
+def _capture_planes(
+    problems: list[LevelProblem],
+    spaces: list[SearchSpace],
+    level: Level,
+    starts: list[list[Array]],
+    rng: np.random.Generator,
+    monitor: _Monitor,
+    threads: int | None,
+) -> list[tuple[int, Array, float]]:
+    """Single-plane capture runs, one per start of each plane (``starts[plane]``, parameter
+    vectors in its space), all side by side: (plane, end motion, its cost) each."""
+    jobs = [(p, c) for p in range(len(problems)) for c in range(len(starts[p]))]
+    streams = rng.spawn(len(jobs))
+
+    def run(job: int) -> AnnealResult:
+        plane, chain = jobs[job]
+        sp = spaces[plane]
+        schedule = replace(level.schedule, step=tuple(sp.per_parameter(level.schedule.step)))
+
+        def on_iteration(s: AnnealState) -> bool:
+            return monitor.report(0, s.temperature, s.x, s.fun, s.best_x, s.best_fun, job, sp)
+
+        cost = _cost(problems[plane], sp, monitor, False)
+        x0 = starts[plane][chain]
+        return anneal(cost, x0, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
+
+    workers = max(1, min(len(jobs), threads or os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(run, range(len(jobs))))
+    return [(plane, spaces[plane].motion(r.x), r.fun) for (plane, _), r in zip(jobs, results, strict=True)]
+
+
+#: The two planes' captures agree when their estimates of the displacement both images show
+#: (across both beams) differ by at most this (mm) and their rotations by at most this (deg);
+#: otherwise one capture failed and the pair's own capture level runs.
+PLANES_AGREE_MM = 3.0
+PLANES_AGREE_DEG = 4.0
+
+
+def plane_disagreement(motions: tuple[Array, Array], geometries: tuple[CArm, CArm]) -> tuple[float, float]:
+    """How far two planes' single-plane estimates of one moment disagree on what both can see:
+    the iso-center's displacement across both beams (mm) and the rotation between them (deg)."""
+    iso = np.asarray(geometries[0].isocenter_mm, dtype=np.float64)
+    a, b = (np.asarray(m, dtype=np.float64) for m in motions)
+    shared = np.cross(geometries[0].direction, geometries[1].direction)
+    norm = float(np.linalg.norm(shared))
+    diff = (a[:3, :3] @ iso + a[:3, 3]) - (b[:3, :3] @ iso + b[:3, 3])
+    shared_mm = abs(float(diff @ shared)) / norm if norm > 1e-9 else float(np.linalg.norm(diff))
+    return shared_mm, rotation_angle_deg(a @ invert_rigid(b))
+
+
+def combine_plane_estimates(
+    initial_motion: Array, motions: tuple[Array, Array], geometries: tuple[CArm, CArm]
+) -> Array:
+    """One patient motion from two single-plane (five-parameter) estimates of one moment.
+
+    Each plane's estimate is trusted for what its image shows: the iso-center's displacement
+    across its beam (along the beam it kept the initial pose), the rotation about its beam
+    fully and the rotations about axes across it at half weight (a view sees those only as
+    perspective changes). The iso-center's displacement solves
+    ``(P_a + P_b) t = P_a e_a + P_b e_b`` (``P`` the projection across a beam, ``e`` a plane's
+    displacement): exact when the beams are not parallel. The rotation vectors combine by the
+    same weighted least squares. Rotation is about the iso-center (both planes share it).
+    """
+    iso = np.asarray(geometries[0].isocenter_mm, dtype=np.float64)
+    inv0 = invert_rigid(initial_motion)
+    lhs_t, rhs_t, lhs_r, rhs_r = np.zeros((3, 3)), np.zeros(3), np.zeros((3, 3)), np.zeros(3)
+    for motion, geometry in zip(motions, geometries, strict=True):
+        delta = np.asarray(motion, dtype=np.float64) @ inv0
+        d = np.asarray(geometry.direction, dtype=np.float64)
+        across = np.eye(3) - np.outer(d, d)
+        e = delta[:3, :3] @ iso + delta[:3, 3] - iso
+        lhs_t += across
+        rhs_t += across @ e
+        weight = np.outer(d, d) + ROTATION_ACROSS_WEIGHT * across
+        lhs_r += weight
+        rhs_r += weight @ _rotation_vector(delta[:3, :3])
+    t = np.linalg.solve(lhs_t, rhs_t)
+    rot = _rotation_matrix(np.linalg.solve(lhs_r, rhs_r))
+    delta = np.eye(4)
+    delta[:3, :3] = rot
+    delta[:3, 3] = iso + t - rot @ iso
+    return delta @ np.asarray(initial_motion, dtype=np.float64)
+
+
+#: Weight of a single plane's rotations about axes across its beam (against 1 about it).
+ROTATION_ACROSS_WEIGHT = 0.5
+
+
+def _rotation_vector(r: Array) -> Array:
+    """Axis times angle (radians) of a 3x3 rotation."""
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1.0) / 2.0)))
+    if angle < 1e-12:
+        return np.zeros(3)
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2.0 * math.sin(angle))
+    return axis * angle
+
+
+def _rotation_matrix(v: Array) -> Array:
+    """Rodrigues: the rotation of axis-angle vector ``v`` (radians)."""
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = v / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * kx @ kx

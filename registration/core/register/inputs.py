@@ -1,0 +1,88 @@
+"""The checked inputs of one registration, and the volume prepared for them."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import check_rigid
+from registration.core.images import XRayImage
+from registration.core.prepare import PreparationStore, PreparedVolume, Reach, prepare_volume
+from registration.core.register.options import RegistrationOptions
+from registration.core.volume import Volume
+
+Array = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------------------
+# Inputs, checked once here: nothing inside checks them again
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Inputs:
+    """The checked inputs of one registration."""
+
+    volume: Volume
+    views: tuple[XRayImage, ...]
+    initial_motion: Array
+    truth: Array | None
+    renderer: DRRRenderer
+
+
+def check_inputs(
+    volume: Volume,
+    views: XRayImage | Sequence[XRayImage],
+    initial_motion: ArrayLike | None,
+    truth: ArrayLike | None,
+    renderer: DRRRenderer | None,
+    options: RegistrationOptions,
+) -> Inputs:
+    """Validate what the caller gave (ValueError saying what is wrong) and prepare the renderer."""
+    if not isinstance(volume, Volume):
+        raise ValueError(f"volume must be a Volume, got {type(volume).__name__}")
+    views = (views,) if isinstance(views, XRayImage) else tuple(views)
+    if not views:
+        raise ValueError("at least one X-ray view is needed")
+    for n, view in enumerate(views):
+        if not isinstance(view, XRayImage):
+            raise ValueError(f"view {n} must be an XRayImage, got {type(view).__name__}")
+    m_init = np.eye(4) if initial_motion is None else check_rigid(initial_motion, name="initial motion")
+    truth_m = None if truth is None else check_rigid(truth, name="true motion")
+    if renderer is None:
+        renderer = prepared_renderer(volume, views, m_init, options)
+    elif renderer.volume is not volume:
+        raise ValueError("renderer was prepared for another volume")
+    return Inputs(volume, views, m_init, truth_m, renderer)
+
+
+def prepared_renderer(
+    volume: Volume, views: tuple[XRayImage, ...], initial_motion: Array, options: RegistrationOptions
+) -> DRRRenderer:
+    """The renderer of the volume prepared for these views and this search (cropped to what the
+    fields can reach, isotropic levels in mm; :func:`registration.core.prepare.prepare_volume`,
+    cached per volume and field)."""
+    return prepared_volume(volume, views, initial_motion, options).renderer
+
+
+def prepared_volume(
+    volume: Volume,
+    views: tuple[XRayImage, ...],
+    initial_motion: Array,
+    options: RegistrationOptions,
+    *,
+    store: PreparationStore | None = None,
+) -> PreparedVolume:
+    """:func:`prepared_renderer`'s preparation itself; ``store``: where its view-independent part
+    is looked up and kept across processes (:class:`registration.core.prepare.PreparationStore`)."""
+    reach = Reach.of_search(
+        options.bound_mm,
+        options.bound_deg,
+        initial_motion=initial_motion,
+        isocenter_mm=views[0].geometry.isocenter_mm,
+        translations=3 if options.optimizes_tz(len(views)) else 2,
+    )
+    levels = {lv.volume_level for lv in options.levels} | ({options.polish_volume_level} if options.polish else set())
+    return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=sorted(levels), store=store)

@@ -1,0 +1,129 @@
+"""What a registration returns and what its callback sees."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.core.geometry import CArm
+from registration.core.metrics import Residual
+from registration.core.search import FIVE_PARAMETERS
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Progress:
+    """What the registration callback sees at every iteration."""
+
+    iteration: int
+    level: int
+    temperature: float
+    current_motion: Array
+    best_motion: Array
+    current_similarity: float
+    best_similarity: float
+    drr_count: int
+    elapsed_s: float
+
+
+@dataclass
+class RegistrationResult:
+    """The outcome of one registration (CONVENTIONS.md §4, §6).
+
+    ``geometry`` is the first view's (plane A's): ``offsets`` and the residual's in-plane and
+    out-of-plane parts are in its view frame; ``views`` lists every view's geometry.
+    Fields added later must have defaults and appear in :meth:`to_dict` only when set, so
+    the JSON of a single-view registration stays what it is.
+    """
+
+    patient_motion: Array
+    similarity: float
+    similarity_trace: list[float]
+    drr_count: int
+    seconds: float
+    stopped: bool
+    offsets: Array
+    geometry: CArm
+    volume_label: str
+    residual: Residual | None = None
+    parameters: tuple[str, ...] = FIVE_PARAMETERS
+    views: tuple[CArm, ...] = ()
+    #: Where the capture runs of the first level ended (4x4 motions; empty with one run).
+    capture_motions: tuple[Array, ...] = ()
+    #: Parameters whose estimate ended on the search bounds: such a result is not a registration
+    #: (inputs without information drift there), whatever its similarity.
+    at_bounds: tuple[str, ...] = ()
+    #: The depth correction (:attr:`RegistrationOptions.depth_correction`, one view): tz, the
+    #: offset along the beam (mm in the view frame, + toward the source) that ``patient_motion``
+    #: holds beside the five ``offsets`` (``patient_motion = offsets_to_matrix((tx, ty,
+    #: depth_tz_mm, rx, ry, rz), geometry) @ initial_motion``), and each scan's move (mm).
+    #: None / (): no correction ran (two views, the option off, stopped).
+    depth_tz_mm: float | None = None
+    depth_moves_mm: tuple[float, ...] = ()
+    #: The rotation check (:attr:`RegistrationOptions.rotation_check`, one view): how many
+    #: checks ran, how many moved the estimate, and the last check's ``rival_gain``
+    #: (:class:`RotationCheck`: the best other optimum against the kept estimate, relative,
+    #: <= 0; > 0 only when the last check still moved the estimate; None: every polish came
+    #: back). None: no check ran.
+    rotation_check: RotationCheck | None = None
+
+    @property
+    def success(self) -> bool | None:
+        return None if self.residual is None else self.residual.success
+
+    def to_dict(self) -> dict:
+        out = {
+            "patient_motion": np.asarray(self.patient_motion).tolist(),
+            "similarity": self.similarity,
+            "similarity_trace": list(self.similarity_trace),
+            "drr_count": self.drr_count,
+            "seconds": self.seconds,
+            "stopped": self.stopped,
+            "offsets": dict(zip(self.parameters, np.asarray(self.offsets).tolist(), strict=True)),
+            "geometry": self.geometry.to_dict(),
+            "volume_label": self.volume_label,
+        }
+        if len(self.views) > 1:
+            out["views"] = [g.to_dict() for g in self.views]
+        if self.residual is not None:
+            out["residual"] = self.residual.to_dict()
+            out["success"] = self.residual.success
+        if self.at_bounds:
+            out["at_bounds"] = list(self.at_bounds)
+        if self.depth_tz_mm is not None:
+            out["depth_tz_mm"] = self.depth_tz_mm
+            out["depth_moves_mm"] = list(self.depth_moves_mm)
+        if self.rotation_check is not None:
+            out["rotation_check"] = self.rotation_check.to_dict()
+        return out
+
+
+@dataclass(frozen=True)
+class RotationCheck:
+    """What :func:`rotation_check` (and the rounds of :attr:`RegistrationOptions.rotation_check`)
+    found. The check keeps the best of the estimate and its polishes (``x``, ``fun``;
+    ``moved_deg`` from the estimate); ``rival_gain`` is the best measure among the other optima
+    it reached (the polishes' ends and the estimate, those more than ``RIVAL_DISTINCT_DEG`` from
+    the kept one) minus the kept one's, relative to it: <= 0, 0 a tie; None when every polish
+    came back to the kept one. After the rounds (:func:`_check_rotations`) a ``rival_gain``
+    > 0 says the last check moved the estimate to a rival no check has seen since (its gain
+    over the estimate it left)."""
+
+    rival_gain: float | None
+    moved_deg: float
+    x: Array
+    fun: float
+    f_estimate: float
+    checks: int = 1
+    moves: int = 0
+
+    def to_dict(self) -> dict:
+        return {
+            "rival_gain": self.rival_gain,
+            "moved_deg": self.moved_deg,
+            "checks": self.checks,
+            "moves": self.moves,
+        }
