@@ -6,6 +6,7 @@ carry no signal and never drive the similarity.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -97,3 +98,34 @@ class XRayImage:
         img = np.where(mask, img, 0.0).astype(np.float32)
         meta = {**self.meta, "downsampled_by": factor * int(self.meta.get("downsampled_by", 1))}
         return XRayImage(img, mask, self.geometry.resized(r, c), self.kind, meta)
+
+
+def line_integrals(
+    intensity: NDArray[np.floating] | NDArray[np.integer],
+    *,
+    mask: NDArray[np.bool_] | None = None,
+    i0: float | None = None,
+) -> NDArray[np.float32]:
+    """Attenuation line integrals ``-log(I / I0)`` from linear detector intensities (CONVENTIONS §5).
+
+    ``intensity`` grows with the X-rays that reach the detector (air bright). ``i0`` is the
+    unattenuated intensity; by default the largest intensity inside ``mask`` (the whole image
+    without one), so the brightest pixel of the field has line integral 0. Intensities are
+    floored at ``i0 * 1e-6`` (a line integral of at most 13.8), so a zero pixel stays finite.
+
+    >>> line_integrals(np.array([[100.0, 50.0], [25.0, 100.0]])).astype(float).round(3).tolist()
+    [[0.0, 0.693], [1.386, 0.0]]
+    """
+    values = np.asarray(intensity, dtype=np.float64)
+    if values.ndim != 2:
+        raise ValueError(f"intensity must be 2-D (rows, cols), got shape {values.shape}")
+    inside = values[mask] if mask is not None else values.reshape(-1)
+    if inside.size == 0:
+        raise ValueError("mask is empty: no pixel of the image lies inside the field")
+    if not np.all(np.isfinite(inside)):
+        raise ValueError("intensity has NaN or infinite pixels inside the field")
+    reference = float(np.max(inside)) if i0 is None else float(i0)
+    if not (math.isfinite(reference) and reference > 0):
+        raise ValueError(f"the unattenuated intensity i0 must be positive, got {reference}")
+    out = np.log(reference / np.maximum(values, reference * 1e-6))
+    return np.where(np.isfinite(out), out, 0.0).astype(np.float32)

@@ -451,10 +451,15 @@ def read_npz(path: str | os.PathLike[str]) -> Volume:
 
 
 def read_volume(path: str | os.PathLike[str], *, label: str | None = None) -> Volume:
-    """A volume from a DICOM folder, an enhanced multi-frame file or the project's ``.npz``."""
+    """A volume from a DICOM folder, an enhanced multi-frame file, the project's ``.npz``, or a
+    NIfTI, NRRD or MetaImage file (:mod:`registration.io.volume_files`, CONVENTIONS §8)."""
     path = Path(path)
     if not path.exists():
         raise DicomError(path, "no such file or folder")
+    from registration.io.volume_files import read_volume_file, volume_format
+
+    if path.is_file() and volume_format(path) is not None:
+        return read_volume_file(path, label=label)
     if path.is_dir():
         return read_series(path, label=label)
     if path.suffix.lower() == ".npz":

@@ -438,8 +438,12 @@ def read_xray(
     kind: str | None = None,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    geometry: str | os.PathLike[str] | dict | None = None,
 ) -> XRayImage:
     """An XA/RF image (one frame) as attenuation line integrals with its field mask and C-arm.
+
+    A TIFF or PNG file is read by :func:`registration.io.image_files.read_image_file` with its
+    ``geometry`` side file (default ``<image>.json``); ``frame`` and ``kind`` do not apply.
 
     ``frame`` is 0-based; a multi-frame file read without it gives frame 0 and a warning.
     ``isocenter_mm`` places the iso-center (default: the world origin, CONVENTIONS §1).
@@ -450,6 +454,12 @@ def read_xray(
     """
     path = Path(path)
     iso = _check_isocenter(isocenter_mm)
+    from registration.io.image_files import is_image_file, read_image_file
+
+    if is_image_file(path):
+        if frame not in (None, 0):
+            raise DicomError(path, f"frame {frame}: a TIFF/PNG image is one frame")
+        return read_image_file(path, geometry=geometry, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
     ds, frames, rows, cols = _open_xray(path)
     if frame is None:
         if frames > 1:
