@@ -152,7 +152,7 @@ def withheld_term(evidence: Mapping[str, object] | Evidence, rule: ConfidenceRul
 # --------------------------------------------------------------------------------------
 # Figures
 # --------------------------------------------------------------------------------------
-def _plt():  # noqa: ANN202 - matplotlib's pyplot module
+def pyplot():  # noqa: ANN202 - matplotlib's pyplot module
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,10 +161,10 @@ def _plt():  # noqa: ANN202 - matplotlib's pyplot module
     return plt
 
 
-def _png(fig) -> bytes:  # noqa: ANN001
+def png_of(fig) -> bytes:  # noqa: ANN001
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
-    _plt().close(fig)
+    pyplot().close(fig)
     return buf.getvalue()
 
 
@@ -193,7 +193,7 @@ def profiles_figure(
     points (+-1 mm / deg; +-3 deg along rx, ry), the level the rule asks the peak to stand above
     them (``margin_good``; ``rotation_margin_good`` for rx, ry), the rotation check's best rival
     (rx, ry) when it found one; the plot(s) a withheld estimate failed framed and captioned."""
-    plt = _plt()
+    plt = pyplot()
     ev = dict(evidence or {})
     term = withheld_term(ev, rule) if ev else None
     fig, axes = plt.subplots(1, len(profiles), figsize=(2.3 * len(profiles), 2.9), sharey=False)
@@ -232,7 +232,7 @@ def profiles_figure(
         fontsize=8,
     )
     fig.tight_layout(rect=(0, 0, 1, 0.92))
-    return _png(fig)
+    return png_of(fig)
 
 
 def depth_figure(
@@ -248,7 +248,7 @@ def depth_figure(
     and the depth probe's tz and in-plane shift. None without a scan (two views)."""
     if not scan:
         return None
-    plt = _plt()
+    plt = pyplot()
     x = np.asarray(scan["offsets_mm"], dtype=float)  # type: ignore[arg-type]
     y = np.asarray(scan["similarity"], dtype=float)  # type: ignore[arg-type]
     fig, ax = plt.subplots(figsize=(7.0, 3.0))
@@ -270,12 +270,12 @@ def depth_figure(
     if term in ("depth_scan", "depth", "depth_pull"):
         _mark_withheld(ax, reason)
     fig.tight_layout()
-    return _png(fig)
+    return png_of(fig)
 
 
 def convergence_figure(trace: list[float], *, title: str = "Convergence") -> bytes:
     """The best similarity over the optimizer's iterations."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(4.6, 2.4))
     y = np.asarray(trace, dtype=float)
     ax.plot(np.arange(1, len(y) + 1), y, color="#1c7ed6", lw=1.3)
@@ -284,4 +284,4 @@ def convergence_figure(trace: list[float], *, title: str = "Convergence") -> byt
     ax.tick_params(labelsize=7)
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    return _png(fig)
+    return png_of(fig)

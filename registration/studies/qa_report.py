@@ -51,7 +51,7 @@ class Anatomy:
 
 
 @dataclass
-class _Page:
+class Page:
     sections: list[str] = field(default_factory=list)
     files: dict[str, bytes] = field(default_factory=dict)
 
@@ -85,7 +85,7 @@ def _shown(view: XRayImage) -> XRayImage:
     return view.downsample(factor) if factor > 1 else view
 
 
-def _num(value: object, key: str, fmt: str = ".4f") -> str:
+def number(value: object, key: str, fmt: str = ".4f") -> str:
     if value is None:
         return f'<span data-key="{key}">–</span>'
     if isinstance(value, bool):
@@ -97,12 +97,12 @@ def _num(value: object, key: str, fmt: str = ".4f") -> str:
     return f'<span data-key="{key}">{html.escape(str(value))}</span>'
 
 
-def _rows(rows: Sequence[tuple[str, str]]) -> str:
+def table(rows: Sequence[tuple[str, str]]) -> str:
     return "<table>" + "".join(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>" for k, v in rows) + "</table>"
 
 
-def _plane_pictures(
-    page: _Page,
+def plane_pictures(
+    page: Page,
     view: XRayImage,
     plane: str,
     *,
@@ -111,7 +111,10 @@ def _plane_pictures(
     initial: NDArray,
     anatomy: Anatomy | None,
     checker_px: int,
+    pose_name: str = "the registered pose",
+    initial_name: str = "the machine-based (initial) pose",
 ) -> str:
+    """One plane's pictures: the image, the DRR at ``motion`` and at ``initial``, every overlay mode."""
     shown = _shown(view)
     g = shown.geometry
     level = _finest_level(renderer)
@@ -130,12 +133,12 @@ def _plane_pictures(
         page.image(
             f"{tag}drr.png",
             _png_rgb(qa_images.gray_rgb(qa_images.to_gray(drr, mask))),
-            f"{title}DRR at the registered pose",
+            f"{title}DRR at {pose_name}",
         ),  # fmt: skip
         page.image(
             f"{tag}drr_initial.png",
             _png_rgb(qa_images.gray_rgb(qa_images.to_gray(drr_initial, mask))),
-            f"{title}DRR at the machine-based (initial) pose",
+            f"{title}DRR at {initial_name}",
         ),  # fmt: skip
     ]
     for mode in qa_images.OVERLAY_MODES:
@@ -145,49 +148,49 @@ def _plane_pictures(
                                 outline_initial=outline_initial, tile_px=checker_px, thickness=1)  # fmt: skip
         caption = f"{title}{qa_images.OVERLAY_LABELS[mode]}"
         if mode == "wipe":
-            caption += " (amber: roadmap at the machine-based pose)" if outline is not None else ""
+            caption += f" (amber: roadmap at {initial_name})" if outline is not None else ""
         cells.append(page.image(f"{tag}overlay_{mode}.png", _png_rgb(rgb), caption))
     note = "" if anatomy is not None else "<p>No vessel surface in this volume: no roadmap outline.</p>"
     return f"<h3>{html.escape(plane or 'The image')}</h3>{note}<div class='grid'>{''.join(cells)}</div>"
 
 
 def _numbers(doc: Mapping[str, Any]) -> str:
-    rows = [("similarity (gradient difference)", _num(doc.get("similarity"), "similarity"))]
+    rows = [("similarity (gradient difference)", number(doc.get("similarity"), "similarity"))]
     for name, value in dict(doc.get("offsets") or {}).items():
         unit = "mm" if name.startswith("t") else "deg"
-        rows.append((f"{name} ({unit}, view frame)", _num(value, f"offsets.{name}", "+.3f")))
+        rows.append((f"{name} ({unit}, view frame)", number(value, f"offsets.{name}", "+.3f")))
     if doc.get("depth_tz_mm") is not None:
-        rows.append(("tz from the depth correction (mm)", _num(doc["depth_tz_mm"], "depth_tz_mm", "+.3f")))
+        rows.append(("tz from the depth correction (mm)", number(doc["depth_tz_mm"], "depth_tz_mm", "+.3f")))
     rows += [
-        ("DRRs rendered", _num(doc.get("drr_count"), "drr_count")),
-        ("seconds", _num(doc.get("seconds"), "seconds", ".2f")),
-        ("stopped", _num(doc.get("stopped"), "stopped")),
+        ("DRRs rendered", number(doc.get("drr_count"), "drr_count")),
+        ("seconds", number(doc.get("seconds"), "seconds", ".2f")),
+        ("stopped", number(doc.get("stopped"), "stopped")),
     ]
     if doc.get("rotation_check") is not None:
         rc = doc["rotation_check"]
-        checks = _num(rc.get("checks"), "rotation_check.checks")
-        rows.append(("rotation check: checks / moves", f"{checks} / {_num(rc.get('moves'), 'rotation_check.moves')}"))
+        checks = number(rc.get("checks"), "rotation_check.checks")
+        rows.append(("rotation check: checks / moves", f"{checks} / {number(rc.get('moves'), 'rotation_check.moves')}"))
         rows.append(
-            ("rotation check: best rival (relative)", _num(rc.get("rival_gain"), "rotation_check.rival_gain", ".5f"))
+            ("rotation check: best rival (relative)", number(rc.get("rival_gain"), "rotation_check.rival_gain", ".5f"))
         )
     motion = np.asarray(doc["patient_motion"], dtype=float)
     matrix = "<br>".join(
-        " ".join(_num(motion[i, j], f"patient_motion.{i}.{j}", "+.5f") for j in range(4)) for i in range(4)
+        " ".join(number(motion[i, j], f"patient_motion.{i}.{j}", "+.5f") for j in range(4)) for i in range(4)
     )
     rows.append(("patient motion (4x4, mm, CONVENTIONS §4)", f"<code>{matrix}</code>"))
     if doc.get("residual") is not None:
         r = doc["residual"]
         for key in ("translation_mm", "inplane_mm", "outofplane_mm", "rotation_deg", "mtre_mm"):
             if r.get(key) is not None:
-                rows.append((f"residual vs truth: {key}", _num(r[key], f"residual.{key}", ".3f")))
-        rows.append(("success (< 1 mm, < 3 deg)", _num(doc.get("success"), "success")))
-    return _rows(rows)
+                rows.append((f"residual vs truth: {key}", number(r[key], f"residual.{key}", ".3f")))
+        rows.append(("success (< 1 mm, < 3 deg)", number(doc.get("success"), "success")))
+    return table(rows)
 
 
 def _decision(doc: Mapping[str, Any]) -> str:
     if "applied" not in doc:
         return "<p class='verdict'>No confidence assessed.</p>"
-    conf = _num(doc.get("confidence"), "confidence", ".3f")
+    conf = number(doc.get("confidence"), "confidence", ".3f")
     if doc["applied"]:
         return f"<p class='verdict ok'>Confidence {conf}: <b>applied</b>.</p>"
     reason = html.escape(str(doc.get("withheld_reason") or "low confidence"))
@@ -197,7 +200,7 @@ def _decision(doc: Mapping[str, Any]) -> str:
     )
 
 
-def _evidence(page: _Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, list]], probe, scan) -> str:  # noqa: ANN001
+def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, list]], probe, scan) -> str:  # noqa: ANN001
     ev = dict(doc.get("confidence_evidence") or {})
     term = qa_evidence.withheld_term(ev) if ev else None
     reason = str(doc.get("withheld_reason") or "")
@@ -207,8 +210,8 @@ def _evidence(page: _Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str,
         parts.append(f"<p class='withheld'>Withheld because {html.escape(reason)}: read it in {html.escape(where)} "
                      "(framed in red below).</p>")  # fmt: skip
     if ev:
-        rows = [(k, _num(v, f"confidence_evidence.{k}", ".5f")) for k, v in ev.items() if v is not None]
-        parts.append(_rows(rows))
+        rows = [(k, number(v, f"confidence_evidence.{k}", ".5f")) for k, v in ev.items() if v is not None]
+        parts.append(table(rows))
     for plane, profs in profiles:
         png = qa_evidence.profiles_figure(profs, evidence=ev, reason=reason)
         tag = plane.lower().replace(" ", "_") + "_" if plane else ""
@@ -223,7 +226,7 @@ def _evidence(page: _Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str,
     return "".join(parts)
 
 
-def _inputs(volume: Volume, views: Sequence[XRayImage], doc: Mapping[str, Any], identify: bool) -> str:
+def inputs_section(volume: Volume, views: Sequence[XRayImage], doc: Mapping[str, Any], identify: bool) -> str:
     vm = volume.meta
     rows = [
         ("volume", html.escape(volume.label)),
@@ -263,7 +266,7 @@ def _inputs(volume: Volume, views: Sequence[XRayImage], doc: Mapping[str, Any], 
             rows.append((f"{name}: file", html.escape(str(v.meta.get("source") or "–"))))
     if doc.get("isocenter_from"):
         rows.append(("iso-center from", html.escape(str(doc["isocenter_from"]))))
-    return "<h2>Inputs</h2>" + _rows(rows)
+    return "<h2>Inputs</h2>" + table(rows)
 
 
 _STYLE = (
@@ -277,14 +280,14 @@ _STYLE = (
 )
 
 
-def _html(title: str, body: str) -> str:
+def page_html(title: str, body: str) -> str:
     return (
         f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
         f"<style>{_STYLE}</style></head><body>{body}</body></html>"
     )
 
 
-def _footer(command: str | None) -> str:
+def footer(command: str | None) -> str:
     from registration.studies.report import source_revision
 
     rev = source_revision()
@@ -321,14 +324,14 @@ def write_registration_report(
     views = list(views)
     motion = np.asarray(doc["patient_motion"], dtype=np.float64)
     initial = np.eye(4) if initial_motion is None else np.asarray(initial_motion, dtype=np.float64)
-    page = _Page()
+    page = Page()
     planes = [str(v.meta.get("plane") or name) for v, name in zip(views, ("PLANE A", "PLANE B"), strict=False)]
     if len(views) == 1:
         planes = [""]
     title = "Registration report" + (" (biplane)" if len(views) == 2 else "")
     body = [f"<h1>{title}</h1>", _decision(doc), "<h2>Numbers</h2>", _numbers(doc), "<h2>Compare in place</h2>"]
     for view, plane in zip(views, planes, strict=True):
-        body.append(_plane_pictures(page, view, plane, renderer=renderer, motion=motion, initial=initial,
+        body.append(plane_pictures(page, view, plane, renderer=renderer, motion=motion, initial=initial,
                                     anatomy=anatomy, checker_px=checker_px))  # fmt: skip
     profiles = [
         (plane, qa_evidence.parameter_profiles(volume, view, motion, renderer=renderer))
@@ -342,9 +345,9 @@ def write_registration_report(
             "starts again, on its own images)"
         )
         body.append("<h2>Convergence</h2>" + page.image("convergence.png", trace, caption, wide=True))
-    body.append(_inputs(volume, views, doc, identify))
-    body.append(_footer(command))
-    text = _html(title, "".join(body))
+    body.append(inputs_section(volume, views, doc, identify))
+    body.append(footer(command))
+    text = page_html(title, "".join(body))
     saved = dict(doc)
     if not identify:
         for key in ("volume", "image", "images"):

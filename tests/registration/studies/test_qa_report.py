@@ -217,3 +217,40 @@ def test_report_of_the_truth_is_applied(scene, tmp_path):
                                               renderer=renderer)  # fmt: skip
     text = (out / qa_report.REPORT_HTML).read_text()
     assert "applied" in text and "Withheld because" not in text
+
+
+def test_track_report_lists_the_decisions_and_matches_the_document(scene, tmp_path):
+    from registration.studies import qa_track
+
+    volume, xray, renderer = scene
+    g = xray.geometry
+    moved = offsets_to_matrix([1.0, 0.5, 0.0, 0.0, 0.0, 1.0], g).tolist()
+
+    def frame(n: int, status: str, pose: list, confidence: float | None, reason: str = "") -> dict:
+        return {"frame": n, "t_s": n / 15.0, "status": status, "patient_motion": pose, "path": "refine",
+                "confidence": confidence, "reason": reason, "latency_ms": 12.5 + n}  # fmt: skip
+
+    eye = np.eye(4).tolist()
+    frames = [frame(0, "unchanged", eye, None), frame(1, "withheld", eye, 0.12, "the capture runs disagree"),
+              frame(2, "applied", moved, 0.93), frame(3, "unchanged", moved, None)]  # fmt: skip
+    doc = {"frames": frames, "planes": 1, "frame_count": 4, "skipped": [], "volume": {"path": "/p/Doe/vol"},
+           "summary": {"frames": 4, "processed": 4, "applied": 1, "withheld": 1, "unchanged": 2}}  # fmt: skip
+    truth = np.stack([np.eye(4), np.eye(4), np.asarray(moved), np.asarray(moved)])
+    out = qa_track.write_track_report(tmp_path / "track", document=doc, volume=volume, last_views=[xray],
+                                      renderer=renderer, truth=truth)  # fmt: skip
+    text = (out / qa_report.REPORT_HTML).read_text()
+    assert "the capture runs disagree" in text and "withheld" in text
+    saved = json.loads((out / qa_report.REPORT_JSON).read_text())
+    assert "Doe" not in json.dumps(saved) and "Doe" not in text
+    numbers = qa_report.read_report_numbers(text)
+    assert numbers["frames.1.confidence"] == "0.120" and numbers["summary.applied"] == "1"
+    assert "frames.0.confidence" not in numbers  # unchanged frames are counted, not listed
+    for key, shown in numbers.items():
+        if key != "software.version":
+            assert float(shown) == pytest.approx(float(qa_report.document_value(saved, key)), abs=0.051), key
+    from PIL import Image
+
+    with Image.open(out / "strip_charts.png") as im:
+        im.load()
+        assert im.size[0] > 500
+    assert (out / "overlay_checkerboard.png").exists()
