@@ -12,6 +12,7 @@ that the 3DRA does not contain can be added.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -134,6 +135,7 @@ def simulate_xray(
     supersample: int = SUPERSAMPLE,
     photons_per_pixel: float | None = None,
     devices: HeadPhantom | None = None,
+    detector_effects: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> XRayImage:
     """Simulate a fluoroscopy or exposure image of the phantom (the honest image model).
 
@@ -164,6 +166,11 @@ def simulate_xray(
         Interventional devices as a phantom of their own (e.g. :func:`device_phantom` with the
         guidewire partly advanced, or :func:`registration.sim.volume_xray.catheter_devices`
         for a volume's anatomy); used instead of the default devices when ``catheter``.
+    detector_effects
+        ``f(transmission, field_mask) -> transmission``: what reaches the detector besides the
+        primary beam (collimator blades, scatter, the heel effect), applied to the mean
+        transmission frame (zero outside the field) before the exposure control and the
+        quantum noise (:mod:`registration.sim.clinical`); None for the primary beam alone.
 
     Returns
     -------
@@ -210,6 +217,10 @@ def simulate_xray(
     # automatic exposure control: I0 such that the central field receives `photons`
     frame = np.zeros((rows, cols))
     frame[rr, cc] = transmission
+    if detector_effects is not None:
+        frame = np.where(field_mask, np.asarray(detector_effects(frame, field_mask), dtype=np.float64), 0.0)
+        if not np.all(np.isfinite(frame)) or frame.min() < 0:
+            raise ValueError("detector_effects must return a finite, non-negative transmission frame")
     y = (np.arange(rows) - (rows - 1) / 2.0)[:, None] * geometry.pixel_mm[0]
     x = (np.arange(cols) - (cols - 1) / 2.0)[None, :] * geometry.pixel_mm[1]
     aec_radius = AEC_FIELD_FRACTION * geometry.field_diameter_mm / 2.0
