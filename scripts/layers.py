@@ -25,6 +25,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("io", ("registration.io",)),
     ("sim", ("registration.sim",)),
     ("studies", ("registration.studies",)),
+    ("api", ("registration.api",)),  # the public face; registration/__init__ reaches it by name, lazily
     ("app", ("app",)),
 )
 PACKAGES = ("registration", "app")
