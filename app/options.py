@@ -159,3 +159,10 @@ class VolumeStudy:
     """Output folder (results.jsonl, summary.json, report.md)."""
     seed: int = 0
     """Seed of the views, offsets, noise and annealing."""
+    realism: str = "clean"
+    """Images: clean (line integrals, noise, blur, catheter), clinical (every effect), each (every effect alone), or
+    effects joined by + (blades, text, overlay, display, contrast, scatter, heel, table, neck); comma-separated arms."""
+    strengths: str = "1"
+    """Strengths of the effects, comma-separated (0 none, 1 typical, 2 severe): each arm runs at each (a sweep)."""
+    quick: bool = False
+    """A few minutes: 8 cases per arm (unless --cases is given)."""

@@ -294,6 +294,10 @@ def _read_study_volume(args: VolumeStudy) -> Any:
         shutil.rmtree(work, ignore_errors=True)
 
 
+#: Cases per arm of ``validate volume --quick``.
+QUICK_VOLUME_CASES = 8
+
+
 def run_volume_validation(args: VolumeStudy) -> int:
     """``roadmap3d validate volume``: random views and offsets on the user's volume, a table or
     one JSON object with ``--json``; ``--out`` keeps results.jsonl, summary.json and report.md."""
@@ -302,9 +306,13 @@ def run_volume_validation(args: VolumeStudy) -> int:
     from app.commands import resolve_isocenter
     from registration.studies.volume import SUMMARY_KEYS, VolumeStudyConfig, report_markdown, run_volume_study
 
-    config = VolumeStudyConfig(
-        cases=args.cases, max_mm=args.max_mm, max_deg=args.max_deg, biplane=args.biplane, seed=args.seed
-    )
+    try:
+        strengths = tuple(float(x) for x in str(args.strengths).split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"--strengths takes numbers separated by commas, got {args.strengths!r}") from None
+    cases = QUICK_VOLUME_CASES if args.quick and args.cases == VolumeStudy.cases else args.cases
+    config = VolumeStudyConfig(cases=cases, max_mm=args.max_mm, max_deg=args.max_deg, biplane=args.biplane,
+                               seed=args.seed, realism=args.realism, strengths=strengths)  # fmt: skip
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         volume = _read_study_volume(args)
@@ -319,6 +327,11 @@ def run_volume_validation(args: VolumeStudy) -> int:
         )
     _stderr(f"iso-center ({', '.join(f'{c:.1f}' for c in iso)}) mm: {iso_from}")
     _stderr("Best case: the X-ray images are formed from the same volume (not real X-rays).")
+    if config.realism != "clean":
+        _stderr(
+            f"realism {config.realism} at strength(s) {', '.join(f'{x:g}' for x in strengths)}: clinical-looking "
+            "images written as XA files and read back as register reads them; decisions as register --confidence"
+        )
     log = _stderr
     records, summary = run_volume_study(volume, iso, config, out=args.out, log=log)
     if args.json:

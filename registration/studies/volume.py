@@ -67,8 +67,22 @@ class VolumeStudyConfig:
     catheter: bool = True
     biplane: bool = False
     seed: int = 0
+    #: The arms of the study (``--realism``): ``clean`` (the images above), ``clinical`` (every
+    #: effect of :mod:`registration.sim.clinical`), ``each``, or effect names joined by ``+``,
+    #: comma-separated; each arm registers the same cases.
+    realism: str = "clean"
+    #: Strengths of the effects (``at_strength``: 0 none, 1 typical, 2 severe); each arm runs at each.
+    strengths: tuple[float, ...] = (1.0,)
+    #: Assess each estimate's confidence (applied / withheld) as ``register --confidence`` does;
+    #: always on (for every arm) when an arm has clinical effects.
+    confidence: bool = False
 
     def __post_init__(self) -> None:
+        from registration.sim.clinical import parse_realism
+
+        parse_realism(self.realism)  # a bad word is refused here, by name
+        if not self.strengths or any(not (math.isfinite(s) and 0 <= s <= 3) for s in self.strengths):
+            raise ValueError(f"strengths must lie in [0, 3], got {self.strengths}")
         if int(self.cases) != self.cases or self.cases < 1:
             raise ValueError(f"--cases must be a positive integer, got {self.cases}")
         if not (math.isfinite(self.max_mm) and 0 <= self.max_mm <= 100):
@@ -185,6 +199,95 @@ def _views(config: VolumeStudyConfig, case: VolumeCase, isocenter_mm: tuple[floa
     return views
 
 
+def study_arms(config: VolumeStudyConfig) -> list[tuple[str, tuple[str, ...], float]]:
+    """(arm name, effect names, strength) of each arm: clean runs once, the others at each strength."""
+    from registration.sim.clinical import parse_realism
+
+    out = []
+    for name, effects in parse_realism(config.realism):
+        for strength in [1.0] if not effects else list(config.strengths):
+            out.append((name, effects, float(strength)))
+    return out
+
+
+class ClinicalViews:
+    """An arm's clinical-looking images, written as the XA files a system sends and read back by
+    the project's reader (:func:`registration.io.dicom.read_xray`) as ``roadmap3d register`` reads
+    them; plane B of a biplane pair carries the same acquisition time."""
+
+    def __init__(self, volume: Volume, isocenter_mm, effects: tuple[str, ...], strength: float, *,
+                 catheter: bool, base: Volume | None) -> None:  # fmt: skip
+        from registration.sim.clinical import ClinicalEffects, ClinicalImager
+
+        self.effects = ClinicalEffects.of(effects, strength)
+        self.isocenter_mm = tuple(isocenter_mm)
+        self.imager = ClinicalImager(volume, isocenter_mm, self.effects, catheter=catheter, base=base)
+
+    def views(
+        self, geometries: list[CArm], motion: np.ndarray, *, kind: str, seed: int
+    ) -> tuple[list[XRayImage], dict]:
+        import tempfile
+        import warnings
+        from datetime import UTC, datetime
+
+        from registration.io import dicom
+
+        when = datetime(2025, 1, 1, tzinfo=UTC)
+        planes = ["PLANE A", "PLANE B"] if len(geometries) > 1 else [None]
+        out, notes = [], {}
+        with tempfile.TemporaryDirectory(prefix="roadmap3d-clinical-") as tmp:
+            for n, (g, plane) in enumerate(zip(geometries, planes, strict=False)):
+                image = self.imager.image(g, motion, kind=kind, seed=seed + n)
+                path = image.write_dicom(Path(tmp) / f"plane{n}.dcm", acquired_at=when, plane=plane)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    view = dicom.read_xray(path, isocenter_mm=self.isocenter_mm)
+                out.append(view)
+                if n == 0:
+                    notes = {
+                        "mask_from": view.meta.get("mask_from"),
+                        "intensity_note": view.meta.get("intensity_note"),
+                        "reader_warnings": sorted({str(w.message).split(": ", 1)[-1][:120] for w in caught}),
+                        "field_px": int(image.field.sum()),
+                        "mask_px": int(view.mask.sum()),
+                        # pixels the reader uses that carry no anatomy (blades, text) / anatomy it drops
+                        "mask_false_px": int((view.mask & ~image.field).sum()),
+                        "mask_missed_px": int((image.field & ~view.mask).sum()),
+                    }
+        return out, notes
+
+
+def confidence_renderer(prepared, *, planes: int = 1):  # noqa: ANN001, ANN201
+    """The renderer ``roadmap3d register --confidence`` assesses with (the registration's prepared
+    levels, and level 0 on the volume's own grid over the prepared box where one plane's depth
+    scan or a coarse volume's evidence renders there), so that the study's decisions are the
+    command's."""
+    from registration.core.drr import DRRRenderer
+    from registration.core.prepare import mask_outside_body, probe_blocks
+
+    evidence_voxels = 128  # the level nearest this many voxels across: the rule's calibration
+    renderer = prepared.renderer
+    if renderer.has_level(0):
+        return renderer
+    finest = next(k for k in range(renderer.n_levels) if renderer.has_level(k))
+    across = max(renderer.level_volume(finest).shape)
+    finer_wanted = abs(math.log(2 * across / evidence_voxels)) < abs(math.log(across / evidence_voxels))
+    if planes > 1 and not finer_wanted:
+        return renderer
+    volume = prepared.volume
+    lo, hi = np.asarray(prepared.box_lo), np.asarray(prepared.box_hi)
+    affine = volume.index_to_world.copy()
+    affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
+    data = np.ascontiguousarray(volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1])
+    level0 = Volume(data, affine, label=volume.label, meta=volume.meta)
+    if prepared.body:
+        level0 = mask_outside_body(level0, volume, probe_blocks(volume))
+    levels = [level0] + [
+        renderer.level_volume(k) if renderer.has_level(k) else None for k in range(1, renderer.n_levels)
+    ]
+    return DRRRenderer(volume, levels=levels)
+
+
 def run_volume_case(
     volume: Volume,
     imager: VolumeImager,
@@ -193,13 +296,21 @@ def run_volume_case(
     isocenter_mm: tuple[float, float, float],
     *,
     options: RegistrationOptions | None = None,
+    confidence: bool = False,
 ) -> dict:
-    """Form the case's image(s), prepare the volume for its view(s), register and score."""
+    """Form the case's image(s), prepare the volume for its view(s), register and score.
+    ``imager``: a :class:`VolumeImager` (clean images in memory) or :class:`ClinicalViews` (XA
+    files written and read back); ``confidence``: assess the estimate as ``register --confidence``."""
     options = options or RegistrationOptions()
     geometries = _views(config, case, isocenter_mm)
     truth = case_motion(case, isocenter_mm)
     t0 = time.perf_counter()
-    images = [imager.image(g, truth, kind=config.kind, seed=case.seed + n) for n, g in enumerate(geometries)]
+    notes: dict = {}
+    if isinstance(imager, ClinicalViews):
+        images, notes = imager.views(geometries, truth, kind=config.kind, seed=case.seed)
+        geometries = [im.geometry for im in images]
+    else:
+        images = [imager.image(g, truth, kind=config.kind, seed=case.seed + n) for n, g in enumerate(geometries)]
     image_s = time.perf_counter() - t0
     reach = Reach.of_search(options.bound_mm, options.bound_deg, isocenter_mm=isocenter_mm,
                             translations=3 if options.optimizes_tz(len(images)) else 2)  # fmt: skip
@@ -214,37 +325,50 @@ def run_volume_case(
     t = np.asarray(case.translation_mm)
     t_out = float(t @ g.direction)
     inplane_ok = res.inplane_mm < SUCCESS_TRANSLATION_MM and res.rotation_deg < SUCCESS_ROTATION_DEG
-    return {
-        "case": case.number,
-        "primary_deg": case.primary_deg,
-        "secondary_deg": case.secondary_deg,
-        "views": len(geometries),
-        "offset_translation_mm": float(np.linalg.norm(t)),
-        "offset_inplane_mm": float(np.linalg.norm(t - t_out * g.direction)),
-        "offset_outofplane_mm": abs(t_out),
-        "offset_rotation_deg": case.rotation_deg,
-        "seed": case.seed,
-        "translation_residual_mm": res.translation_mm,
-        "inplane_residual_mm": res.inplane_mm,
-        "outofplane_residual_mm": res.outofplane_mm,
-        "rotation_residual_deg": res.rotation_deg,
-        # single plane: the paper's in-plane criterion (even when tz is searched too); biplane: 3-D
-        "success": bool(res.success_total if len(geometries) > 1 else inplane_ok),
-        "success_total": bool(res.success_total),
-        "seconds": result.seconds,
-        "prepare_seconds": prepared.seconds,
-        # "built", or "memory" when an earlier case's view-independent part was reused
-        "prepare_base": prepared.base_source,
-        "image_seconds": image_s,
-        "drr_count": result.drr_count,
-        # the registration's work whatever the machine's load: bilinear samples of its DRRs
-        "drr_samples": int(sum(samples)),
-        "drr_samples_per_level": samples,
-        "voxels_per_level": prepared.voxels_per_level,
-        "spacing_mm": list(prepared.spacing_mm),
-        "parameters": list(result.parameters),
-        "version": __version__,
-    }
+    assessed: dict = {}
+    if confidence and not result.at_bounds:
+        from registration.studies.cases import confidence_fields
+
+        renderer = confidence_renderer(prepared, planes=len(images))
+        found = confidence_fields(volume, images if len(images) > 1 else images[0], result, renderer)
+        assessed = {k: found[k] for k in ("confidence", "applied", "withheld_reason") if k in found}
+    elif confidence:  # at the search bounds: register refuses, nothing applied
+        assessed = {"confidence": 0.0, "applied": False, "withheld_reason": "at the search bounds"}
+    return (
+        assessed
+        | notes
+        | {
+            "case": case.number,
+            "primary_deg": case.primary_deg,
+            "secondary_deg": case.secondary_deg,
+            "views": len(geometries),
+            "offset_translation_mm": float(np.linalg.norm(t)),
+            "offset_inplane_mm": float(np.linalg.norm(t - t_out * g.direction)),
+            "offset_outofplane_mm": abs(t_out),
+            "offset_rotation_deg": case.rotation_deg,
+            "seed": case.seed,
+            "translation_residual_mm": res.translation_mm,
+            "inplane_residual_mm": res.inplane_mm,
+            "outofplane_residual_mm": res.outofplane_mm,
+            "rotation_residual_deg": res.rotation_deg,
+            # single plane: the paper's in-plane criterion (even when tz is searched too); biplane: 3-D
+            "success": bool(res.success_total if len(geometries) > 1 else inplane_ok),
+            "success_total": bool(res.success_total),
+            "seconds": result.seconds,
+            "prepare_seconds": prepared.seconds,
+            # "built", or "memory" when an earlier case's view-independent part was reused
+            "prepare_base": prepared.base_source,
+            "image_seconds": image_s,
+            "drr_count": result.drr_count,
+            # the registration's work whatever the machine's load: bilinear samples of its DRRs
+            "drr_samples": int(sum(samples)),
+            "drr_samples_per_level": samples,
+            "voxels_per_level": prepared.voxels_per_level,
+            "spacing_mm": list(prepared.spacing_mm),
+            "parameters": list(result.parameters),
+            "version": __version__,
+        }
+    )
 
 
 def summarize(records: list[dict], config: VolumeStudyConfig, *, volume: Volume, isocenter_mm, revision: str) -> dict:
@@ -270,6 +394,7 @@ def summarize(records: list[dict], config: VolumeStudyConfig, *, volume: Volume,
         "outofplane_residual_mm_median": median("outofplane_residual_mm"),
         "success_rate_3d": float(np.mean([r["success_total"] for r in records])) if records else None,
         "images": IMAGES_FROM_VOLUME,
+        "arms": arm_summaries(records, biplane=config.biplane),
         "volume": volume.label,
         "volume_shape": list(volume.shape[::-1]),
         "volume_spacing_mm": [float(s) for s in volume.spacing_mm],
@@ -278,6 +403,46 @@ def summarize(records: list[dict], config: VolumeStudyConfig, *, volume: Volume,
         "version": __version__,
         "revision": revision,
     }
+    return out
+
+
+def arm_summaries(records: list[dict], *, biplane: bool) -> list[dict]:
+    """Per arm and strength: success, applied precision (applied estimates right) and recall
+    (right estimates applied), the worst applied error (3-D for biplane, in-plane for one plane)."""
+    groups: dict[tuple[str, float], list[dict]] = {}
+    for r in records:
+        groups.setdefault((r.get("arm", "clean"), float(r.get("strength", 1.0))), []).append(r)
+    key = "translation_residual_mm" if biplane else "inplane_residual_mm"
+    out = []
+    for (arm, strength), rs in groups.items():
+        decided = [r for r in rs if "applied" in r]
+        applied = [r for r in decided if r["applied"]]
+        right = [r for r in decided if r["success"]]
+        both = [r for r in applied if r["success"]]
+        errors = [r[key] for r in applied]
+        out.append({
+            "arm": arm,
+            "effects": rs[0].get("effects", []),
+            "strength": strength,
+            "runs": len(rs),
+            "success_rate": float(np.mean([r["success"] for r in rs])),
+            "applied": len(applied) if decided else None,
+            "withheld": len(decided) - len(applied) if decided else None,
+            "applied_precision": len(both) / len(applied) if applied else None,
+            "applied_recall": len(both) / len(right) if right else None,
+            "applied_wrong": [r["case"] for r in applied if not r["success"]],
+            "max_applied_error_mm": float(max(errors)) if errors else None,
+            "applied_worse_than_2mm": sum(e >= 2.0 for e in errors),
+            "residual_mm_median": float(np.median([r[key] for r in rs])),
+            "worst_residual_mm": float(max(r[key] for r in rs)),
+            "rotation_residual_deg_median": float(np.median([r["rotation_residual_deg"] for r in rs])),
+            "mask_from": sorted({str(r.get("mask_from")) for r in rs if r.get("mask_from")}),
+            "intensity_note": sorted({str(r.get("intensity_note")) for r in rs if r.get("intensity_note")}),
+            "mask_false_px_median": (
+                float(np.median([r["mask_false_px"] for r in rs])) if "mask_false_px" in rs[0] else None
+            ),
+            "seconds_median": float(np.median([r["seconds"] for r in rs])),
+        })  # fmt: skip
     return out
 
 
@@ -294,21 +459,48 @@ def run_volume_study(
     from registration.studies.report import source_revision
 
     say = log or (lambda _msg: None)
-    imager = VolumeImager(volume, isocenter_mm, catheter=config.catheter)
     records = []
     cases = volume_cases(config)
-    for case in cases:
-        record = run_volume_case(volume, imager, case, config, isocenter_mm, options=options)
-        records.append(record)
-        say(
-            f"[{case.number + 1}/{len(cases)}] LAO/RAO {case.primary_deg:+5.1f} CRAN/CAUD {case.secondary_deg:+5.1f}: "
-            f"in-plane {record['inplane_residual_mm']:.2f} mm, 3-D {record['translation_residual_mm']:.2f} mm, "
-            f"{record['rotation_residual_deg']:.2f} deg, {record['seconds']:.2f} s "
-            f"(+{record['prepare_seconds']:.2f} s preparing) {'ok' if record['success'] else 'MISS'}"
-        )
+    arms = study_arms(config)
+    base = None
+    # decisions for every arm (the clean one too, as the baseline) once any arm is clinical
+    confidence = config.confidence or any(effects for _, effects, _ in arms)
+    for arm, effects, strength in arms:
+        if not effects:
+            imager: VolumeImager | ClinicalViews = VolumeImager(volume, isocenter_mm, catheter=config.catheter)
+        else:
+            if base is None and "table" in effects:
+                from registration.sim.clinical.anatomy import patient_only
+
+                base = patient_only(volume)[0]  # the CT's couch cut off once for every arm with the table
+            imager = ClinicalViews(volume, isocenter_mm, effects, strength, catheter=config.catheter,
+                                   base=base if "table" in effects else None)  # fmt: skip
+        label = arm if len(arms) == 1 or not effects else f"{arm} @ {strength:g}"
+        for case in cases:
+            record = run_volume_case(volume, imager, case, config, isocenter_mm, options=options, confidence=confidence)
+            record.update(arm=arm, effects=list(effects), strength=strength)
+            records.append(record)
+            decision = ""
+            if "applied" in record:
+                decision = " applied" if record["applied"] else f" withheld ({record.get('withheld_reason')})"
+            say(
+                f"{label} [{case.number + 1}/{len(cases)}] LAO/RAO {case.primary_deg:+5.1f} CRAN/CAUD "
+                f"{case.secondary_deg:+5.1f}: in-plane {record['inplane_residual_mm']:.2f} mm, 3-D "
+                f"{record['translation_residual_mm']:.2f} mm, {record['rotation_residual_deg']:.2f} deg, "
+                f"{record['seconds']:.2f} s (+{record['prepare_seconds']:.2f} s preparing) "
+                f"{'ok' if record['success'] else 'MISS'}{decision}"
+            )
+            if out is not None:  # the records so far, so that a long study can be read while it runs
+                Path(out).mkdir(parents=True, exist_ok=True)
+                (Path(out) / "results.partial.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
     summary = summarize(records, config, volume=volume, isocenter_mm=isocenter_mm, revision=source_revision())
+    if any(effects for _, effects, _ in arms):
+        from registration.sim.clinical import CLINICAL_IMAGES_FROM_VOLUME
+
+        summary["images"] = CLINICAL_IMAGES_FROM_VOLUME + "; the arm 'clean': " + IMAGES_FROM_VOLUME
     if out is not None:
         write_outputs(Path(out), records, summary)
+        (Path(out) / "results.partial.jsonl").unlink(missing_ok=True)
     return records, summary
 
 
@@ -338,6 +530,7 @@ def report_markdown(records: list[dict], summary: dict) -> str:
         f"({', '.join(f'{c:.1f}' for c in summary['isocenter_mm'])}) mm. {cfg['cases']} cases, seed {cfg['seed']}, "
         f"{'biplane' if cfg['biplane'] else 'single plane'}, {cfg['pixels']}-px {cfg['kind']} images of a "
         f"{cfg['image_format_cm']:g} cm format, offsets <= {cfg['max_mm']:g} mm / {cfg['max_deg']:g} deg; "
+        f"realism {cfg.get('realism', 'clean')}, strengths {', '.join(f'{x:g}' for x in cfg.get('strengths', [1.0]))}; "
         f"roadmap3d {summary['version']}, revision {summary['revision']}.",
         "",
         f"Success ({summary['success_criterion']}): **{100 * summary['success_rate']:.1f} %** of {summary['runs']}; "
@@ -347,16 +540,42 @@ def report_markdown(records: list[dict], summary: dict) -> str:
         f"median {summary['seconds_median']:.2f} s a registration with the volume prepared, "
         f"{summary['prepare_seconds']:.2f} s preparing it for a view.",
         "",
-        "| case | LAO/RAO | CRAN/CAUD | offset mm (in-plane / out) | offset deg | in-plane mm | 3-D mm | rot deg "
-        "| s | ok |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :-: |",
+    ]
+    arms = summary.get("arms") or []
+    if len(arms) > 1 or any(a["effects"] for a in arms):
+        pct = lambda v: "-" if v is None else f"{100 * v:.0f} %"  # noqa: E731
+        lines += [
+            "Per arm (effects of `registration.sim.clinical` at the strength given; precision: applied estimates "
+            "that are right; recall: right estimates that were applied):",
+            "",
+            "| arm | strength | runs | success | applied | precision | recall | worst applied mm | median mm "
+            "| worst mm | field from |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+        ]
+        for a in arms:
+            worst_applied = "-" if a["max_applied_error_mm"] is None else f"{a['max_applied_error_mm']:.2f}"
+            lines.append(
+                f"| {a['arm']} | {a['strength']:g} | {a['runs']} | {pct(a['success_rate'])} | "
+                f"{'-' if a['applied'] is None else a['applied']} | {pct(a['applied_precision'])} | "
+                f"{pct(a['applied_recall'])} | {worst_applied} | {a['residual_mm_median']:.2f} | "
+                f"{a['worst_residual_mm']:.2f} | {', '.join(a['mask_from']) or '-'} |"
+            )
+        lines.append("")
+    lines += [
+        "| arm | case | LAO/RAO | CRAN/CAUD | offset mm (in-plane / out) | offset deg | in-plane mm | 3-D mm "
+        "| rot deg | s | ok | decision |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :-: | --- |",
     ]
     for r in records:
+        decision = (
+            "-" if "applied" not in r else ("applied" if r["applied"] else f"withheld: {r.get('withheld_reason')}")
+        )
+        arm = r.get("arm", "clean") + ("" if not r.get("effects") else f" @ {r.get('strength', 1.0):g}")
         lines.append(
-            f"| {r['case']} | {r['primary_deg']:+.1f} | {r['secondary_deg']:+.1f} | {r['offset_inplane_mm']:.1f} / "
-            f"{r['offset_outofplane_mm']:.1f} | {r['offset_rotation_deg']:.1f} | {r['inplane_residual_mm']:.2f} | "
-            f"{r['translation_residual_mm']:.2f} | {r['rotation_residual_deg']:.2f} | {r['seconds']:.2f} | "
-            f"{'yes' if r['success'] else 'NO'} |"
+            f"| {arm} | {r['case']} | {r['primary_deg']:+.1f} | {r['secondary_deg']:+.1f} | "
+            f"{r['offset_inplane_mm']:.1f} / {r['offset_outofplane_mm']:.1f} | {r['offset_rotation_deg']:.1f} | "
+            f"{r['inplane_residual_mm']:.2f} | {r['translation_residual_mm']:.2f} | {r['rotation_residual_deg']:.2f} | "
+            f"{r['seconds']:.2f} | {'yes' if r['success'] else 'NO'} | {decision} |"
         )
     return "\n".join(lines) + "\n"
 

@@ -89,3 +89,39 @@ def test_validate_volume_biplane(phantom_3dra: Path, capsys: pytest.CaptureFixtu
     # two planes see all six offsets: the 3-D criterion (CONVENTIONS §6) holds for the phantom
     assert summary["config"]["biplane"] and "3-D" in summary["success_criterion"]
     assert summary["success_rate"] == 1.0 and summary["translation_residual_mm_median"] < 1.0
+
+
+def test_validate_volume_with_clinical_images(
+    phantom_3dra: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--realism``: the clean arm and a clinical one (blades, display chain, burned-in text) register the
+    same case; the clinical images go through XA files read back as register reads them, each estimate
+    gets a decision, the report has a row per arm."""
+    out = tmp_path / "clinical"
+    with pytest.raises(SystemExit) as exit_:
+        main(["validate", "volume", "--volume", str(phantom_3dra), "--isocenter", "volume-center", "--cases", "1",
+              "--realism", "clean,blades+display+text", "--strengths", "0.5", "--json", "--out", str(out)])  # fmt: skip
+    assert exit_.value.code == 0
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out)
+    assert summary["runs"] == 2 and "clinical-looking" in summary["images"]
+    arms = {a["arm"]: a for a in summary["arms"]}
+    assert set(arms) == {"clean", "blades+display+text"}
+    assert arms["clean"]["strength"] == 1.0 and arms["blades+display+text"]["strength"] == 0.5
+    records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert all("applied" in r for r in records)  # decisions for both arms
+    clinical = next(r for r in records if r["arm"] == "blades+display+text")
+    # the display chain wrote DISP: the reader says how it read the pixels
+    assert "DISP" in (clinical["intensity_note"] or "") and clinical["mask_px"] > 0
+    assert clinical["effects"] == ["blades", "display", "text"]
+    report = (out / "report.md").read_text()
+    assert "| blades+display+text | 0.5 | 1 |" in report
+
+
+def test_validate_volume_refuses_an_unknown_effect(phantom_3dra: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["validate", "volume", "--volume", str(phantom_3dra), "--isocenter", "volume-center",
+              "--realism", "clean,shutters"])  # fmt: skip
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and "unknown effect 'shutters'" in err and "Traceback" not in err

@@ -196,6 +196,7 @@ class ClinicalImager:
             anatomy = with_bone_contrast(anatomy, effects.contrast)
         self.anatomy = _tissue_box(anatomy)
         self._attenuator = VolumeAttenuator(self.anatomy) if effects.neck is None else None
+        self._bent: tuple[NDArray[np.float64], Any] | None = None
         self.table = None
         self.table_placement: dict = {}
         if effects.table is not None:
@@ -203,11 +204,15 @@ class ClinicalImager:
         self.devices = catheter_devices(default_catheter_path(self.isocenter_mm)) if catheter else None
 
     def attenuator(self, motion: NDArray[np.float64]) -> Any:
-        """The line integrals for this motion (the neck bent for it when asked)."""
+        """The line integrals for this motion (the neck bent for it when asked; the last one kept,
+        so that both planes of a biplane pair share it)."""
         if self.effects.neck is None:
             patient: Any = self._attenuator
+        elif self._bent is not None and np.array_equal(self._bent[0], motion):
+            patient = self._bent[1]
         else:
             patient = VolumeAttenuator(bent_volume(self.anatomy, motion, self.isocenter_mm, self.effects.neck))
+            self._bent = (np.array(motion, dtype=np.float64), patient)
         return patient if self.table is None else _StaticPlus(patient, self.table)
 
     def image(
