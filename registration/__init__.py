@@ -1,5 +1,7 @@
 """roadmap3d: automatic 2D-3D registration for the neurovascular 3D roadmap.
 
+Examples
+--------
 >>> import registration
 >>> ex = registration.load_example()                      # the phantom's 3DRA and a moved image
 >>> result = registration.register(ex.volume, ex.image)   # estimates the patient motion

@@ -5,6 +5,8 @@ coordinates (LPS, mm), a volume is ``data[k, j, i]`` plus ``index_to_world``, an
 attenuation line integrals, and a registration estimates the patient motion ``M``: anatomy the
 volume shows at X is at ``M @ X`` when the X-ray image is taken.
 
+Examples
+--------
 >>> import registration
 >>> ex = registration.load_example("T1")
 >>> ex.volume.shape, ex.image.shape, ex.truth_motion[:3, 3].round(3).tolist()
@@ -51,6 +53,8 @@ _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 class Volume(_volume.Volume):
     """A CT or 3DRA volume: ``data[k, j, i]`` in Hounsfield units and ``index_to_world`` (LPS mm).
 
+    Examples
+    --------
     >>> import numpy as np
     >>> v = Volume.from_array(np.zeros((4, 5, 6)), np.diag([0.5, 0.5, 2.0, 1.0]), frame="RAS")
     >>> v.shape  # NIfTI's data[i, j, k] became data[k, j, i]
@@ -122,6 +126,8 @@ class Volume(_volume.Volume):
 class XRayImage(_images.XRayImage):
     """An X-ray image as attenuation line integrals, its field mask and its C-arm view (:class:`CArm`).
 
+    Examples
+    --------
     >>> import numpy as np
     >>> carm = CArm(rows=2, cols=2)
     >>> image = XRayImage.from_array(intensity=np.array([[100.0, 50.0], [25.0, 100.0]]), carm=carm)
@@ -248,6 +254,8 @@ def track(
 def render_drr(volume: _volume.Volume, carm: CArm, motion: ArrayLike | None = None) -> XRayImage:
     """The digitally reconstructed radiograph (line integrals) of ``volume`` moved by ``motion``.
 
+    Examples
+    --------
     >>> import numpy as np
     >>> water = Volume.from_array(np.zeros((16, 16, 16)), np.eye(4))  # 0 HU, 1 mm voxels
     >>> drr = render_drr(water, CArm(rows=8, cols=8))

@@ -34,6 +34,7 @@ ALLOWED = {
     "certifi": "MPL-2.0: Mozilla's CA bundle, used unmodified as data (via requests)",
     "tqdm": "MPL-2.0 AND MIT: progress bars, used unmodified",
     "hypothesis": "MPL-2.0: a test-only dependency, used unmodified, never shipped with the software",
+    "pathspec": "MPL-2.0: used by mkdocs to build the documentation (test extra), unmodified, never shipped",
 }
 
 

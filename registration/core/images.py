@@ -113,6 +113,8 @@ def line_integrals(
     without one), so the brightest pixel of the field has line integral 0. Intensities are
     floored at ``i0 * 1e-6`` (a line integral of at most 13.8), so a zero pixel stays finite.
 
+    Examples
+    --------
     >>> line_integrals(np.array([[100.0, 50.0], [25.0, 100.0]])).astype(float).round(3).tolist()
     [[0.0, 0.693], [1.386, 0.0]]
     """

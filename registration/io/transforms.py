@@ -72,6 +72,8 @@ def write_itk_transform(motion: ArrayLike, path: str | os.PathLike[str]) -> Path
 
     ``.tfm``/``.txt`` are text (the direction is stated in a comment line); ``.h5`` is HDF5.
 
+    Examples
+    --------
     >>> import numpy as np, tempfile, pathlib
     >>> m = np.eye(4); m[:3, 3] = (2.0, -1.0, 0.5)
     >>> path = write_itk_transform(m, pathlib.Path(tempfile.mkdtemp()) / "motion.tfm")
@@ -170,6 +172,8 @@ def _diffdrr_world_from_lps(volume: Volume) -> Array:
 def to_diffdrr(motion: ArrayLike, carm: CArm, volume: Volume) -> DiffDRRPose:
     """DiffDRR's pose of the view ``carm`` registered with patient motion ``motion`` to ``volume``.
 
+    Examples
+    --------
     >>> import numpy as np
     >>> from registration.core.volume import Volume
     >>> v = Volume.from_grid(np.zeros((8, 8, 8)), 1.0)
@@ -226,6 +230,8 @@ def to_pinhole(motion: ArrayLike, carm: CArm, *, frame: str = "LPS") -> tuple[Ar
     ``frame``: the world frame of X, "LPS" (the project's) or "RAS". For DeepDRR, these are the
     ``intrinsic`` and ``extrinsic`` of ``CameraProjection``.
 
+    Examples
+    --------
     >>> import numpy as np
     >>> k, extrinsic = to_pinhole(np.eye(4), CArm(rows=64, cols=64))
     >>> p = k @ (extrinsic @ np.array([0.0, 0.0, 0.0, 1.0]))[:3]

@@ -63,6 +63,8 @@ def volume_format(path: str | os.PathLike[str]) -> str | None:
 def read_volume_file(path: str | os.PathLike[str], *, label: str | None = None) -> Volume:
     """A NIfTI, NRRD or MetaImage volume in the project's frame (LPS mm, ``data[k, j, i]``).
 
+    Examples
+    --------
     >>> import numpy as np, tempfile, pathlib
     >>> from registration.core.volume import Volume
     >>> v = Volume.from_grid(np.zeros((4, 5, 6)), (0.5, 0.5, 2.0))
