@@ -123,6 +123,7 @@ def register(
     verbose: bool = False,
     confidence: bool = False,
     no_cache: bool = False,
+    explain: bool = False,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -152,6 +153,8 @@ def register(
         no_cache: Prepare the volume from scratch and keep nothing on disk (default: the view-independent part
             of the preparation is kept in the cache folder, ROADMAP3D_CACHE, by the volume's content;
             ROADMAP3D_NO_CACHE=1 does the same as this flag).
+        explain: Print the plan of stages the registration runs (annealing levels, polishes, depth correction,
+            rotation check, with their budgets) before running it.
     """
     _small_pages()
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
@@ -200,6 +203,7 @@ def register(
         verbose=verbose,
         confidence=confidence,
         cache=not no_cache,
+        explain=explain,
     )
 
 

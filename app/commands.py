@@ -368,13 +368,14 @@ def run_register(
     verbose: bool = False,
     confidence: bool = False,
     cache: bool = True,
+    explain: bool = False,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
     ``verbose``: where the time went, on stderr. ``confidence``: the estimate's confidence and
     decision (applied / withheld, CONVENTIONS §7) by the studies' rule. ``cache``: keep the
     preparation's view-independent part on disk (:class:`registration.io.cache.PreparationCache`)
-    and use it."""
+    and use it. ``explain``: print the registration's plan of stages first."""
     clock = _Stopwatch()
     images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
     if len(images) not in (1, 2):
@@ -441,6 +442,10 @@ def run_register(
     prepared, store = prepare_for_registration(vol, views, m_init, cache=cache)
     renderer = prepared.renderer
     clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
+    if explain:
+        from registration.core.register import registration_plan
+
+        _say("plan:\n" + registration_plan(vol, views, initial_motion=m_init, renderer=renderer).describe())
     result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points,
                       renderer=renderer)  # fmt: skip
     if store is not None:

@@ -87,6 +87,63 @@ def rotation_angle_deg(transform_or_rotation: ArrayLike) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
 
 
+def _skew(a: Array) -> Array:
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+#: Below this angle (radians) a rotation vector maps to and from its matrix by series.
+SMALL_ANGLE_RAD = 1e-6
+#: Between this and pi - NEAR_PI_RAD (radians) the angle comes from the matrix's trace.
+MID_ANGLE_RAD = 1e-2
+#: Within this of pi (radians) the rotation vector's axis comes from the matrix's symmetric part.
+NEAR_PI_RAD = 1e-3
+
+
+def axis_rotation(axis: ArrayLike, angle_rad: float) -> Array:
+    """The 3x3 rotation by ``angle_rad`` about ``axis`` (any length > 0; Rodrigues' formula)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    k = _skew(a)
+    return np.eye(3) + math.sin(angle_rad) * k + (1.0 - math.cos(angle_rad)) * (k @ k)
+
+
+def rotation_matrix(rotation_vector_rad: ArrayLike) -> Array:
+    """The 3x3 rotation of a rotation vector (axis times angle, radians); a series below
+    :data:`SMALL_ANGLE_RAD` (exact to rounding there), Rodrigues' formula above."""
+    v = np.asarray(rotation_vector_rad, dtype=np.float64).reshape(3)
+    angle = float(np.linalg.norm(v))
+    if angle < SMALL_ANGLE_RAD:
+        k = _skew(v)
+        return np.eye(3) + k + 0.5 * (k @ k)
+    return axis_rotation(v, angle)
+
+
+def rotation_vector(rotation: ArrayLike) -> Array:
+    """Axis times angle (radians, angle in [0, pi]) of a 3x3 rotation (or a 4x4 transform's
+    block); the inverse of :func:`rotation_matrix`. Accurate near 0 (the angle from the skew
+    part, not from an arccos near 1) and near pi (the axis from the symmetric part, where the
+    skew part vanishes)."""
+    r = np.asarray(rotation, dtype=np.float64)[:3, :3]
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    cos = (np.trace(r) - 1.0) / 2.0
+    sin = float(np.linalg.norm(w)) / 2.0
+    angle = math.atan2(sin, cos)
+    if angle < SMALL_ANGLE_RAD:
+        return 0.5 * w * (1.0 + angle * angle / 6.0)  # angle / sin(angle) to second order
+    if angle < math.pi - NEAR_PI_RAD:
+        if angle > MID_ANGLE_RAD:  # the arccos is well conditioned here
+            angle = math.acos(max(-1.0, min(1.0, cos)))
+            return w / (2.0 * math.sin(angle)) * angle
+        return w * (angle / (2.0 * sin))
+    # near pi: a a^T = (sym(R) - cos I) / (1 - cos); its largest diagonal's column is best conditioned
+    outer = ((r + r.T) / 2.0 - cos * np.eye(3)) / (1.0 - cos)
+    i = int(np.argmax(np.diag(outer)))
+    axis = outer[:, i] / math.sqrt(max(outer[i, i], 1e-300))
+    if axis @ w < 0.0:
+        axis = -axis
+    return axis * angle
+
+
 def apply(transform: ArrayLike, points_mm: ArrayLike) -> Array:
     """Apply a 4x4 transform to points of shape (..., 3)."""
     t = np.asarray(transform, dtype=np.float64)

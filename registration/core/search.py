@@ -11,7 +11,7 @@ beam); a biplane search has all six.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -43,6 +43,8 @@ class SearchSpace:
 
     ``initial_motion`` (the machine-based pose, 4x4 rigid, checked by the caller) is where
     the parameter vector 0 lies; the bounds are +- ``bound_mm`` / ``bound_deg`` around it.
+    ``held_tz_mm``: a five-parameter space's offset along the beam (mm, the view frame's tz), held
+    while the others are searched (0: the initial pose's; :meth:`holding_tz`).
     """
 
     frame: CArm
@@ -50,6 +52,7 @@ class SearchSpace:
     names: tuple[str, ...] = FIVE_PARAMETERS
     bound_mm: float = 30.0
     bound_deg: float = 15.0
+    held_tz_mm: float = 0.0
     _frames: tuple[Array, Array] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -57,6 +60,8 @@ class SearchSpace:
             raise ValueError(f"parameters must be {FIVE_PARAMETERS} or {SIX_PARAMETERS}, got {self.names}")
         if not self.bound_mm > 0 or not self.bound_deg > 0:
             raise ValueError("bound_mm and bound_deg must be positive")
+        if self.held_tz_mm != 0.0 and "tz" in self.names:
+            raise ValueError("a six-parameter space searches tz: it cannot hold it")
         object.__setattr__(self, "_frames", (self.frame.world_from_view, self.frame.view_from_world))
 
     @classmethod
@@ -65,6 +70,10 @@ class SearchSpace:
     ) -> SearchSpace:
         names = SIX_PARAMETERS if optimize_tz else FIVE_PARAMETERS
         return cls(frame, initial_motion, names, bound_mm, bound_deg)
+
+    def holding_tz(self, tz_mm: float) -> SearchSpace:
+        """This space's five parameters with tz held at ``tz_mm`` (the depth correction's)."""
+        return replace(self, names=FIVE_PARAMETERS, held_tz_mm=float(tz_mm))
 
     @property
     def size(self) -> int:
@@ -105,7 +114,7 @@ class SearchSpace:
         x = np.asarray(x, dtype=np.float64)
         if self.optimizes_tz:
             return x.copy()
-        return np.array([x[0], x[1], 0.0, x[2], x[3], x[4]])
+        return np.array([x[0], x[1], self.held_tz_mm, x[2], x[3], x[4]])
 
     def motion(self, x: ArrayLike) -> Array:
         """Patient motion (4x4, world mm) of a parameter vector.

@@ -97,11 +97,6 @@ class Volume:
         return np.linalg.inv(self.index_to_world)
 
     @property
-    def world_to_index(self) -> Array:
-        """Old name of :attr:`index_from_world` (kept for callers outside the core)."""
-        return self.index_from_world
-
-    @property
     def center_mm(self) -> Array:
         nk, nj, ni = self.shape
         return self.index_to_world[:3, :3] @ (np.array([ni, nj, nk]) - 1) / 2.0 + self.index_to_world[:3, 3]

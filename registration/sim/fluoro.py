@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.core.geometry import CArm, rigid
+from registration.core.geometry import CArm, axis_rotation, rigid
 from registration.core.images import XRayImage
 from registration.sim.phantom import HeadPhantom
 
@@ -101,12 +101,7 @@ class RunScript:
 
 def _axis_angle(rotvec_deg: Array) -> Array:
     angle = float(np.linalg.norm(rotvec_deg))
-    if angle < 1e-12:
-        return np.eye(3)
-    a = rotvec_deg / angle
-    t = math.radians(angle)
-    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    return np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
+    return np.eye(3) if angle < 1e-12 else axis_rotation(rotvec_deg, math.radians(angle))
 
 
 def _motion(translation_mm: Array, rotvec_deg: Array) -> Array:

@@ -130,7 +130,7 @@ class VolumeAttenuator:
         dst = np.asarray(targets_mm, dtype=np.float64).reshape(-1, 3)
         if len(src) != 1 and not np.all(src == src[0]):
             raise ValueError("VolumeAttenuator traces rays from one source")
-        to_index = self.volume.world_to_index
+        to_index = self.volume.index_from_world
         if motion is not None:
             to_index = to_index @ invert_rigid(check_rigid(motion, name="motion"))
         s = to_index[:3, :3] @ src[0] + to_index[:3, 3]

@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import __version__
-from registration.core.geometry import IMAGE_FORMATS_CM, TABLE_I, CArm, clinically_relevant, rigid
+from registration.core.geometry import IMAGE_FORMATS_CM, TABLE_I, CArm, axis_rotation, clinically_relevant, rigid
 from registration.core.register import RegistrationOptions
 from registration.studies.cases import Case, _translation, case_volume, depth_correction_fields, run_case
 
@@ -393,12 +393,7 @@ def _patient_of(case: ClinicalCase) -> PatientData:
 
 def axis_angle_matrix(axis: Sequence[float], angle_deg: float) -> NDArray[np.float64]:
     """4x4 rotation by ``angle_deg`` about ``axis`` through the world origin (the iso-center)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    t = math.radians(angle_deg)
-    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    r = np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
-    return rigid(r, None)
+    return rigid(axis_rotation(axis, math.radians(angle_deg)), None)
 
 
 def offset_record(

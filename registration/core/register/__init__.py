@@ -8,60 +8,55 @@ tz is kept, a view cannot see motion along its beam). Two views of the same mome
 CONVENTIONS.md §6): all six, in plane A's view frame, the measure being the mean of the
 views' gradient differences (:mod:`registration.core.problem`).
 
-The search runs coarse to fine: each :class:`Level` is prepared once
-(:class:`~registration.core.problem.LevelProblem`) and annealed by one or several capture
-runs side by side; a short local polish (:func:`~registration.core.anneal.polish`) ends it.
-
-One view ends with the depth correction (:func:`depth_correct`,
-``RegistrationOptions.depth_correction``, on by default since this revision; off reproduces the
-five-parameter results before it, Table I's among them): the high-passed depth scan
-(:func:`registration.core.depth.depth_scan`) estimates tz, the pose moves there and the five
-parameters are polished again, up to three scans. The result's ``patient_motion`` then holds
-that tz (``depth_tz_mm``); the in-plane residual and the rotation, hence single-view success
-(CONVENTIONS §4), do not depend on it.
+A registration is a plan of stages (:func:`registration_plan`, :mod:`.plan`, built by
+:mod:`.build`): coarse-to-fine annealing levels, each prepared once
+(:class:`~registration.core.problem.LevelProblem`) and annealed by one or several capture runs
+side by side (:mod:`.stages`); with two views first each plane's own capture (:mod:`.biplane`);
+then local polishes; with one view the depth correction (:mod:`.depth`: the high-passed depth
+scan estimates tz, the five parameters are polished again at it; the result's
+``patient_motion`` holds that tz, ``depth_tz_mm``, which single-view success does not depend on,
+CONVENTIONS §4) and the rotation check (:mod:`.rotation_check`). Options: :mod:`.options`.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from registration.core.checks import check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
 from registration.core.images import XRayImage
 from registration.core.metrics import residuals
-from registration.core.problem import LevelProblem, support_mask
+from registration.core.problem import support_mask
 from registration.core.register.biplane import (
     CROSS_START_MM,
     PLANE_CAPTURE_ROUNDS,
     PLANES_AGREE_DEG,
     PLANES_AGREE_MM,
     ROTATION_ACROSS_WEIGHT,
-    _plane_captures,
     combine_plane_estimates,
     plane_disagreement,
 )
-from registration.core.register.depth import DepthCorrection, depth_correct, depth_resolvable
+from registration.core.register.build import build_plan
+from registration.core.register.depth import depth_resolvable
 from registration.core.register.inputs import Inputs, check_inputs, prepared_renderer, prepared_volume
-from registration.core.register.monitor import _Monitor
-from registration.core.register.options import Level, RegistrationOptions
-from registration.core.register.result import Progress, RegistrationResult
-from registration.core.register.rotation_check import (
-    RIVAL_DISTINCT_DEG,
-    RotationCheck,
-    _check_rotations,
-    rotation_check,
+from registration.core.register.monitor import Monitor
+from registration.core.register.options import (
+    BiplaneOptions,
+    DepthOptions,
+    Level,
+    PolishOptions,
+    RegistrationOptions,
+    RotationCheckOptions,
 )
-from registration.core.register.stages import _anneal_level, _HeldTz, _plane_a_capture, _polish
+from registration.core.register.plan import Plan, Run, State
+from registration.core.register.result import Progress, RegistrationResult, RotationCheck
+from registration.core.register.rotation_check import RIVAL_DISTINCT_DEG, rotation_check
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
-
-Array = NDArray[np.float64]
 
 #: Names of the five parameters of a single-view registration (mm, mm, deg, deg, deg).
 PARAMETERS = FIVE_PARAMETERS
@@ -76,21 +71,26 @@ __all__ = [
     "RIVAL_DISTINCT_DEG",
     "ROTATION_ACROSS_WEIGHT",
     "SIX_PARAMETERS",
-    "DepthCorrection",
+    "BiplaneOptions",
+    "DepthOptions",
     "Inputs",
     "Level",
+    "Monitor",
+    "Plan",
+    "PolishOptions",
     "Progress",
     "RegistrationOptions",
     "RegistrationResult",
     "RotationCheck",
+    "RotationCheckOptions",
     "check_inputs",
     "combine_plane_estimates",
-    "depth_correct",
     "depth_resolvable",
     "plane_disagreement",
     "prepared_renderer",
     "prepared_volume",
     "register",
+    "registration_plan",
     "rotation_check",
     "support_mask",
 ]
@@ -110,131 +110,65 @@ def register(
 ) -> RegistrationResult:
     """Estimate the patient motion that aligns ``volume`` with the X-ray view(s).
 
-    Parameters
-    ----------
-    volume:
-        The 3DRA or CT (HU). Its label is repeated in the result.
-    views:
-        One :class:`XRayImage` (image in attenuation line integrals, field mask, geometry),
-        or several taken at the same moment (biplane: plane A first; offsets are in its
-        view frame).
-    initial_motion:
-        The machine-based pose as a 4x4 patient motion (identity by default).
-    options:
-        Search configuration; see :class:`RegistrationOptions`.
-    seed:
-        Seed of the annealing's random generator (same seed, same result).
-    callback:
-        Called with a :class:`Progress` at every iteration; return True to stop.
-    truth:
-        The true patient motion; when given the result carries residuals and success.
-    vessel_points_mm:
-        Target points for the mTRE (e.g. the vessel centerline), in volume world mm.
-    renderer:
-        A :class:`DRRRenderer` of ``volume`` to use; by default the volume is prepared for the
-        views and the search (:func:`prepared_renderer`, cached: later registrations of the same
-        volume object and field reuse it) and ``seconds`` excludes that preparation.
+    ``views``: one :class:`XRayImage` (image in attenuation line integrals, field mask,
+    geometry) or several taken at the same moment (biplane: plane A first; offsets are in its
+    view frame); ``initial_motion``: the machine-based pose as a 4x4 patient motion (identity by
+    default); ``seed``: of the annealing's random generator (same seed, same result);
+    ``callback``: called with a :class:`Progress` at every iteration, True stops; ``truth``: the
+    true motion (the result then carries residuals and success); ``vessel_points_mm``: mTRE
+    targets in volume world mm; ``renderer``: a :class:`DRRRenderer` of ``volume``, by default
+    the volume prepared for the views and the search (:func:`prepared_renderer`, cached; the
+    result's ``seconds`` excludes that preparation).
     """
     options = options or RegistrationOptions()
     inputs = check_inputs(volume, views, initial_motion, truth, renderer, options)
     for view in inputs.views:
         check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
     start = time.perf_counter()
-    space = SearchSpace.for_views(
-        inputs.views[0].geometry,
-        inputs.initial_motion,
-        optimize_tz=options.optimizes_tz(len(inputs.views)),
-        bound_mm=options.bound_mm,
-        bound_deg=options.bound_deg,
-    )
-    monitor = _Monitor(space, callback, start)
-    rng = np.random.default_rng(seed)
-    x, f = space.start(), math.inf
-
-    def prepare(image_px: int, volume_level: int, stage: int) -> LevelProblem:
-        return LevelProblem.prepare(inputs.renderer, inputs.views, image_px=image_px, volume_level=volume_level,
-                                    motion=space.motion(x), margin_mm=options.margin_mm(stage))  # fmt: skip
-
-    # (index into the options' levels and support margins, level); Progress numbers them in order
-    stages: list[tuple[int, Level]] = list(enumerate(options.levels))
-    starts: list[Array] = [x]
-    shown = 0  # the level number Progress shows for the first of ``stages``
-    multi = len(inputs.views) > 1 and space.optimizes_tz
-    if multi and options.plane_captures:
-        starts, f = _plane_captures(inputs, space, options, rng, monitor)
-        x = starts[0]
-        if len(starts) == 1:
-            # the planes agree: the capture level is done, the pair's levels follow
-            if options.pair_levels is not None:
-                last = len(options.levels) - 1
-                stages = [(min(1 + n, last), lv) for n, lv in enumerate(options.pair_levels)]
-            else:
-                stages = stages[1:]
-        else:
-            # they do not: the pair's own capture level, one run from each start
-            stages[0] = (0, replace(options.levels[0], restarts=len(starts)))
-        shown = 1
-    elif multi and options.plane_a_capture:
-        x, f = _plane_a_capture(inputs, space, options, rng, monitor)
-        shown = 1
-    for n, (stage, level) in enumerate(stages):
-        if monitor.stopped:
-            break
-        problem = prepare(level.image_px, level.volume_level, stage)
-        begin: Array | list[Array] = x
-        if n == 0 and len(starts) > 1:
-            begin = starts
-        else:
-            level = replace(level, restarts=options.capture_runs(level, len(inputs.views)))
-        best = _anneal_level(problem, space, level, shown + n, begin, rng, monitor, options.threads)
-        x, f = best.x, best.fun
-    pair = multi and options.plane_captures
-    polish_shown = shown + len(stages)
-    if options.polish and pair and options.pair_coarse_polish_evaluations and not monitor.stopped:
-        first = options.levels[0]
-        coarse = prepare(first.image_px, first.volume_level, len(options.levels) - 1)
-        best = _polish(coarse, space, polish_shown, x, options, monitor, pair=True, coarse=True)
-        x, f = best.x, best.fun
-        polish_shown += 1
-    if options.polish and not monitor.stopped:
-        stage = len(options.levels)
-        best = _polish(prepare(options.polish_image_px, options.polish_volume_level, stage), space,
-                       polish_shown, x, options, monitor, pair=pair)  # fmt: skip
-        x, f = best.x, best.fun
-    depth: DepthCorrection | None = None
-    if options.polish and options.depth_correction and len(inputs.views) == 1 and not space.optimizes_tz:
-        if not monitor.stopped and depth_resolvable(inputs.renderer, options):
-            depth = depth_correct(inputs.renderer, inputs.views[0], space, x, f, options, monitor, polish_shown + 1)
-            x, f = depth.x, depth.fun
-    check: RotationCheck | None = None
-    if depth is not None and options.rotation_check and not monitor.stopped:
-        x, f, depth, check = _check_rotations(inputs, space, x, f, depth, options, monitor, polish_shown + 2)
-    return _result(inputs, space, x, f, monitor, vessel_points_mm, time.perf_counter() - start, depth, check)
+    space = SearchSpace.for_views(inputs.views[0].geometry, inputs.initial_motion,
+                                  optimize_tz=options.optimizes_tz(len(inputs.views)),
+                                  bound_mm=options.bound_mm, bound_deg=options.bound_deg)  # fmt: skip
+    run = Run(inputs, options, space, np.random.default_rng(seed), Monitor(space, callback, start))
+    state = build_plan(inputs, options).run(State(run, space.start(), space))
+    return _result(state, vessel_points_mm, time.perf_counter() - start)
 
 
-def _result(inputs: Inputs, space: SearchSpace, x: Array, f: float, monitor: _Monitor,
-            vessel_points_mm: ArrayLike | None, seconds: float, depth: DepthCorrection | None = None,
-            check: RotationCheck | None = None) -> RegistrationResult:  # fmt: skip
-    m_est = space.motion(x) if depth is None else _HeldTz(replace(space, names=SIX_PARAMETERS), depth.tz_mm).motion(x)
+def registration_plan(
+    volume: Volume,
+    views: XRayImage | Sequence[XRayImage],
+    *,
+    initial_motion: ArrayLike | None = None,
+    options: RegistrationOptions | None = None,
+    renderer: DRRRenderer | None = None,
+) -> Plan:
+    """The plan :func:`register` runs for these inputs (``.describe()``: one line per stage)."""
+    options = options or RegistrationOptions()
+    return build_plan(check_inputs(volume, views, initial_motion, None, renderer, options), options)
+
+
+def _result(state: State, vessel_points_mm: ArrayLike | None, seconds: float) -> RegistrationResult:
+    run, x = state.run, state.x
+    m_est = state.motion
     res = None
-    if inputs.truth is not None:
-        res = residuals(m_est, inputs.truth, space.frame, vessel_points_mm, optimizes_tz=space.optimizes_tz)
+    if run.inputs.truth is not None:
+        res = residuals(m_est, run.inputs.truth, run.space.frame, vessel_points_mm,
+                        optimizes_tz=run.space.optimizes_tz)  # fmt: skip
     return RegistrationResult(
         patient_motion=m_est,
-        similarity=-f,
-        similarity_trace=monitor.trace,
-        drr_count=monitor.drr_count,
+        similarity=-state.f,
+        similarity_trace=run.monitor.trace,
+        drr_count=run.monitor.drr_count,
         seconds=seconds,
-        stopped=monitor.stopped,
+        stopped=run.monitor.stopped,
         offsets=x,
-        geometry=space.frame,
-        volume_label=inputs.volume.label,
+        geometry=run.space.frame,
+        volume_label=run.inputs.volume.label,
         residual=res,
-        parameters=space.names,
-        views=tuple(v.geometry for v in inputs.views),
-        capture_motions=tuple(monitor.captures),
-        at_bounds=tuple(space.names[i] for i in parameters_at_bounds(x, space.bounds)),
-        depth_tz_mm=None if depth is None else depth.tz_mm,
-        depth_moves_mm=() if depth is None else depth.moves_mm,
-        rotation_check=check,
+        parameters=run.space.names,
+        views=tuple(v.geometry for v in run.inputs.views),
+        capture_motions=tuple(run.monitor.captures),
+        at_bounds=tuple(run.space.names[i] for i in parameters_at_bounds(x, run.space.bounds)),
+        depth_tz_mm=state.tz_mm,
+        depth_moves_mm=state.depth_moves_mm or (),
+        rotation_check=state.check,
     )

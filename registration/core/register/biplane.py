@@ -5,40 +5,60 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from registration.core.anneal import AnnealResult, AnnealState, anneal
-from registration.core.geometry import CArm, invert_rigid, rigid, rotation_angle_deg
+from registration.core.geometry import CArm, invert_rigid, rigid, rotation_angle_deg, rotation_matrix, rotation_vector
 from registration.core.problem import LevelProblem
-from registration.core.register.inputs import Inputs
-from registration.core.register.monitor import _cost, _Monitor
-from registration.core.register.options import Level, RegistrationOptions
+from registration.core.register.monitor import Monitor, cost_function
+from registration.core.register.options import Level
+from registration.core.register.plan import Run, State
 from registration.core.search import FIVE_PARAMETERS, SearchSpace
 
 Array = NDArray[np.float64]
 
 
-def _plane_captures(
-    inputs: Inputs, space: SearchSpace, options: RegistrationOptions, rng: np.random.Generator, monitor: _Monitor
-) -> tuple[list[Array], float]:
-    """Each of the first two planes' own single-plane capture, side by side, combined into the
-    start of the pair's six-parameter search (:attr:`RegistrationOptions.plane_captures`) and its
-    cost. Each plane's best estimate (lowest cost of its own measure) counts; when the two
-    disagree (:func:`plane_disagreement`) another round follows, cross-seeded; after
-    :data:`PLANE_CAPTURE_ROUNDS` rounds without agreement, the starts of the pair's capture level
-    instead (three: the bests' combination, each plane's best alone)."""
-    level = options.levels[0]
-    runs = options.plane_capture_runs
+@dataclass(frozen=True)
+class PlaneCaptures:
+    """Each of the first two planes' own single-plane capture (five parameters in its own view
+    frame, the first level), side by side, combined into the pair's start
+    (:attr:`BiplaneOptions.plane_captures`); up to :data:`PLANE_CAPTURE_ROUNDS` rounds, cross-seeded,
+    until the planes agree. Sets the state's ``planes_agree`` (and its ``starts`` when they do not)."""
+
+    level: Level
+    runs_per_plane: int
+    margin_mm: float | None
+
+    def describe(self) -> str:
+        lv = self.level
+        return (f"each plane's own capture at {lv.image_px} px, volume level {lv.volume_level}, "
+                f"{self.runs_per_plane} runs per plane, up to {PLANE_CAPTURE_ROUNDS} rounds until the planes "
+                "agree")  # fmt: skip
+
+    def runs(self, state: State) -> bool:
+        return True
+
+    def run(self, state: State) -> State:
+        starts, f = plane_captures(state.run, self.level, self.runs_per_plane, self.margin_mm)
+        agree = len(starts) == 1
+        return replace(state, x=starts[0], f=f, starts=() if agree else tuple(starts), planes_agree=agree)
+
+
+def plane_captures(run: Run, level: Level, runs: int, margin_mm: float | None) -> tuple[list[Array], float]:
+    """The rounds of :class:`PlaneCaptures`: the pair's start and its cost when the planes agree;
+    after :data:`PLANE_CAPTURE_ROUNDS` rounds without agreement, the starts of the pair's capture
+    level instead (three: the bests' combination, each plane's best alone)."""
+    inputs, space, options, rng, monitor = run.inputs, run.space, run.options, run.rng, run.monitor
     planes = inputs.views[:2]
     spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg)
               for v in planes]  # fmt: skip
     # plane B's capture compares its image at plane A's pixel size at the iso-center, as the pair does
     problems = [LevelProblem.prepare(inputs.renderer, planes[:1], image_px=level.image_px,
                                      volume_level=level.volume_level, motion=inputs.initial_motion,
-                                     margin_mm=options.margin_mm(0))]  # fmt: skip
+                                     margin_mm=margin_mm)]  # fmt: skip
     pixel_mm = problems[0].views[0].pixel_at_iso_mm
     problems += [
         LevelProblem.prepare(
@@ -47,7 +67,7 @@ def _plane_captures(
             image_px=level.image_px,
             volume_level=level.volume_level,
             motion=inputs.initial_motion,
-            margin_mm=options.margin_mm(0),
+            margin_mm=margin_mm,
             pixel_at_iso_mm=pixel_mm,
         )
         for v in planes[1:]
@@ -55,8 +75,8 @@ def _plane_captures(
     geometries = (planes[0].geometry, planes[1].geometry)
     pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
                                 volume_level=level.volume_level, motion=inputs.initial_motion,
-                                margin_mm=options.margin_mm(0))  # fmt: skip
-    cost = _cost(pair, space, monitor, None)
+                                margin_mm=margin_mm)  # fmt: skip
+    cost = cost_function(pair, space, monitor, None)
     per_plane: list[list[Array]] = [[] for _ in planes]
     single_costs: list[list[float]] = [[] for _ in planes]
     starts = [[sp.start()] * runs for sp in spaces]
@@ -114,7 +134,7 @@ def _capture_planes(
     level: Level,
     starts: list[list[Array]],
     rng: np.random.Generator,
-    monitor: _Monitor,
+    monitor: Monitor,
     threads: int | None,
 ) -> list[tuple[int, Array, float]]:
     """Single-plane capture runs, one per start of each plane (``starts[plane]``, parameter
@@ -130,7 +150,7 @@ def _capture_planes(
         def on_iteration(s: AnnealState) -> bool:
             return monitor.report(0, s.temperature, s.x, s.fun, s.best_x, s.best_fun, job, sp)
 
-        cost = _cost(problems[plane], sp, monitor, False)
+        cost = cost_function(problems[plane], sp, monitor, False)
         x0 = starts[plane][chain]
         return anneal(cost, x0, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
 
@@ -184,9 +204,9 @@ def combine_plane_estimates(
         rhs_t += across @ e
         weight = np.outer(d, d) + ROTATION_ACROSS_WEIGHT * across
         lhs_r += weight
-        rhs_r += weight @ _rotation_vector(delta[:3, :3])
+        rhs_r += weight @ rotation_vector(delta[:3, :3])
     t = np.linalg.solve(lhs_t, rhs_t)
-    rot = _rotation_matrix(np.linalg.solve(lhs_r, rhs_r))
+    rot = rotation_matrix(np.linalg.solve(lhs_r, rhs_r))
     delta = np.eye(4)
     delta[:3, :3] = rot
     delta[:3, 3] = iso + t - rot @ iso
@@ -195,22 +215,3 @@ def combine_plane_estimates(
 
 #: Weight of a single plane's rotations about axes across its beam (against 1 about it).
 ROTATION_ACROSS_WEIGHT = 0.5
-
-
-def _rotation_vector(r: Array) -> Array:
-    """Axis times angle (radians) of a 3x3 rotation."""
-    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1.0) / 2.0)))
-    if angle < 1e-12:
-        return np.zeros(3)
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2.0 * math.sin(angle))
-    return axis * angle
-
-
-def _rotation_matrix(v: Array) -> Array:
-    """Rodrigues: the rotation of axis-angle vector ``v`` (radians)."""
-    angle = float(np.linalg.norm(v))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = v / angle
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * kx @ kx

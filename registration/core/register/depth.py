@@ -9,93 +9,95 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.core.drr import DRRRenderer
-from registration.core.images import XRayImage
-from registration.core.problem import LevelProblem, iso_pixel_mm, level_factor, renderer_level
-from registration.core.register.monitor import _Monitor
-from registration.core.register.options import RegistrationOptions
-from registration.core.register.stages import _HeldTz, _polish
-from registration.core.search import SIX_PARAMETERS, SearchSpace
+from registration.core.problem import iso_pixel_mm, level_factor, renderer_level
+from registration.core.register.options import DepthOptions, RegistrationOptions
+from registration.core.register.plan import State
+from registration.core.register.stages import PolishBudget, run_polish
 
 Array = NDArray[np.float64]
 
 
-def depth_resolvable(renderer: DRRRenderer, options: RegistrationOptions) -> bool:
+def depth_resolvable(renderer: DRRRenderer, depth: DepthOptions) -> bool:
     """Whether the depth correction's scan level (:func:`registration.core.depth.scan_level`)
-    is fine enough to see a magnification (``depth_max_voxel_mm``)."""
+    is fine enough to see a magnification (``depth.max_voxel_mm``)."""
     from registration.core.depth import scan_level
 
-    level = scan_level(renderer, options.depth_voxel_mm)
-    return float(renderer.level_volume(level).spacing_mm.max()) <= options.depth_max_voxel_mm
+    level = scan_level(renderer, depth.voxel_mm)
+    return float(renderer.level_volume(level).spacing_mm.max()) <= depth.max_voxel_mm
 
 
 @dataclass(frozen=True)
-class DepthCorrection:
-    """The outcome of :func:`depth_correct`: the five parameters, the measure there, tz."""
+class DepthCorrect:
+    """One view: the depth correction of the polished five-parameter estimate
+    (:class:`DepthOptions`): scan along the beam (:func:`registration.core.depth.depth_scan`,
+    high-passed, the rest held), move tz to the peak (within +- ``bound_mm`` of the initial pose),
+    polish the five parameters again at that tz (``budget``, at the polish's level), repeat while a
+    scan moves tz by ``move_mm`` or more, ``rounds`` scans at most. The state's space then holds tz."""
 
-    x: Array
-    fun: float
-    tz_mm: float
-    moves_mm: tuple[float, ...]
+    depth: DepthOptions
+    budget: PolishBudget
+    polish_image_px: int
+    polish_volume_level: int
+    margin_mm: float | None
+
+    def describe(self) -> str:
+        d = self.depth
+        return (f"depth correction: up to {d.rounds} scans along the beam (+-{d.bound_mm:g} mm, then "
+                f"+-{d.rescan_mm:g} mm, {d.scan_step_mm:g} mm steps), each followed by a polish at "
+                f"{self.polish_image_px} px: {self.budget.describe()}")  # fmt: skip
+
+    def runs(self, state: State) -> bool:
+        return True
+
+    def run(self, state: State) -> State:
+        return depth_correct(state, self)
 
 
-def depth_correct(
-    renderer: DRRRenderer,
-    view: XRayImage,
-    space: SearchSpace,
-    x: Array,
-    f: float,
-    options: RegistrationOptions,
-    monitor: _Monitor,
-    stage: int,
-    tz_mm: float = 0.0,
-) -> DepthCorrection:
-    """The depth correction of a five-parameter estimate ``x`` (``space``'s, cost ``f``): scan
-    along the beam (:func:`registration.core.depth.depth_scan`, high-passed, the rest held),
-    move tz to the peak (within +- ``depth_bound_mm`` of the initial pose), polish the five
-    parameters again at that tz (the polish's level, budget and reach), repeat while a scan
-    moves tz by ``depth_move_mm`` or more, ``depth_rounds`` scans at most
-    (:attr:`RegistrationOptions.depth_correction`). The scans' DRRs are counted in
-    ``monitor``; ``tz_mm``: the estimate's tz (the initial pose's by default). Deterministic."""
+def depth_correct(state: State, stage: DepthCorrect) -> State:
+    """:class:`DepthCorrect` from ``state`` (five parameters; tz held at its space's
+    ``held_tz_mm``, the initial pose's at first). The scans' DRRs are counted in the run's
+    monitor. Deterministic."""
     from registration.core.depth import depth_scan, scan_level
 
-    six = replace(space, names=SIX_PARAMETERS)
-    level = scan_level(renderer, options.depth_voxel_mm)
+    r, d = state.run, stage.depth
+    renderer, view = r.inputs.renderer, r.inputs.views[0]
+    level = scan_level(renderer, d.voxel_mm)
     # the scan compares at the polish's pixel (at the iso-center), not finer
-    polish_level = renderer_level(renderer, options.polish_volume_level)
+    polish_level = renderer_level(renderer, stage.polish_volume_level)
     polish_voxel_mm = float(renderer.level_volume(polish_level).spacing_mm.max())
-    pixel_mm = iso_pixel_mm(view.geometry, level_factor(view.geometry, options.polish_image_px, polish_voxel_mm))
-    step, bound = options.depth_scan_step_mm, options.depth_bound_mm
-    tz, moves = float(tz_mm), []
-    x = np.asarray(x, dtype=np.float64)
-    for n in range(options.depth_rounds):
-        if monitor.stopped:
+    pixel_mm = iso_pixel_mm(view.geometry, level_factor(view.geometry, stage.polish_image_px, polish_voxel_mm))
+    step, bound = d.scan_step_mm, d.bound_mm
+    space, tz, moves = state.space, state.space.held_tz_mm, []
+    x, f = np.asarray(state.x, dtype=np.float64), state.f
+    for n in range(d.rounds):
+        if r.monitor.stopped:
             break
-        half = bound if n == 0 else options.depth_rescan_mm
+        half = bound if n == 0 else d.rescan_mm
         # the offsets that stay within the bound, from the estimate's tz
         lo, hi = max(-half, -bound - tz), min(half, bound - tz)
         offsets = tuple(float(o) for o in np.arange(math.ceil(lo / step) * step, hi + 1e-9, step))
         if len(offsets) < 3:
             break
-        motion = six.motion(np.insert(x, 2, tz))
-        scan = depth_scan(renderer, view, motion, offsets_mm=offsets, image_px=options.depth_image_px,
-                          volume_level=level, margin_mm=options.margin_mm(len(options.levels)),
-                          pixel_at_iso_mm=pixel_mm)  # fmt: skip
-        with monitor.lock:
-            monitor.drr_count += scan.drr_count
+        scan = depth_scan(renderer, view, space.holding_tz(tz).motion(x), offsets_mm=offsets, image_px=d.image_px,
+                          volume_level=level, margin_mm=stage.margin_mm, pixel_at_iso_mm=pixel_mm)  # fmt: skip
+        with r.monitor.lock:
+            r.monitor.drr_count += scan.drr_count
         move = float(np.clip(tz + scan.tz_mm, -bound, bound)) - tz
         moves.append(move)
-        if abs(move) < options.depth_move_mm and not (n == 0 and options.depth_first_polish):
+        if abs(move) < d.move_mm and not (n == 0 and d.first_polish):
             break
         tz += move
-        problem = LevelProblem.prepare(renderer, (view,), image_px=options.polish_image_px,
-                                       volume_level=options.polish_volume_level, motion=six.motion(np.insert(x, 2, tz)),
-                                       margin_mm=options.margin_mm(len(options.levels)))  # fmt: skip
-        held = _HeldTz(six, tz)
-        polish_options = replace(options, polish_reach=options.depth_polish_reach,
-                                 polish_evaluations=options.depth_polish_evaluations)  # fmt: skip
-        best = _polish(problem, held, stage, x, polish_options, monitor)
+        held = space.holding_tz(tz)
+        problem = r.problem(stage.polish_image_px, stage.polish_volume_level, stage.margin_mm, held.motion(x),
+                            views=(view,))  # fmt: skip
+        best = run_polish(problem, held, state.number, x, stage.budget, r.monitor)
         x, f = best.x, best.fun
-    return DepthCorrection(x, f, tz, tuple(moves))
+    moved = (state.depth_moves_mm or ()) + tuple(moves)
+    return replace(state, x=x, f=f, space=space.holding_tz(tz), depth_moves_mm=moved)
 
 
-#: A rotation check's polish that ends more than this far from the estimate (deg) found a
+def depth_stage(options: RegistrationOptions, margin_index: int) -> DepthCorrect:
+    """The depth correction stage of ``options`` (its polishes at the polish's level)."""
+    p, d = options.polish, options.depth
+    budget = PolishBudget(d.polish_evaluations, d.polish_reach_mm, d.polish_reach_deg, p.xtol, p.step_mm, p.step_deg)
+    return DepthCorrect(d, budget, p.image_px, p.volume_level, options.margin_mm(margin_index))

@@ -18,9 +18,6 @@ from registration.core.volume import Volume
 Array = NDArray[np.float64]
 
 
-# --------------------------------------------------------------------------------------
-# Inputs, checked once here: nothing inside checks them again
-# --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Inputs:
     """The checked inputs of one registration."""
@@ -84,5 +81,5 @@ def prepared_volume(
         isocenter_mm=views[0].geometry.isocenter_mm,
         translations=3 if options.optimizes_tz(len(views)) else 2,
     )
-    levels = {lv.volume_level for lv in options.levels} | ({options.polish_volume_level} if options.polish else set())
-    return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=sorted(levels), store=store)
+    levels = options.volume_levels()
+    return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=levels, store=store)

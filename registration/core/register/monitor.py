@@ -17,10 +17,7 @@ from registration.core.search import SearchSpace
 Array = NDArray[np.float64]
 
 
-# --------------------------------------------------------------------------------------
-# Progress, stop and accounting shared by the capture runs
-# --------------------------------------------------------------------------------------
-class _Monitor:
+class Monitor:
     """Counts DRRs, keeps the similarity trace, calls the callback and holds the stop flag.
 
     Capture runs report from several threads; what the callback sees as "best" and
@@ -87,7 +84,7 @@ class _Monitor:
             return self.stop.is_set()
 
 
-def _cost(problem: LevelProblem, space: SearchSpace, monitor: _Monitor, parallel: bool | None) -> Callable:
+def cost_function(problem: LevelProblem, space: SearchSpace, monitor: Monitor, parallel: bool | None) -> Callable:
     """cost(x) = -similarity of the DRRs at the motion of x (inf once stopped)."""
     evaluator = problem.evaluator(parallel=parallel)
 

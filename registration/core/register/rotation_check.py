@@ -1,8 +1,8 @@
-"""The rotation check of a single-plane estimate."""
+"""The rotation check of a single-plane estimate: polishes from its out-of-plane rotations turned."""
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -12,18 +12,98 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import invert_rigid, rotation_angle_deg
 from registration.core.images import XRayImage
 from registration.core.problem import LevelProblem
-from registration.core.register.depth import DepthCorrection, depth_correct
-from registration.core.register.inputs import Inputs
-from registration.core.register.monitor import _cost, _Monitor
-from registration.core.register.options import RegistrationOptions
+from registration.core.register.depth import DepthCorrect, depth_correct, depth_stage
+from registration.core.register.monitor import Monitor, cost_function
+from registration.core.register.options import RegistrationOptions, RotationCheckOptions
+from registration.core.register.plan import State
 from registration.core.register.result import RotationCheck
-from registration.core.register.stages import _HeldTz, _polish
-from registration.core.search import SIX_PARAMETERS, SearchSpace
+from registration.core.register.stages import PolishBudget, run_polish
+from registration.core.search import SearchSpace
 
 Array = NDArray[np.float64]
 
-
+#: A rotation check's polish that ends more than this far from the estimate (deg) found a
+#: rival optimum, not the estimate's own peak.
 RIVAL_DISTINCT_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class CheckRotations:
+    """One view, after the depth correction (:class:`RotationCheckOptions`): four polishes
+    (five parameters, tz held) from the estimate with rx or ry turned by +- ``turn_deg``; the
+    estimate moves to a better one (and the depth is corrected again when it is a rival, more
+    than :data:`RIVAL_DISTINCT_DEG` away) and is checked again, ``rounds`` checks at most."""
+
+    check: RotationCheckOptions
+    budget: PolishBudget
+    polish_image_px: int
+    polish_volume_level: int
+    margin_mm: float | None
+    depth: DepthCorrect
+
+    def describe(self) -> str:
+        c = self.check
+        return (f"rotation check: 4 polishes from rx, ry turned +-{c.turn_deg:g} deg at {self.polish_image_px} px "
+                f"({self.budget.describe()} each), up to {c.rounds} checks")  # fmt: skip
+
+    def runs(self, state: State) -> bool:
+        return True
+
+    def run(self, state: State) -> State:
+        r = state.run
+        renderer, view = r.inputs.renderer, r.inputs.views[0]
+        moves, check = 0, None
+        for n in range(self.check.rounds):
+            check = check_estimate(renderer, view, state.space, state.x, self, r.monitor, state.number)
+            if not check.fun < check.f_estimate or r.monitor.stopped:
+                break
+            state, moves = replace(state, x=check.x, f=check.fun), moves + 1
+            if check.moved_deg <= RIVAL_DISTINCT_DEG:
+                break  # the estimate's own peak, polished further: nothing else to correct
+            state = depth_correct(state, self.depth)
+            if n == self.check.rounds - 1:
+                # the last check moved the estimate to a rival, which no check has seen since: its
+                # gain over the estimate it left is the evidence (> 0)
+                check = replace(check, rival_gain=(check.f_estimate - check.fun) / max(abs(check.fun), 1e-12))
+        assert check is not None
+        return replace(state, check=replace(check, checks=n + 1, moves=moves))
+
+
+def check_estimate(
+    renderer: DRRRenderer, view: XRayImage, space: SearchSpace, x: Array, stage: CheckRotations, monitor: Monitor,
+    number: int,
+) -> RotationCheck:  # fmt: skip
+    """Polish the five parameters of ``space`` (tz held) from the estimate ``x`` with the view's
+    rx or ry turned by +- ``turn_deg``, at the polish's level, and compare with the estimate's
+    measure there (one support mask, the estimate's). Deterministic; DRRs counted in ``monitor``."""
+    x = np.asarray(x, dtype=np.float64)
+    m_est = space.motion(x)
+    problem = LevelProblem.prepare(renderer, (view,), image_px=stage.polish_image_px,
+                                   volume_level=stage.polish_volume_level, motion=m_est,
+                                   margin_mm=stage.margin_mm)  # fmt: skip
+    f_est = cost_function(problem, space, monitor, None)(x)
+    ends: list[AnnealResult] = []
+    for slot in (2, 3):  # rx, ry of the five parameters
+        for sign in (1.0, -1.0):
+            if monitor.stopped:
+                break
+            start = x.copy()
+            start[slot] += sign * stage.check.turn_deg
+            start = np.clip(start, space.bounds[:, 0], space.bounds[:, 1])
+            ends.append(run_polish(problem, space, number, start, stage.budget, monitor))
+    best = min(ends, key=lambda r: r.fun) if ends else None
+    if best is not None and best.fun < f_est:
+        chosen_x, chosen_f = np.asarray(best.x, dtype=np.float64), float(best.fun)
+    else:
+        chosen_x, chosen_f = x, f_est
+    m_chosen = space.motion(chosen_x)
+    moved = rotation_angle_deg(m_chosen @ invert_rigid(m_est))
+    scale = max(abs(chosen_f), 1e-12)
+    # the other optima the polishes (and the estimate itself) reached, against the chosen one
+    others = [(space.motion(r.x), r.fun) for r in ends] + [(m_est, f_est)]
+    gains = [(chosen_f - fun) / scale for m, fun in others
+             if rotation_angle_deg(m @ invert_rigid(m_chosen)) > RIVAL_DISTINCT_DEG]  # fmt: skip
+    return RotationCheck(max(gains) if gains else None, moved, chosen_x, chosen_f, f_est)
 
 
 def rotation_check(
@@ -33,70 +113,18 @@ def rotation_check(
     x: Array,
     tz_mm: float,
     options: RegistrationOptions,
-    monitor: _Monitor,
-    stage: int,
+    monitor: Monitor,
+    number: int,
 ) -> RotationCheck:
-    """Polish the five parameters (tz held at ``tz_mm``) from the estimate ``x`` (``space``'s,
-    five parameters) with the view's rx or ry turned by +- ``options.rotation_check_deg``, at
-    the polish's level, and compare with the estimate's measure there (one support mask, the
-    estimate's). Deterministic; the DRRs are counted in ``monitor``."""
-    six = replace(space, names=SIX_PARAMETERS)
-    held = _HeldTz(six, tz_mm)
-    x = np.asarray(x, dtype=np.float64)
-    m_est = held.motion(x)
-    problem = LevelProblem.prepare(renderer, (view,), image_px=options.polish_image_px,
-                                   volume_level=options.polish_volume_level, motion=m_est,
-                                   margin_mm=options.margin_mm(len(options.levels)))  # fmt: skip
-    f_est = _cost(problem, held, monitor, None)(x)
-    check_options = replace(options, polish_reach=options.rotation_check_reach,
-                            polish_evaluations=options.rotation_check_evaluations)  # fmt: skip
-    d = options.rotation_check_deg
-    ends: list[AnnealResult] = []
-    for slot in (2, 3):  # rx, ry of the five parameters
-        for sign in (1.0, -1.0):
-            if monitor.stopped:
-                break
-            start = x.copy()
-            start[slot] += sign * d
-            start = np.clip(start, held.bounds[:, 0], held.bounds[:, 1])
-            ends.append(_polish(problem, held, stage, start, check_options, monitor))
-    best = min(ends, key=lambda r: r.fun) if ends else None
-    if best is not None and best.fun < f_est:
-        chosen_x, chosen_f = np.asarray(best.x, dtype=np.float64), float(best.fun)
-    else:
-        chosen_x, chosen_f = x, f_est
-    m_chosen = held.motion(chosen_x)
-    moved = rotation_angle_deg(m_chosen @ invert_rigid(m_est))
-    scale = max(abs(chosen_f), 1e-12)
-    # the other optima the polishes (and the estimate itself) reached, against the chosen one
-    others = [(held.motion(r.x), r.fun) for r in ends] + [(m_est, f_est)]
-    gains = [(chosen_f - fun) / scale for m, fun in others
-             if rotation_angle_deg(m @ invert_rigid(m_chosen)) > RIVAL_DISTINCT_DEG]  # fmt: skip
-    return RotationCheck(max(gains) if gains else None, moved, chosen_x, chosen_f, f_est)
+    """One check (:func:`check_estimate`) of the five-parameter estimate ``x`` of ``space`` with
+    tz held at ``tz_mm``, with the options' rotation check and polish level."""
+    stage = rotation_check_stage(options, len(options.levels))
+    return check_estimate(renderer, view, space.holding_tz(tz_mm), x, stage, monitor, number)
 
 
-def _check_rotations(
-    inputs: Inputs, space: SearchSpace, x: Array, f: float, depth: DepthCorrection,
-    options: RegistrationOptions, monitor: _Monitor, stage: int,
-) -> tuple[Array, float, DepthCorrection, RotationCheck]:  # fmt: skip
-    """The rounds of the rotation check (:attr:`RegistrationOptions.rotation_check`): move to a
-    better polish when one is found (and correct the depth again from it when it is a rival,
-    more than ``RIVAL_DISTINCT_DEG`` away), check again, ``rotation_check_rounds`` at most."""
-    renderer, view = inputs.renderer, inputs.views[0]
-    moves, check = 0, None
-    for n in range(options.rotation_check_rounds):
-        check = rotation_check(renderer, view, space, x, depth.tz_mm, options, monitor, stage)
-        if not check.fun < check.f_estimate or monitor.stopped:
-            break
-        x, f, moves = check.x, check.fun, moves + 1
-        if check.moved_deg <= RIVAL_DISTINCT_DEG:
-            break  # the estimate's own peak, polished further: nothing else to correct
-        again = depth_correct(renderer, view, space, x, f, options, monitor, stage, tz_mm=depth.tz_mm)
-        depth = DepthCorrection(again.x, again.fun, again.tz_mm, depth.moves_mm + again.moves_mm)
-        x, f = depth.x, depth.fun
-        if n == options.rotation_check_rounds - 1:
-            # the last check moved the estimate to a rival, which no check has seen since: its
-            # gain over the estimate it left is the evidence (> 0)
-            check = replace(check, rival_gain=(check.f_estimate - check.fun) / max(abs(check.fun), 1e-12))
-    assert check is not None
-    return x, f, depth, replace(check, checks=n + 1, moves=moves)
+def rotation_check_stage(options: RegistrationOptions, margin_index: int) -> CheckRotations:
+    """The rotation check stage of ``options`` (its polishes at the polish's level)."""
+    p, c = options.polish, options.rotation_check
+    budget = PolishBudget(c.evaluations, c.reach_mm, c.reach_deg, p.xtol, p.step_mm, p.step_deg)
+    return CheckRotations(c, budget, p.image_px, p.volume_level, options.margin_mm(margin_index),
+                          depth_stage(options, margin_index))  # fmt: skip

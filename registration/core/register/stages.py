@@ -1,52 +1,62 @@
-"""The annealing levels and the local polish."""
+"""The annealing levels and the local polishes: the stages every registration's plan holds."""
 
 from __future__ import annotations
 
-import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from registration.core.anneal import AnnealResult, AnnealState, PolishState, anneal, polish
 from registration.core.problem import LevelProblem
-from registration.core.register.inputs import Inputs
-from registration.core.register.monitor import _cost, _Monitor
-from registration.core.register.options import Level, RegistrationOptions
+from registration.core.register.monitor import Monitor, cost_function
+from registration.core.register.options import Level
+from registration.core.register.plan import Condition, State
 from registration.core.search import FIVE_PARAMETERS, SearchSpace
 
 Array = NDArray[np.float64]
 
 
-# --------------------------------------------------------------------------------------
-# The stages
-# --------------------------------------------------------------------------------------
-def _anneal_level(
+@dataclass(frozen=True)
+class PolishBudget:
+    """One polish's budget: evaluations, reach either side of its start (mm, deg; None: the
+    search range), Powell's tolerance and first steps (mm, deg)."""
+
+    evaluations: int
+    reach_mm: float | None
+    reach_deg: float | None
+    xtol: float
+    step_mm: float
+    step_deg: float
+
+    def describe(self) -> str:
+        reach = "the search range" if self.reach_mm is None else f"+-{self.reach_mm:g} mm / {self.reach_deg:g} deg"
+        return f"{self.evaluations} evaluations over {reach}"
+
+
+def anneal_level(
     problem: LevelProblem,
     space: SearchSpace,
     level: Level,
-    stage: int,
-    x_start: Array | list[Array],
+    number: int,
+    starts: list[Array],
     rng: np.random.Generator,
-    monitor: _Monitor,
+    monitor: Monitor,
     threads: int | None,
 ) -> AnnealResult:
-    """The level's capture runs from ``x_start`` (or run ``c`` from ``x_start[c % len]``); the
-    best of them."""
-    starts = x_start if isinstance(x_start, list) else [x_start]
-    bounds = space.bounds
-    schedule = replace(level.schedule, step=tuple(space.per_parameter(level.schedule.step)))
+    """The level's ``level.restarts`` capture runs, run ``c`` from ``starts[c % len]``; the best."""
 
     def run(chain: int, chain_rng: np.random.Generator, parallel: bool | None) -> AnnealResult:
         def on_iteration(s: AnnealState) -> bool:
-            return monitor.report(stage, s.temperature, s.x, s.fun, s.best_x, s.best_fun, chain)
+            return monitor.report(number, s.temperature, s.x, s.fun, s.best_x, s.best_fun, chain, space)
 
-        cost = _cost(problem, space, monitor, parallel)
-        x0 = starts[chain % len(starts)]
-        return anneal(cost, x0, bounds, rng=chain_rng, schedule=schedule, callback=on_iteration)
+        cost = cost_function(problem, space, monitor, parallel)
+        return anneal(cost, starts[chain % len(starts)], space.bounds, rng=chain_rng, schedule=schedule,
+                      callback=on_iteration)  # fmt: skip
 
+    schedule = replace(level.schedule, step=tuple(space.per_parameter(level.schedule.step)))
     if level.restarts == 1:
         return run(0, rng, None)
     # Independent runs, each with its own random stream (same seed, same result whatever
@@ -59,63 +69,97 @@ def _anneal_level(
     return min(results, key=lambda r: r.fun)
 
 
-def _polish(problem: LevelProblem, space: SearchSpace | _HeldTz, stage: int, x_start: Array,
-            options: RegistrationOptions, monitor: _Monitor, *, pair: bool = False,
-            coarse: bool = False) -> AnnealResult:  # fmt: skip
-    """Powell from the annealed estimate, within the evaluation budget, over the estimate +-
-    ``polish_reach`` (within the search range); ``pair``: the pair's polish after the plane
-    captures (its budget, reach and tolerance), and with ``coarse`` the pair's coarse polish
-    before it."""
+def run_polish(
+    problem: LevelProblem, space: SearchSpace, number: int, x_start: Array, budget: PolishBudget, monitor: Monitor
+) -> AnnealResult:
+    """Powell from ``x_start`` within ``budget`` (its evaluations, over the start +- its reach
+    within the search range)."""
 
     def on_evaluation(s: PolishState) -> bool:
-        return monitor.report(stage, 0.0, s.x, s.fun, s.best_x, s.best_fun, 0, space)  # type: ignore[arg-type]
+        return monitor.report(number, 0.0, s.x, s.fun, s.best_x, s.best_fun, 0, space)
 
-    step = np.where(space.is_translation(), options.polish_step_mm, options.polish_step_deg)
-    bounds, evaluations = space.bounds, options.polish_evaluations
-    xtol, reach = options.polish_xtol, options.polish_reach
-    if pair:
-        reach = options.pair_coarse_polish_reach if coarse else options.pair_polish_reach
-        if coarse:
-            evaluations = options.pair_coarse_polish_evaluations
-        elif options.pair_polish_evaluations is not None:
-            evaluations = options.pair_polish_evaluations
-        xtol = options.pair_polish_xtol
-    if reach is not None:
-        half = np.where(space.is_translation(), *reach)
+    step = np.where(space.is_translation(), budget.step_mm, budget.step_deg)
+    bounds = space.bounds
+    if budget.reach_mm is not None:
+        half = np.where(space.is_translation(), budget.reach_mm, budget.reach_deg)
         x0 = np.clip(x_start, bounds[:, 0], bounds[:, 1])
         bounds = np.stack([np.maximum(bounds[:, 0], x0 - half), np.minimum(bounds[:, 1], x0 + half)], axis=1)
-    cost = _cost(problem, space, monitor, None)
-    return polish(cost, x_start, bounds, step=step, max_evaluations=evaluations, callback=on_evaluation, xtol=xtol)
+    cost = cost_function(problem, space, monitor, None)
+    return polish(cost, x_start, bounds, step=step, max_evaluations=budget.evaluations, callback=on_evaluation,
+                  xtol=budget.xtol)  # fmt: skip
 
 
-def _plane_a_capture(
-    inputs: Inputs, space: SearchSpace, options: RegistrationOptions, rng: np.random.Generator, monitor: _Monitor
-) -> tuple[Array, float]:
-    """The single-plane capture on plane A alone (five parameters, the first level as for one
-    view), as the start of a multi-view search; its estimate with tz = 0 in ``space``."""
-    five = replace(space, names=FIVE_PARAMETERS)
-    level = options.levels[0]
-    problem = LevelProblem.prepare(inputs.renderer, inputs.views[:1], image_px=level.image_px,
-                                   volume_level=level.volume_level, motion=five.motion(five.start()),
-                                   margin_mm=options.margin_mm(0))  # fmt: skip
-    monitor.space = five
-    try:
-        best = _anneal_level(problem, five, level, 0, five.start(), rng, monitor, options.threads)
-    finally:
-        monitor.space = space
-    return space.from_offsets(five.offsets(best.x)), math.inf
+@dataclass(frozen=True)
+class AnnealLevel:
+    """One annealing level: ``level.restarts`` capture runs from the estimate (``restarts``
+    None: one run from each of the state's several starts, the planes' when they disagreed)."""
+
+    level: Level
+    margin_mm: float | None
+    restarts: int | None
+    when: Condition | None = None
+
+    def describe(self) -> str:
+        lv = self.level
+        runs = "one run per start" if self.restarts is None else f"{self.restarts} run{'s' * (self.restarts > 1)}"
+        when = f" ({self.when[0]})" if self.when else ""
+        return f"anneal at {lv.image_px} px, volume level {lv.volume_level}, {runs}{when}"
+
+    def runs(self, state: State) -> bool:
+        return self.when is None or self.when[1](state)
+
+    def run(self, state: State) -> State:
+        r = state.run
+        problem = r.problem(self.level.image_px, self.level.volume_level, self.margin_mm, state.motion)
+        starts = list(state.starts) if self.restarts is None else [state.x]
+        level = replace(self.level, restarts=len(starts) if self.restarts is None else self.restarts)
+        best = anneal_level(problem, state.space, level, state.number, starts, r.rng, r.monitor, r.options.threads)
+        return replace(state, x=best.x, f=best.fun, starts=())
 
 
-class _HeldTz:
-    """The five-parameter view of a six-parameter space with tz held: what :func:`_polish` and
-    :func:`_cost` need (``motion``, ``bounds``, ``is_translation``)."""
+@dataclass(frozen=True)
+class Polish:
+    """A local polish at one level of images and volume, with its own budget."""
 
-    def __init__(self, six: SearchSpace, tz: float) -> None:
-        self.six, self.tz = six, float(tz)
-        five = replace(six, names=FIVE_PARAMETERS)
-        self.bounds = five.bounds
-        self.is_translation = five.is_translation
-        self.names = FIVE_PARAMETERS
+    name: str
+    image_px: int
+    volume_level: int
+    margin_mm: float | None
+    budget: PolishBudget
 
-    def motion(self, x: ArrayLike) -> Array:
-        return self.six.motion(np.insert(np.asarray(x, dtype=np.float64), 2, self.tz))
+    def describe(self) -> str:
+        return f"{self.name} at {self.image_px} px, volume level {self.volume_level}: {self.budget.describe()}"
+
+    def runs(self, state: State) -> bool:
+        return True
+
+    def run(self, state: State) -> State:
+        r = state.run
+        problem = r.problem(self.image_px, self.volume_level, self.margin_mm, state.motion)
+        best = run_polish(problem, state.space, state.number, state.x, self.budget, r.monitor)
+        return replace(state, x=best.x, f=best.fun)
+
+
+@dataclass(frozen=True)
+class PlaneACapture:
+    """Two or more views: the single-plane capture on plane A alone (five parameters, the first
+    level), whose estimate (tz = 0) starts the six-parameter search."""
+
+    level: Level
+    margin_mm: float | None
+
+    def describe(self) -> str:
+        lv = self.level
+        return f"plane A's own capture at {lv.image_px} px, volume level {lv.volume_level}, {lv.restarts} runs"
+
+    def runs(self, state: State) -> bool:
+        return True
+
+    def run(self, state: State) -> State:
+        r = state.run
+        five = replace(state.space, names=FIVE_PARAMETERS)
+        problem = r.problem(self.level.image_px, self.level.volume_level, self.margin_mm, five.motion(five.start()),
+                            views=r.inputs.views[:1])  # fmt: skip
+        best = anneal_level(problem, five, self.level, state.number, [five.start()], r.rng, r.monitor,
+                            r.options.threads)  # fmt: skip
+        return replace(state, x=state.space.from_offsets(five.offsets(best.x)), f=float("inf"))

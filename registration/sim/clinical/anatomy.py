@@ -191,7 +191,7 @@ def bent_volume(volume: Volume, motion: ArrayLike, isocenter_mm: ArrayLike, neck
     wv = weight[moving][:, None]
     # inverse of the weighted transform at each output point: rotate back by -w*rotvec, shift back by w*t
     src = _rotate(p - pivot - wv * t, -wv * rotvec[None, :]) + pivot
-    w2i = volume.world_to_index
+    w2i = volume.index_from_world
     src_idx = src @ w2i[:3, :3].T + w2i[:3, 3]
     values = ndimage.map_coordinates(volume.data, src_idx[:, ::-1].T, order=1, mode="constant", cval=-1000.0)
     data = volume.data.copy()

@@ -139,6 +139,8 @@ def test_polish_keeps_its_budget_and_stops_without_exceptions():
 
 def test_pair_polish_searches_near_its_start_and_a_range_wide_polish_does_not():
     from registration.core import register as reg
+    from registration.core.register.build import polish_stages
+    from registration.core.register.stages import run_polish
 
     geometry = CArm.for_format(27.0, pixels=64)
     six = SearchSpace(geometry, np.eye(4), SIX_PARAMETERS, 30.0, 15.0)
@@ -166,8 +168,10 @@ def test_pair_polish_searches_near_its_start_and_a_range_wide_polish_does_not():
     def run(pair, options, coarse=False):
         evaluator = Evaluator()
         problem = type("Problem", (), {"evaluator": lambda self, parallel=None: evaluator})()
-        monitor = reg._Monitor(six, None, 0.0)
-        best = reg._polish(problem, six, 1, start, options, monitor, pair=pair, coarse=coarse)
+        monitor = reg.Monitor(six, None, 0.0)
+        stages = polish_stages(options, pair)  # the pair's: its coarse polish, then its polish
+        budget = (stages[0] if coarse else stages[-1]).budget
+        best = run_polish(problem, six, 1, start, budget, monitor)
         return np.array(evaluator.points), best, monitor.drr_count
 
     options = RegistrationOptions(polish_evaluations=45, pair_polish_evaluations=45, pair_polish_reach=(4.0, 3.0),

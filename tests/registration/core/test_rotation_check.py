@@ -13,8 +13,8 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, invert_rigid, offsets_to_matrix, rotation_angle_deg
 from registration.core.register import (
     RIVAL_DISTINCT_DEG,
+    Monitor,
     RegistrationOptions,
-    _Monitor,
     register,
     rotation_check,
 )
@@ -39,7 +39,7 @@ def scene():
 
 def _check(renderer, xray, x5):
     space = SearchSpace.for_views(xray.geometry, np.eye(4), optimize_tz=False, bound_mm=30.0, bound_deg=15.0)
-    monitor = _Monitor(space, None, 0.0)
+    monitor = Monitor(space, None, 0.0)
     out = rotation_check(renderer, xray, space, np.asarray(x5, dtype=float), 0.0, OPTIONS, monitor, 0)
     return space, out, monitor
 

@@ -67,7 +67,7 @@ def _world_grid(volume):
 def _bead_offsets_vox(volume) -> np.ndarray:
     """Signal-weighted centroid of each bead (HU above the water) minus its true center, voxels."""
     out = []
-    w2i = volume.world_to_index
+    w2i = volume.index_from_world
     for bead in BEADS_MM:
         idx = w2i[:3, :3] @ bead + w2i[:3, 3]
         i, j, k = np.round(idx).astype(int)
@@ -181,7 +181,7 @@ def test_beads_at_the_right_position_and_hu(volumes):
     vol, _ = volumes
     offsets = _bead_offsets_vox(vol)
     assert np.abs(offsets).max() < 0.1  # issue: < 0.5 voxel; calibrated geometry gives ~0.02
-    w2i = vol.world_to_index
+    w2i = vol.index_from_world
     for bead in BEADS_MM:
         i, j, k = np.round(w2i[:3, :3] @ bead + w2i[:3, 3]).astype(int)
         peak = float(vol.data[k - 1 : k + 2, j - 1 : j + 2, i - 1 : i + 2].max())

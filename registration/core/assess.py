@@ -1,0 +1,120 @@
+"""Whether to apply a registration's estimate: one policy for the command line, the app and the
+studies (CONVENTIONS §7).
+
+:func:`assess` vetoes an estimate that is not a registration (it ended at the search bounds, or
+the measure found no overlap), measures the evidence of the others on the preparation's probe
+levels (:meth:`registration.core.preparation.Preparation.probe_renderer`) and applies the
+confidence rule (:data:`registration.core.confidence.DEFAULT_RULE`). Callers only format the
+:class:`~registration.core.confidence.Assessment` it returns.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from registration.core.confidence import DEFAULT_RULE, Assessment, ConfidenceRule, Evidence
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import apply
+from registration.core.images import XRayImage
+from registration.core.preparation import Preparation
+from registration.core.register import RegistrationResult
+from registration.core.volume import Volume
+
+
+def veto(result: RegistrationResult) -> str | None:
+    """Why ``result`` is no registration at all (None: it is one): an estimate at the search
+    bounds (inputs without information drift there) or without a finite measure."""
+    if result.at_bounds:
+        return f"the estimate ended at the search bounds ({', '.join(result.at_bounds)})"
+    if not math.isfinite(result.similarity):
+        return "no usable overlap between the DRR and the image"
+    return None
+
+
+def assess(
+    result: RegistrationResult,
+    views: XRayImage | Sequence[XRayImage],
+    preparation: Preparation,
+    *,
+    single_plane_motion: ArrayLike | None = None,
+    rule: ConfidenceRule = DEFAULT_RULE,
+) -> Assessment:
+    """The confidence in ``result`` (a registration of ``views`` with ``preparation``), the
+    decision and why: :func:`assess_on` the preparation's probe levels."""
+    why_not = veto(result)
+    if why_not is not None:
+        return Assessment(0.0, False, why_not, Evidence(veto=why_not))
+    return assess_on(result, views, preparation.volume, preparation.probe_renderer(),
+                     single_plane_motion=single_plane_motion, rule=rule)  # fmt: skip
+
+
+def assess_on(
+    result: RegistrationResult,
+    views: XRayImage | Sequence[XRayImage],
+    volume: Volume,
+    renderer: DRRRenderer,
+    *,
+    single_plane_motion: ArrayLike | None = None,
+    rule: ConfidenceRule = DEFAULT_RULE,
+) -> Assessment:
+    """:func:`assess` with the probes rendered by ``renderer`` (of ``volume``).
+
+    ``views``: the view, or the views of a biplane registration (margins and edges averaged over
+    the planes); ``single_plane_motion``: plane A's own single-view estimate, whose in-plane
+    disagreement with the biplane estimate is the planes' agreement. A single-plane
+    (five-parameter) result is also probed along the beam
+    (:func:`registration.core.depth.depth_probe`, :func:`~registration.core.depth.depth_scan`;
+    kept in the assessment, the probe's pose is not applied)."""
+    start = time.perf_counter()
+    views = (views,) if isinstance(views, XRayImage) else tuple(views)
+    why_not = veto(result)
+    if why_not is not None:
+        return Assessment(0.0, False, why_not, Evidence(veto=why_not))
+    evidence, probe, scan = _evidence(result, views, volume, renderer)
+    if single_plane_motion is not None:
+        g = views[0].geometry
+        iso = np.asarray(g.isocenter_mm)
+        shift = apply(np.asarray(result.patient_motion), iso) - apply(np.asarray(single_plane_motion), iso)
+        inplane = shift - (shift @ g.direction) * g.direction
+        evidence = replace(evidence, plane_disagreement_mm=float(np.linalg.norm(inplane)))
+    decided = rule.assess(evidence)
+    return replace(decided, depth_probe=probe, depth_scan=scan, seconds=time.perf_counter() - start)
+
+
+def _evidence(
+    result: RegistrationResult, views: tuple[XRayImage, ...], volume: Volume, renderer: DRRRenderer
+) -> tuple[Evidence, object, object]:
+    """The evidence of a registration (each view's, combined) and, for one plane, the depth
+    probe and scan."""
+    from registration.core.tracking import registration_evidence
+
+    motion = np.asarray(result.patient_motion)
+    probe = scan = None
+    if len(views) == 1 and "tz" not in tuple(result.parameters):
+        from registration.core.depth import depth_probe, depth_scan
+
+        probe = depth_probe(renderer, views[0], motion)
+        scan = depth_scan(renderer, views[0], motion)
+    per_view = [
+        registration_evidence(volume, v, motion, renderer=renderer, capture_motions=result.capture_motions,
+                              depth=probe, agreement_in_plane=probe is not None)  # single plane: captures keep tz
+        for v in views
+    ]  # fmt: skip
+    check = result.rotation_check
+    evidence = replace(
+        per_view[0],
+        margin=float(np.mean([e.margin for e in per_view])),
+        # calibrated on single-plane registrations only (two views see the out-of-plane
+        # rotations of each other's frame)
+        rotation_margin=per_view[0].rotation_margin if len(per_view) == 1 else None,
+        edges=float(np.mean([e.edges for e in per_view])),
+        depth_scan_tz_mm=None if scan is None else float(scan.tz_mm),
+        rival_gain=None if check is None or check.rival_gain is None else float(check.rival_gain),
+    )
+    return evidence, probe, scan
