@@ -112,6 +112,8 @@ def register(
     truth: Path | None = None,
     out: Path | None = None,
     out_dicom: Path | None = None,
+    out_transform: Path | None = None,
+    geometry: Annotated[list[Path], tyro.conf.UseAppendAction] = [],  # noqa: B006 (tyro: an append flag)
     isocenter: str | None = None,
     seed: int = 0,
     sid_mm: float | None = None,
@@ -128,14 +130,20 @@ def register(
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
     Args:
-        volume: DICOM series folder, enhanced multi-frame file, or the project's .npz (with --pacs: a series UID).
-        image: XA/RF DICOM file, single or multi-frame (with --pacs: a series UID). Give it twice
-            (--image A.dcm --image B.dcm) for a biplane pair of one moment: six parameters in plane A's frame.
+        volume: DICOM series folder, enhanced multi-frame file, NIfTI (.nii, .nii.gz), NRRD, MetaImage (.mha, .mhd)
+            or the project's .npz (with --pacs: a series UID).
+        image: XA/RF DICOM file, single or multi-frame, or a TIFF/PNG with its geometry (--geometry; with --pacs: a
+            series UID). Give it twice (--image A.dcm --image B.dcm) for a biplane pair of one moment: six
+            parameters in plane A's frame.
         frame: Frame of a multi-frame image (0-based).
         initial_motion: JSON with "patient_motion" (4x4), or a DICOM Spatial Registration, to start from.
         truth: JSON with the true "patient_motion", or a DICOM Spatial Registration: adds residuals and success.
         out: Write the result JSON here.
         out_dicom: Write the result as a DICOM Spatial Registration object (REG) here.
+        out_transform: Write the result as an ITK transform (.tfm or .h5; SimpleITK, 3D Slicer): the inverse of
+            the patient motion, in LPS (fixed = the patient as imaged, moving = the volume).
+        geometry: The geometry side file (JSON) of a TIFF/PNG --image, one per image in order (default: the
+            image's name with .json). Keys: docs/formats.md.
         isocenter: Iso-center "x,y,z" mm or "volume-center" (default: IsocenterPosition of the volume, else the origin).
         seed: Seed of the annealing.
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
@@ -196,6 +204,8 @@ def register(
         truth=truth,
         out=out,
         out_dicom=out_dicom,
+        out_transform=out_transform,
+        geometry=geometry,
         isocenter=isocenter,
         seed=seed,
         sid_mm=sid_mm,

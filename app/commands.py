@@ -26,6 +26,7 @@ import numpy as np
 
 from registration.core.geometry import OFFSET_NAMES, TABLE_I, CArm, check_rigid, matrix_to_offsets, offsets_to_matrix
 from registration.io import dicom
+from registration.io.transforms import ITK_SUFFIXES, write_itk_transform
 from registration.sim.threedra import VOLUME_SOURCES, VolumeRecipe
 
 if TYPE_CHECKING:
@@ -361,6 +362,8 @@ def run_register(
     truth: Path | None = None,
     out: Path | None = None,
     out_dicom: Path | None = None,
+    out_transform: Path | None = None,
+    geometry: Sequence[Path] = (),
     isocenter: str | None = None,
     seed: int = 0,
     sid_mm: float | None = None,
@@ -382,7 +385,12 @@ def run_register(
         raise ValueError(f"one X-ray image, or two (plane A and plane B of one moment), got {len(images)}")
     if isocenter is not None and isocenter.strip().lower() != VOLUME_CENTER:
         parse_isocenter(isocenter)  # a bad value is refused before any file is read
-    for target, flag, kind in ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM")):
+    if geometry and len(geometry) != len(images):
+        raise ValueError(f"--geometry: one side file per --image ({len(images)}), got {len(geometry)}")
+    if out_transform is not None and Path(out_transform).suffix.lower() not in ITK_SUFFIXES:
+        raise ValueError(f"{out_transform}: --out-transform takes an ITK transform file ({', '.join(ITK_SUFFIXES)})")
+    targets = ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM"), (out_transform, "--out-transform", "ITK"))
+    for target, flag, kind in targets:
         if target is not None and Path(target).is_dir():
             raise ValueError(f"{target}: is a folder; {flag} takes a {kind} file name")
         check_writable(target, flag)  # before the registration runs, not after
@@ -391,7 +399,11 @@ def run_register(
         vol = dicom.read_volume(volume)
         clock.lap("reading the volume")
         iso, iso_from = resolve_isocenter(isocenter, vol)
-        views = [dicom.read_xray(p, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm) for p in images]
+        sides = list(geometry) or [None] * len(images)
+        views = [
+            dicom.read_xray(p, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm, geometry=g)
+            for p, g in zip(images, sides, strict=True)
+        ]
         clock.lap("reading the image" + ("s" if len(images) > 1 else ""))
         if len(views) == 2:
             from registration.io.dicom.biplane import pair_views
@@ -509,6 +521,11 @@ def run_register(
             description=f"roadmap3d: similarity {result.similarity:.4f}, {result.drr_count} DRRs",
         )
         _say(f"wrote {out_dicom} (DICOM Spatial Registration: volume frame of reference -> X-ray image)")
+    if out_transform is not None:
+        write_itk_transform(result.patient_motion, out_transform)
+        _say(
+            f"wrote {out_transform} (ITK transform, LPS: inverse of the patient motion; fixed = the patient as imaged)"
+        )
     return 0
 
 
