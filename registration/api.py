@@ -15,6 +15,7 @@ Examples
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -279,13 +280,32 @@ class Example:
     offset: str
 
 
+#: The default example (seed 0, T4, 256 px) as :func:`simulate_example` makes it, shipped so a
+#: first run compiles only the engine's kernels, not the simulator's (``scripts/make_example.py``).
+SHIPPED_EXAMPLE = Path(__file__).resolve().parent / "data" / "example-t4.npz"
+
+
 def load_example(offset: str = "T4", *, pixels: int = 256, seed: int = 0) -> Example:
-    """A runnable case: the phantom's 3DRA (128³ voxels, 27 cm format, cached after the first call)
-    and a fluoroscopy image of the phantom moved by ``offset`` (one of Table I: T1-T4).
+    """A runnable case: the phantom's 3DRA (128³ voxels, 27 cm format, whole HU) and a fluoroscopy
+    image of the phantom moved by ``offset`` (one of Table I: T1-T4).
 
     The image is formed from the analytic phantom (not by the DRR renderer that registration
-    uses), with the system's noise; ``truth_motion`` is the motion it was moved by.
+    uses), with the system's noise; ``truth_motion`` is the motion it was moved by. The default
+    case is read from a copy shipped with the package; any other is simulated (the volume is
+    cached on disk after the first call).
     """
+    if (offset, pixels, seed) == ("T4", 256, 0) and SHIPPED_EXAMPLE.is_file():
+        with np.load(SHIPPED_EXAMPLE, allow_pickle=False) as f:
+            volume = Volume(data=f["volume"], index_to_world=f["index_to_world"], label=str(f["label"]))
+            carm = CArm.from_dict(json.loads(str(f["geometry"])))
+            image = XRayImage(image=f["image"], mask=f["mask"], geometry=carm, kind="fluoro",
+                              meta={"source": "shipped example"})  # fmt: skip
+            return Example(volume=volume, image=image, truth_motion=f["truth_motion"], offset=offset)
+    return simulate_example(offset, pixels=pixels, seed=seed)
+
+
+def simulate_example(offset: str = "T4", *, pixels: int = 256, seed: int = 0) -> Example:
+    """What :func:`load_example` returns, made from the phantom now (see there)."""
     from registration.core.geometry import TABLE_I, offsets_to_matrix
     from registration.sim.phantom import make_head_phantom
     from registration.sim.threedra import VolumeRecipe
@@ -296,7 +316,9 @@ def load_example(offset: str = "T4", *, pixels: int = 256, seed: int = 0) -> Exa
     recipe = VolumeRecipe(
         phantom_seed=seed, volume_format_cm=27.0, source="resampled", voxels=128, contrast=True, noise_seed=seed
     )
-    volume = Volume._of(recipe.build())
+    built = recipe.build()
+    # whole Hounsfield units, as a 3DRA series stores them
+    volume = Volume(data=np.rint(built.data), index_to_world=built.index_to_world, label=built.label)
     carm = CArm.for_format(27.0, pixels=pixels)
     motion = offsets_to_matrix(np.asarray(TABLE_I[offset]), carm)
     image = simulate_xray(make_head_phantom(seed=seed, contrast=True), carm, motion=motion, kind="fluoro", seed=seed)
