@@ -71,8 +71,13 @@ def inspect(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            if path.is_dir() or path.suffix.lower() == ".npz":
+            from registration.io.image_files import is_image_file
+            from registration.io.volume_files import volume_format
+
+            if path.is_dir() or path.suffix.lower() == ".npz" or volume_format(path) is not None:
                 out.update(_inspect_volume(read_volume(path)))
+            elif is_image_file(path):
+                out.update(_inspect_image_file(path, sid_mm=sid_mm, sod_mm=sod_mm))
             else:
                 ds = read_dataset(path, stop_before_pixels=True)
                 out["sop_class"] = UID(_sop_class(ds)).name if _sop_class(ds) else ""
@@ -105,6 +110,22 @@ def _inspect_volume(volume: Volume) -> dict[str, Any]:
         "center_mm": [round(float(c), 3) for c in volume.center_mm],
         "value_range_hu": [round(v, 1) for v in _range(volume.data)],
         **({"decoder": volume.meta["decoder"]} if volume.meta.get("decoder") else {}),
+        **({"orientation_from": volume.meta["orientation_from"]} if volume.meta.get("orientation_from") else {}),
+    }
+
+
+def _inspect_image_file(path: Path, *, sid_mm: float | None = None, sod_mm: float | None = None) -> dict[str, Any]:
+    """A TIFF/PNG X-ray image with its geometry side file (registration.io.image_files)."""
+    image = read_xray(path, sid_mm=sid_mm, sod_mm=sod_mm)
+    return {
+        "kind": "xray",
+        "format": image.meta.get("format", ""),
+        "geometry_from": image.meta.get("geometry_from"),
+        "pixel_values": image.meta.get("pixel_values"),
+        "geometry": image.geometry.to_dict(),
+        "field_pixels": int(image.mask.sum()),
+        "mask_from": image.meta.get("mask_from"),
+        "attenuation_range": [round(v, 4) for v in _range(image.image[image.mask])],
     }
 
 

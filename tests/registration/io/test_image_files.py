@@ -95,3 +95,17 @@ def test_missing_side_file_and_colour_image(tmp_path: Path) -> None:
     tifffile.imwrite(tmp_path / "stack.tif", np.ones((3, 8, 8), dtype=np.float32), photometric="minisblack")
     with pytest.raises(ImageFileError, match="one grayscale image"):
         read_image_file(tmp_path / "stack.tif", geometry=GEOMETRY)
+
+
+def test_info_reads_image_and_volume_files(tmp_path: Path) -> None:
+    from registration.io.volume_files import write_volume_file
+
+    from_dicom = dicom.read_xray(dicom.write_xray(_xray(), tmp_path / "xa.dcm"))
+    write_image_file(from_dicom, tmp_path / "xa.tif")
+    report = dicom.inspect(tmp_path / "xa.tif")
+    assert report["accepted"] and report["kind"] == "xray" and report["geometry"]["primary_deg"] == 20.0
+    from registration.core.volume import Volume
+
+    write_volume_file(Volume.from_grid(np.zeros((4, 5, 6)), 1.0), tmp_path / "v.nii.gz")
+    report = dicom.inspect(tmp_path / "v.nii.gz")
+    assert report["accepted"] and report["format"] == "NIfTI" and report["shape_kji"] == [4, 5, 6]
