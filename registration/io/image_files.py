@@ -181,6 +181,42 @@ def _border_field(pixels: NDArray[np.float64]) -> NDArray[np.bool_]:
     return ~outside if not outside.all() else np.ones(pixels.shape, dtype=bool)
 
 
+def read_image_mask(path: str | os.PathLike[str], shape: tuple[int, int]) -> NDArray[np.bool_]:
+    """A user's field mask: a PNG or TIFF of the image's stored size (rows, cols), nonzero = usable.
+
+    A color PNG counts a pixel as usable when any channel (alpha aside) is nonzero.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ImageFileError(path, "no such image mask file")
+    if path.suffix.lower() == ".png":
+        check_file_size(path, path.stat().st_size)
+        try:
+            from PIL import Image
+
+            with Image.open(path) as im:
+                check_voxels(path, (im.height, im.width), what="image size")
+                pixels = np.asarray(im.convert("RGB") if im.mode in ("RGB", "RGBA", "P", "LA", "PA") else im)
+        except ImageFileError:
+            raise
+        except Exception as exc:
+            raise ImageFileError(path, f"not a readable PNG mask ({type(exc).__name__}: {exc})") from None
+    elif is_image_file(path):
+        pixels = read_pixels(path)
+    else:
+        raise ImageFileError(path, f"an image mask is a PNG or TIFF file ({', '.join(IMAGE_SUFFIXES)})")
+    if pixels.ndim == 3:
+        pixels = pixels.max(axis=-1)
+    if pixels.shape != tuple(shape):
+        raise ImageFileError(
+            path, f"the image mask is {pixels.shape[0]}x{pixels.shape[1]} pixels; the image is {shape[0]}x{shape[1]}"
+        )
+    mask = np.asarray(pixels) != 0
+    if not mask.any():
+        raise ImageFileError(path, "the image mask marks no pixel as usable (nonzero = usable)")
+    return mask
+
+
 def read_image_file(
     path: str | os.PathLike[str],
     *,

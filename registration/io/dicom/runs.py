@@ -124,6 +124,8 @@ class XRayRun(Sequence["XRayImage"]):
             kind=self._read["kind"],
             sid_mm=self._read["sid_mm"],
             sod_mm=self._read["sod_mm"],
+            image_mask=self._read.get("image_mask"),
+            field_cache=self._read.setdefault("field_cache", {}),
         )
         image.meta.update(t_s=float(self.times_s[n]), times_from=self.times_from)
         return image
@@ -150,12 +152,14 @@ def read_xray_run(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     frame_time_ms: float | None = None,
+    image_mask: str | os.PathLike[str] | None = None,
 ) -> XRayRun:
     """Read an XA/RF run: times and per-frame geometry now, pixels frame by frame later.
 
     ``isocenter_mm``, ``kind``, ``sid_mm`` and ``sod_mm`` mean what they mean for
     :func:`registration.io.dicom.read_xray`. ``frame_time_ms`` supplies the frame spacing for
     files that state no times (see the module docstring); a file that does state them wins.
+    ``image_mask``: the user's field mask for every frame (as for ``read_xray``).
     Raises :class:`DicomError` naming the file and the tag for anything unreadable.
     """
     path = Path(path)
@@ -182,7 +186,15 @@ def read_xray_run(
         or (_text(ds, "AcquisitionDate") + _text(ds, "AcquisitionTime")),
         **info,
     }
-    read = {"rows": rows, "cols": cols, "iso": iso, "kind": kind, "sid_mm": sid_mm, "sod_mm": sod_mm}
+    read = {
+        "rows": rows,
+        "cols": cols,
+        "iso": iso,
+        "kind": kind,
+        "sid_mm": sid_mm,
+        "sod_mm": sod_mm,
+        "image_mask": image_mask,
+    }
     return XRayRun(
         path=path,
         times_s=times,

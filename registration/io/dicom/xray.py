@@ -28,9 +28,11 @@ X-ray images (CONVENTIONS §3, §5)
     result is then attenuation in units of 1/1000 of a stored step, which the similarity
     measure (gradient difference fits an intensity scale) does not mind.
 
-    The field mask (pixels that carry signal) is the intersection of the display shutters
-    (ShutterShape CIRCULAR with CenterOfCircularShutter/RadiusOfCircularShutter, and/or
-    RECTANGULAR with the four edges; 1-based pixel positions) and the complement of the
+    The field mask (pixels that carry signal) is the intersection of the shutter and collimator
+    tags (:mod:`registration.io.dicom.shutters`: rectangular, circular, polygonal, per frame),
+    what :func:`registration.io.field.find_field` finds in the pixels (the collimated outside,
+    collimator blades, burned-in text and rulers), the complement of the overlay planes'
+    graphics and the user's own mask (``image_mask``). ``meta["field"]`` says what was found.
 """
 
 from __future__ import annotations
@@ -55,7 +57,6 @@ from pydicom.uid import (
     RLELossless,
     XRayAngiographicImageStorage,
 )
-from scipy import ndimage
 
 from registration.core.geometry import CArm
 from registration.io.dicom._common import (
@@ -87,6 +88,7 @@ from registration.io.dicom._files import (
     _atomic_path,
 )
 from registration.io.dicom.limits import check_dataset_pixels, check_frame_count
+from registration.io.dicom.shutters import overlay_graphics, shutter_field, shutter_text
 
 if TYPE_CHECKING:
     from registration.core.images import XRayImage
@@ -269,45 +271,6 @@ def _intensity_to_attenuation(
     return att.astype(np.float32), info
 
 
-def _shutter_mask(path: Path, ds: Dataset, rows: int, cols: int) -> NDArray[np.bool_] | None:
-    shape = _text(ds, "ShutterShape").upper()
-    if not shape:
-        return None
-    mask = np.ones((rows, cols), dtype=bool)
-    rr, cc = np.mgrid[0:rows, 0:cols]
-    used = False
-    if "CIRCULAR" in shape:
-        center = _floats(path, ds, "CenterOfCircularShutter", 2)
-        radius = _float(path, ds, "RadiusOfCircularShutter")
-        assert center is not None
-        mask &= (rr - (center[0] - 1)) ** 2 + (cc - (center[1] - 1)) ** 2 <= radius**2
-        used = True
-    if "RECTANGULAR" in shape:
-        left = _float(path, ds, "ShutterLeftVerticalEdge") - 1
-        right = _float(path, ds, "ShutterRightVerticalEdge") - 1
-        upper = _float(path, ds, "ShutterUpperHorizontalEdge") - 1
-        lower = _float(path, ds, "ShutterLowerHorizontalEdge") - 1
-        mask &= (cc >= left) & (cc <= right) & (rr >= upper) & (rr <= lower)
-        used = True
-    return mask if used else None
-
-
-def _border_mask(stored: NDArray[Any]) -> NDArray[np.bool_] | None:
-    """False where the image holds the corners' constant value, connected to the border."""
-    corners = {stored[0, 0].item(), stored[0, -1].item(), stored[-1, 0].item(), stored[-1, -1].item()}
-    if len(corners) != 1:
-        return None
-    value = corners.pop()
-    same = stored == value
-    labels, _ = ndimage.label(same)
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    border = border[border > 0]
-    outside = np.isin(labels, border)
-    if outside.all():
-        return None
-    return ~outside
-
-
 def _field_of_view(path: Path, ds: Dataset, frame: int | None = None) -> tuple[int, bool]:
     """FieldOfViewRotation (degrees clockwise, 0/90/180/270) and FieldOfViewHorizontalFlip.
 
@@ -439,6 +402,7 @@ def read_xray(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     geometry: str | os.PathLike[str] | dict | None = None,
+    image_mask: str | os.PathLike[str] | None = None,
 ) -> XRayImage:
     """An XA/RF image (one frame) as attenuation line integrals with its field mask and C-arm.
 
@@ -450,6 +414,8 @@ def read_xray(
     ``sid_mm`` / ``sod_mm`` supply the source-detector and source-iso-center distances for
     files that lack DistanceSourceToDetector / DistanceSourceToPatient; given for a file that
     has them, they replace the file's values (with a warning when they differ).
+    ``image_mask``: the user's own field mask, a PNG or TIFF of the image's stored size
+    (nonzero = usable), intersected with the field the file and its pixels give.
     A whole run (all frames, their times) is read by :func:`registration.io.dicom.read_xray_run`.
     """
     path = Path(path)
@@ -459,7 +425,8 @@ def read_xray(
     if is_image_file(path):
         if frame not in (None, 0):
             raise DicomError(path, f"frame {frame}: a TIFF/PNG image is one frame")
-        return read_image_file(path, geometry=geometry, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
+        image = read_image_file(path, geometry=geometry, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm)
+        return image if image_mask is None else with_user_mask(image, image_mask)
     ds, frames, rows, cols = _open_xray(path)
     if frame is None:
         if frames > 1:
@@ -467,7 +434,26 @@ def read_xray(
         frame = 0
     if not 0 <= int(frame) < frames:
         raise DicomError(path, f"frame {frame} out of range: {tag_name('NumberOfFrames')} is {frames}")
-    return _xray_frame(path, ds, int(frame), frames, rows, cols, iso, kind=kind, sid_mm=sid_mm, sod_mm=sod_mm)
+    return _xray_frame(
+        path, ds, int(frame), frames, rows, cols, iso, kind=kind, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask
+    )
+
+
+def with_user_mask(image: XRayImage, image_mask: str | os.PathLike[str]) -> XRayImage:
+    """``image`` with its field intersected with the user's mask file (nonzero = usable)."""
+    from registration.core.images import XRayImage
+    from registration.io.image_files import ImageFileError, read_image_mask
+
+    user = read_image_mask(image_mask, image.shape)
+    mask = image.mask & user
+    if not mask.any():
+        raise ImageFileError(image_mask, "the image mask and the image's field have no pixel in common")
+    found_by = f"{image.meta.get('mask_from', 'whole image')}, user mask {Path(image_mask).name}"
+    meta = {**image.meta, "mask_from": found_by}
+    field = dict(meta.get("field") or {})
+    field.update(user_mask=str(image_mask), usable_pixels=int(mask.sum()), usable_fraction=round(float(mask.mean()), 4))
+    meta["field"] = field
+    return XRayImage(np.where(mask, image.image, np.float32(0.0)), mask, image.geometry, image.kind, meta)
 
 
 def _check_isocenter(isocenter_mm: ArrayLike) -> tuple[float, float, float]:
@@ -534,6 +520,86 @@ def _image_references(ds: Dataset) -> dict[str, str]:
     }
 
 
+def _signal_up(ds: Dataset, frame: int) -> bool:
+    """Whether larger stored values mean more X-rays (PixelIntensityRelationshipSign, +1 when absent)."""
+    try:
+        return int(lookup(ds, "PixelIntensityRelationshipSign", frame) or 1) != -1
+    except (TypeError, ValueError):
+        return True
+
+
+def _raw_words(ds: Dataset, frame: int, frames: int, rows: int, cols: int) -> NDArray[Any] | None:
+    """The frame's stored 16-bit words with their high bits (uncompressed data only)."""
+    ts = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
+    if ts is not None and UID(ts).is_compressed or int(ds.get("BitsAllocated") or 0) != 16:
+        return None
+    data = ds.get("PixelData")
+    if not isinstance(data, (bytes, bytearray)) or len(data) < frames * rows * cols * 2:
+        return None
+    words = np.frombuffer(data, dtype="<u2", count=frames * rows * cols)
+    return words.reshape(frames, rows, cols)[frame]
+
+
+def _field_mask(
+    path: Path,
+    ds: Dataset,
+    stored: NDArray[Any],
+    frame: int,
+    *,
+    image_mask: str | os.PathLike[str] | None = None,
+    cache: dict[str, Any] | None = None,
+) -> tuple[NDArray[np.bool_], dict[str, Any]]:
+    """The usable field in stored pixel positions and how it was found (CONVENTIONS §5).
+
+    The intersection of: the shutter and collimator tags, what :func:`registration.io.field.find_field`
+    finds in the pixels (the collimated outside, blades, burned-in graphics), the complement of
+    the overlay planes' graphics, and the user's mask.
+    """
+    from registration.io.field import find_field
+
+    rows, cols = stored.shape
+    frames = _frames(path, ds)
+    shutter, shutter_info = shutter_field(path, ds, rows, cols, frame)
+    found = find_field(stored, signal_up=_signal_up(ds, frame), start=shutter, cache=cache)
+    mask = found.mask
+    found_by: list[str] = []
+    info: dict[str, Any] = {**shutter_info}
+    if shutter is not None:
+        found_by.append(shutter_text(shutter_info))
+    pixel_parts = [p["what"] for p in found.parts]
+    for what in dict.fromkeys(pixel_parts):
+        n = pixel_parts.count(what)
+        found_by.append(what + (f" x{n}" if n > 1 else ""))
+    if found.parts:
+        info["found_in_pixels"] = found.parts
+    overlay, notes = overlay_graphics(path, ds, rows, cols, frame, _raw_words(ds, frame, frames, rows, cols))
+    if notes:
+        info["overlays"] = notes
+    if overlay is not None:
+        mask = mask & ~overlay
+        found_by.append("overlay graphics")
+    if image_mask is not None:
+        from registration.io.image_files import read_image_mask
+
+        user = read_image_mask(image_mask, (rows, cols))
+        mask = mask & user
+        found_by.append(f"user mask {Path(image_mask).name}")
+        info["user_mask"] = str(image_mask)
+    if not found_by:
+        warnings.warn(
+            f"{path}: no shutter ({tag_name('ShutterShape')}), no collimator edge and no graphics found; using the "
+            "whole image as the field",
+            stacklevel=4,
+        )
+        found_by.append("whole image")
+    if not mask.any():
+        raise DicomError(path, "the field is empty (shutter, collimation found in the pixels, overlays or mask)")
+    info["found_by"] = ", ".join(found_by)
+    info["usable_pixels"] = int(mask.sum())
+    info["usable_fraction"] = round(float(mask.mean()), 4)
+    return mask, info
+
+
 def _xray_frame(
     path: Path,
     ds: Dataset,
@@ -546,8 +612,14 @@ def _xray_frame(
     kind: str | None = None,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    image_mask: str | os.PathLike[str] | None = None,
+    field_cache: dict[str, Any] | None = None,
 ) -> XRayImage:
-    """Frame ``frame`` of an opened XA/RF dataset as an :class:`XRayImage`."""
+    """Frame ``frame`` of an opened XA/RF dataset as an :class:`XRayImage`.
+
+    ``image_mask``: the user's mask (see :func:`read_xray`); ``field_cache``: a dict kept across
+    the frames of one run (:func:`registration.io.field.find_field`).
+    """
     from registration.core.images import XRayImage
 
     sop = _sop_class(ds)
@@ -557,33 +629,12 @@ def _xray_frame(
         stored = stored[0]
     if stored.shape != (rows, cols):
         raise DicomError(path, f"{tag_name('PixelData')} decodes to shape {stored.shape}, expected {rows}x{cols}")
-    shutter = _shutter_mask(path, ds, rows, cols)  # in stored pixel positions
+    mask, field_info = _field_mask(path, ds, stored, frame, image_mask=image_mask, cache=field_cache)
     stored, rotation_note = _field_rotation(path, ds, stored, frame)
-    if rotation_note and shutter is not None:
-        shutter = _undo_field_of_view(shutter, *_field_of_view(path, ds, frame))
+    if rotation_note:
+        mask = _undo_field_of_view(mask, *_field_of_view(path, ds, frame))
     rows, cols = stored.shape
     geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, iso, sid_mm=sid_mm, sod_mm=sod_mm)
-    border = _border_mask(stored)
-    if shutter is None and border is None:
-        warnings.warn(
-            f"{path}: no shutter ({tag_name('ShutterShape')}) and no constant collimator border; using the "
-            "whole image as the field",
-            stacklevel=3,
-        )
-        mask = np.ones((rows, cols), dtype=bool)
-        mask_source = "whole image"
-    else:
-        mask = np.ones((rows, cols), dtype=bool)
-        sources = []
-        if shutter is not None:
-            mask &= shutter
-            sources.append("shutter")
-        if border is not None:
-            mask &= border
-            sources.append("constant border")
-        mask_source = " and ".join(sources)
-    if not mask.any():
-        raise DicomError(path, f"the field is empty (shutter {tag_name('ShutterShape')} or pixel values)")
     image, intensity = _intensity_to_attenuation(path, ds, stored, frame, mask)
     image = np.where(mask, image, np.float32(0.0)).astype(np.float32)
     meta: dict[str, Any] = {
@@ -592,7 +643,8 @@ def _xray_frame(
         "modality": modality,
         "frame": frame,
         "frames": frames,
-        "mask_from": mask_source,
+        "mask_from": field_info["found_by"],
+        "field": field_info,
         "decoder": pixel_decoder(ds)[1],
         "plane": frame_plane(path, ds, frame),
         "acquisition_datetime": frame_acquisition_datetime(ds, frame),

@@ -1,0 +1,500 @@
+"""The usable field of an X-ray image found from its pixels, the way a reader of the image would.
+
+Works on the stored pixel values of one frame (any bit depth, any look-up table), oriented so
+that larger means more X-rays reached the detector (``signal``). Three things leave a pixel
+unusable for registration:
+
+* **the collimated outside**: no X-rays, so the lowest signal of the image, flat apart from
+  noise, and connected to the image border (a circular field, an octagon of blades with cut
+  corners, rectangular blades closed to the border). Found as the border-connected region
+  within a noise tolerance of the level in the image's corners; a digitally blanked outside
+  (one exact value) is taken as it is, a real one (noisy, lossy, a penumbra) with a margin.
+* **collimator blades inside the image**: a straight edge across the field with a step to less
+  signal on the side away from the image center that holds along the whole edge (anatomy
+  never keeps one step along a straight line across the field). Found on Canny edges by a
+  Hough transform and checked along the line; the whole side behind the edge is masked, up
+  to where the step ends (the penumbra). Behind an opaque blade there is only noise (or the
+  display window's black); behind a semi-transparent wedge filter some anatomy remains, but
+  at another exposure, with its own edge: it is masked too.
+* **burned-in graphics**: text, rulers and markers drawn at the largest value (full white) in
+  thin strokes that stand out from their surroundings; masked with a margin.
+
+:func:`find_field` runs them in that order and says what it found.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+#: Masks found from the pixels grow by this margin (px): the collimator's penumbra, the
+#: detector's blur and lossy-compression ringing around an edge or a stroke.
+EDGE_MARGIN_PX = 2
+#: The collimated outside ends at a step of at least this fraction of the image's signal range.
+OUTSIDE_MIN_STEP = 0.1
+#: Images smaller than this (px, either side) are searched for a constant border only.
+MIN_SEARCH_SIZE = 64
+#: A blade's edge must show its step on this fraction of its length (gaps of 3 samples bridged) ...
+BLADE_STEP_FRACTION = 0.9
+#: ... along one stretch of at least this fraction of the line's chord through the field (the
+#: rest of the chord lies behind the other blades).
+BLADE_RUN_FRACTION = 0.4
+#: ... a step of at least this fraction of the field's signal range (1st..99th percentile).
+BLADE_MIN_STEP = 0.08
+#: ... and a median step of at least this fraction (blades remove most of the X-rays).
+BLADE_MEDIAN_STEP = 0.25
+#: ... along at least this fraction of the image's smaller side.
+BLADE_MIN_LENGTH = 0.25
+#: A blade never leaves less than this fraction of the field.
+BLADE_MAX_CLOSED = 0.6
+#: Burned-in strokes are at most this wide (px); larger extreme regions are saturated anatomy.
+GRAPHICS_MAX_STROKE_PX = 7.0
+#: ... and stand out from their surroundings by this fraction of the field's signal range.
+GRAPHICS_MIN_CONTRAST = 0.2
+
+
+@dataclass
+class FieldFound:
+    """What :func:`find_field` found: the usable mask and one entry per part that was masked."""
+
+    mask: NDArray[np.bool_]
+    parts: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def how(self) -> str:
+        return ", ".join(p["what"] for p in self.parts) if self.parts else "whole image"
+
+
+def _robust_range(values: NDArray[np.float64], where: NDArray[np.bool_]) -> float:
+    inside = values[where] if where.any() else values.reshape(-1)
+    lo, hi = np.percentile(inside, [1.0, 99.0])
+    return float(max(hi - lo, 1e-9))
+
+
+def _median5(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """5 x 5 median (OpenCV's, float32)."""
+    import cv2
+
+    return cv2.medianBlur(np.ascontiguousarray(values, dtype=np.float32), 5).astype(np.float64)
+
+
+def _with_small_holes(outside: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The outside with its small enclosed pieces (text or marks drawn on it) added."""
+    holes = ndimage.binary_fill_holes(outside) & ~outside
+    labels, n = ndimage.label(holes)
+    if n == 0:
+        return outside
+    sizes = ndimage.sum(holes, labels, np.arange(1, n + 1))
+    small = np.flatnonzero(sizes < 0.02 * outside.size) + 1
+    return outside | np.isin(labels, small)
+
+
+def exact_outside(values: NDArray[Any]) -> NDArray[np.bool_] | None:
+    """Border-connected pixels holding the corners' one exact value (a digitally blanked outside)."""
+    corners = {values[0, 0].item(), values[0, -1].item(), values[-1, 0].item(), values[-1, -1].item()}
+    if len(corners) != 1:
+        return None
+    same = values == corners.pop()
+    labels, _ = ndimage.label(same)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    outside = np.isin(labels, border[border > 0])
+    if not outside.any():
+        return None
+    outside = _with_small_holes(outside)
+    if outside.mean() > 0.98:  # one value nearly everywhere: no collimated field to speak of
+        return None
+    return outside
+
+
+def dark_outside(signal: NDArray[np.float64]) -> NDArray[np.bool_] | None:
+    """The collimated outside of a real image: the border-connected low, flat signal of the corners.
+
+    At least two corners (8 x 8 px) must sit at the image's lowest signal, flat; the region is
+    every border-connected pixel whose median-smoothed signal lies within a noise tolerance of
+    that level (components of fewer than 0.05 % of the image are ignored).
+    """
+    rows, cols = signal.shape
+    k = max(4, min(rows, cols) // 64)
+    smooth = _median5(signal)
+    lo, hi = np.percentile(signal, [0.5, 99.5])
+    span = float(max(hi - lo, 1e-9))
+    patches = [smooth[:k, :k], smooth[:k, -k:], smooth[-k:, :k], smooth[-k:, -k:]]
+    raw = [signal[:k, :k], signal[:k, -k:], signal[-k:, :k], signal[-k:, -k:]]
+    levels = [float(np.median(p)) for p in patches]
+    dark = [
+        (lv, float(np.std(r)))
+        for lv, r in zip(levels, raw, strict=True)
+        if lv <= lo + 0.05 * span and np.std(r) <= 0.05 * span
+    ]
+    if len(dark) < 2:
+        return None
+    level = float(np.median([d[0] for d in dark]))
+    sigma = float(np.median([d[1] for d in dark]))
+    tol = max(4.0 * sigma, 0.03 * span)
+    low = (smooth <= level + tol) & (signal <= level + tol + 3.0 * sigma)
+    labels, n = ndimage.label(low)
+    if n == 0:
+        return None
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    border = border[border > 0]
+    sizes = ndimage.sum(np.ones_like(labels), labels, border)
+    keep = border[sizes >= 0.0005 * rows * cols]
+    outside = np.isin(labels, keep)
+    if not outside.any() or outside.mean() > 0.9:
+        return None
+    # A collimator's shadow ends at an edge: just inside it the signal is well above the shadow.
+    ring = ndimage.binary_dilation(outside, iterations=8) & ~ndimage.binary_dilation(outside, iterations=4)
+    if not ring.any() or float(np.median(smooth[ring])) - level < OUTSIDE_MIN_STEP * span:
+        return None
+    return _with_small_holes(outside)
+
+
+def _line_points(
+    inside: NDArray[np.bool_], theta: float, rho: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Points every 2 px along the line x cos(theta) + y sin(theta) = rho that lie inside; its normal."""
+    rows, cols = inside.shape
+    normal = np.array([math.cos(theta), math.sin(theta)])  # (x = col, y = row)
+    direction = np.array([-normal[1], normal[0]])
+    extent = math.hypot(rows, cols)
+    t = np.arange(-extent, extent, 2.0)
+    px = normal[0] * rho + t * direction[0]
+    py = normal[1] * rho + t * direction[1]
+    ok = (px >= 0) & (px <= cols - 1) & (py >= 0) & (py <= rows - 1)
+    px, py = px[ok], py[ok]
+    on = inside[np.rint(py).astype(int), np.rint(px).astype(int)]
+    return px[on], py[on], normal
+
+
+def _profiles(
+    smooth: NDArray[np.float64],
+    field_mask: NDArray[np.bool_],
+    px: NDArray[np.float64],
+    py: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    offsets: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Signal at ``offsets`` along the normal from each point, and whether each sample is in the field."""
+    rows, cols = smooth.shape
+    xs = px[:, None] + offsets[None, :] * normal[0]
+    ys = py[:, None] + offsets[None, :] * normal[1]
+    inb = (xs >= 0) & (xs <= cols - 1) & (ys >= 0) & (ys <= rows - 1)
+    xi = np.clip(np.rint(xs).astype(int), 0, cols - 1)
+    yi = np.clip(np.rint(ys).astype(int), 0, rows - 1)
+    values = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
+    return values, inb & field_mask[yi, xi]
+
+
+def find_blades(
+    signal: NDArray[np.float64], field_mask: NDArray[np.bool_], *, max_lines: int = 12
+) -> list[dict[str, Any]]:
+    """Straight collimator edges across the field (see the module docstring), strongest first.
+
+    Each entry: ``theta``, ``rho`` (the line x cos(theta) + y sin(theta) = rho, x the column,
+    y the row), ``distance`` (signed px from the line, positive toward the field's center),
+    ``edge`` (the offsets, px, where the mean step across the line starts and ends),
+    ``structure_behind`` (the smoothed gradient 6..30 px behind the edge over that in front of
+    it: about 1 behind a semi-transparent filter, near 0 behind a blade on anatomy), ``step``
+    (the median step as a fraction of the field's range) and ``length_px``.
+    """
+    from skimage.feature import canny
+    from skimage.transform import hough_line, hough_line_peaks
+
+    rows, cols = signal.shape
+    inside = ndimage.binary_erosion(field_mask, iterations=4)
+    if inside.sum() < 100:
+        return []
+    span = _robust_range(signal, inside)
+    smooth = ndimage.gaussian_filter(signal, 1.0)
+    edges = canny(signal, sigma=2.0, low_threshold=0.02 * span, high_threshold=0.05 * span, mask=inside)
+    if edges.sum() < 20:
+        return []
+    angles = np.deg2rad(np.arange(-90.0, 90.0, 0.5))
+    hspace, thetas, dists = hough_line(edges, theta=angles)
+    min_length = BLADE_MIN_LENGTH * min(rows, cols)
+    peaks = hough_line_peaks(
+        hspace, thetas, dists, num_peaks=max_lines, threshold=int(0.5 * min_length), min_distance=7, min_angle=6
+    )
+    grad = ndimage.gaussian_gradient_magnitude(signal, 2.0)
+    cy, cx = ndimage.center_of_mass(field_mask)
+    offsets = np.arange(-40.0, 41.0)
+    found: list[dict[str, Any]] = []
+    for _, theta, rho in zip(*peaks, strict=True):
+        theta, rho = float(theta), float(rho)
+        center_side = cx * math.cos(theta) + cy * math.sin(theta) - rho
+        if abs(center_side) < 5:
+            continue
+        near_sign = 1.0 if center_side > 0 else -1.0
+        px, py, normal = _line_points(inside, theta, rho)
+        if px.size * 2 < min_length:
+            continue
+        prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
+        near_cols = (offsets >= 3) & (offsets <= 8)
+        far_cols = (offsets <= -3) & (offsets >= -8)
+        valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
+        if valid.sum() * 2 < min_length:
+            continue
+        step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
+        run = _longest_run(step > BLADE_MIN_STEP)
+        if run.stop - run.start < max(0.5 * min_length, BLADE_RUN_FRACTION * valid.sum()):
+            continue  # the edge must run along most of the line's chord through the field
+        piece = np.flatnonzero(valid)[run]
+        step = step[run]
+        if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION or np.median(step) < BLADE_MEDIAN_STEP:
+            continue
+        # A blade's shadow persists away from its edge; an anatomical edge's step does not.
+        wide = np.where(ok[piece], prof[piece], np.nan)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            far_wide = np.nanmedian(wide[:, (offsets <= -10) & (offsets >= -40)], axis=1)
+            near_wide = np.nanmedian(wide[:, (offsets >= 10) & (offsets <= 40)], axis=1)
+        persists = (near_wide - far_wide) / span > BLADE_MIN_STEP
+        known = np.isfinite(far_wide) & np.isfinite(near_wide)
+        if known.sum() >= 10 and np.mean(persists[known]) < BLADE_STEP_FRACTION:
+            continue
+        theta, rho = _refine(prof[piece], ok[piece], offsets, px[piece], py[piece], near_sign * normal, theta, rho)
+        near_sign = 1.0 if cx * math.cos(theta) + cy * math.sin(theta) - rho > 0 else -1.0
+        px, py, normal = _line_points(inside, theta, rho)
+        prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
+        edge = _edge_extent(prof, ok, offsets)
+        yy, xx = np.mgrid[0:rows, 0:cols]
+        distance = (xx * math.cos(theta) + yy * math.sin(theta) - rho) * near_sign
+        far_side = (distance < edge[1]) & field_mask
+        if far_side.sum() > BLADE_MAX_CLOSED * field_mask.sum() or not far_side.any():
+            continue
+        # Structure behind the edge against structure in front of it, in bands 6..30 px away.
+        behind = field_mask & (distance < edge[0] - 6) & (distance > edge[0] - 30)
+        front = field_mask & (distance > edge[1] + 6) & (distance < edge[1] + 30)
+        if behind.sum() > 50 and front.sum() > 50:
+            ratio = float(np.median(grad[behind]) / (np.median(grad[front]) + 1e-9))
+        else:
+            ratio = 0.0  # a sliver behind the edge: masked whole
+        found.append(
+            {
+                "theta": theta,
+                "rho": rho,
+                "distance": distance,
+                "edge": edge,
+                "structure_behind": round(ratio, 3),
+                "step": round(float(np.median(step)), 3),
+                "length_px": int(step.size * 2),
+            }
+        )
+    return found
+
+
+def _refine(
+    prof: NDArray[np.float64],
+    ok: NDArray[np.bool_],
+    offsets: NDArray[np.float64],
+    px: NDArray[np.float64],
+    py: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    theta: float,
+    rho: float,
+) -> tuple[float, float]:
+    """The line through the edge's half-step points along it (least squares), sub-pixel."""
+    points = []
+    for k in range(prof.shape[0]):
+        row = prof[k]
+        far, near = np.median(row[(offsets <= -4) & (offsets >= -10)]), np.median(row[(offsets >= 4) & (offsets <= 10)])
+        if near - far <= 0:
+            continue
+        rel = (row - far) / (near - far)
+        window = np.flatnonzero((np.abs(offsets) <= 4) & ok[k])
+        for i in window[:-1]:
+            if rel[i] < 0.5 <= rel[i + 1]:
+                o = offsets[i] + (0.5 - rel[i]) / max(rel[i + 1] - rel[i], 1e-9)
+                points.append((px[k] + o * normal[0], py[k] + o * normal[1]))
+                break
+    if len(points) < 10:
+        return theta, rho
+    pts = np.asarray(points)
+    center = pts.mean(axis=0)
+    _, _, vt = np.linalg.svd(pts - center)
+    n = vt[1]  # the normal of the best-fitting line
+    new_theta = math.atan2(n[1], n[0])
+    if math.cos(new_theta - theta) < 0:
+        new_theta += math.pi
+    new_theta = (new_theta + math.pi) % (2 * math.pi) - math.pi
+    return new_theta, float(center[0] * math.cos(new_theta) + center[1] * math.sin(new_theta))
+
+
+def _longest_run(flags: NDArray[np.bool_], gap: int = 3) -> slice:
+    """The longest stretch of ``flags`` that is True, bridging gaps of up to ``gap`` samples."""
+    best, start, last = slice(0, 0), None, -(10**9)
+    for k, flag in enumerate(flags):
+        if not flag:
+            continue
+        if start is None or k - last > gap + 1:
+            start = k
+        last = k
+        if last + 1 - start > best.stop - best.start:
+            best = slice(start, last + 1)
+    return best
+
+
+def _edge_extent(
+    profiles: NDArray[np.float64], ok: NDArray[np.bool_], offsets: NDArray[np.float64]
+) -> tuple[float, float]:
+    """Offsets (px, + toward the field) where the mean profile leaves its far level (10 % of the
+    step) and reaches its near level (90 %): the blade's penumbra, blur included."""
+    mean = np.array([profiles[ok[:, k], k].mean() if ok[:, k].any() else np.nan for k in range(offsets.size)])
+    center = int(np.argmin(np.abs(offsets)))
+    far_level = np.nanmedian(mean[max(0, center - 12) : center - 3])
+    near_level = np.nanmedian(mean[center + 4 : center + 13])
+    step = near_level - far_level
+    if not np.isfinite(step) or step <= 0:
+        return (-1.0, 1.0)
+    rel = (mean - far_level) / step
+    lo, hi = -1.0, 1.0
+    k = center
+    while k > 0 and np.isfinite(rel[k - 1]) and rel[k - 1] > 0.1 and offsets[k - 1] > -12:
+        k -= 1
+    lo = float(offsets[k]) - 0.5
+    k = center
+    while k < offsets.size - 1 and np.isfinite(rel[k + 1]) and rel[k + 1] < 0.9 and offsets[k + 1] < 12:
+        k += 1
+    hi = float(offsets[k])
+    return (min(lo, -0.5), max(hi, 0.5))
+
+
+def find_graphics(values: NDArray[np.float64], field_mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Burned-in text, rulers and markers: thin strokes at the field's largest value (full white).
+
+    (Strokes at full black are not looked for: contrast-filled vessels clipped by a display
+    window are thin, dark and at the lowest value too.)
+
+    A stroke component (8-connected, at least 3 pixels) is at most ``GRAPHICS_MAX_STROKE_PX``
+    wide and at least three times longer than wide (or one of at least three such pieces
+    within a few character heights: a line of text), and its surroundings (a 3 px ring) differ
+    from it by ``GRAPHICS_MIN_CONTRAST`` of the field's range; returned grown by ``EDGE_MARGIN_PX``.
+    """
+    inside = values[field_mask]
+    if inside.size == 0:
+        return np.zeros(values.shape, dtype=bool)
+    vmin, vmax = float(inside.min()), float(inside.max())
+    lo, hi = np.percentile(inside, [1.0, 99.0])
+    span = float(max(hi - lo, 1e-9))
+    full = float(max(vmax - vmin, 1e-9))
+    out = np.zeros(values.shape, dtype=bool)
+    for extreme, candidates in ((vmax, field_mask & (values >= vmax - 0.04 * full)),):
+        if not candidates.any() or candidates.mean() > 0.5:
+            continue
+        labels, n = ndimage.label(candidates, structure=np.ones((3, 3), bool))
+        if n == 0:
+            continue
+        index = np.arange(1, n + 1)
+        width = ndimage.distance_transform_edt(candidates)
+        widest = ndimage.maximum(width, labels, index)
+        sizes = ndimage.sum(candidates, labels, index)
+        ring = ndimage.binary_dilation(candidates, iterations=3) & ~ndimage.binary_dilation(candidates) & field_mask
+        ring_labels = ndimage.grey_dilation(labels, size=(7, 7)) * ring
+        with np.errstate(invalid="ignore", divide="ignore"):
+            around = ndimage.mean(values, ring_labels, index)
+        boxes = ndimage.find_objects(labels)
+        thin = []
+        for k in range(n):
+            stroke = 2.0 * widest[k]
+            if sizes[k] < 3 or stroke > GRAPHICS_MAX_STROKE_PX or boxes[k] is None:
+                continue
+            if not np.isfinite(around[k]) or abs(extreme - float(around[k])) < GRAPHICS_MIN_CONTRAST * span:
+                continue
+            extent = max(boxes[k][0].stop - boxes[k][0].start, boxes[k][1].stop - boxes[k][1].start)
+            thin.append((k, extent, extent >= 3.0 * max(stroke, 1.0), boxes[k]))
+        centers = np.array([((b[0].start + b[0].stop) / 2, (b[1].start + b[1].stop) / 2) for _, _, _, b in thin])
+        for i, (k, extent, elongated, _) in enumerate(thin):
+            if not elongated:
+                reach = 3.0 * max(extent, 4)
+                near = np.hypot(*(centers - centers[i]).T) <= reach
+                if near.sum() < 3:
+                    continue
+            out |= labels == k + 1
+    if out.any():
+        out = ndimage.binary_dilation(out, iterations=EDGE_MARGIN_PX)
+    return out & field_mask
+
+
+def find_field(
+    values: NDArray[Any],
+    *,
+    signal_up: bool = True,
+    start: NDArray[np.bool_] | None = None,
+    blades: bool = True,
+    graphics: bool = True,
+    cache: dict[str, Any] | None = None,
+) -> FieldFound:
+    """The usable field of one frame's stored ``values`` (see the module docstring).
+
+    ``signal_up``: larger stored values mean more X-rays (as the file's intensity tags say);
+    ``start``: a field already known (shutter tags), intersected with what is found.
+    ``cache``: a dict kept across the frames of one run: the outside and the blades found on
+    the first frame are reused (the collimation of a run rarely changes; burned-in text, such
+    as a frame counter, does, and is looked for on every frame).
+    """
+    values = np.asarray(values)
+    rows, cols = values.shape
+    mask = np.ones((rows, cols), dtype=bool) if start is None else start.copy()
+    v = values.astype(np.float64)
+    if min(rows, cols) < MIN_SEARCH_SIZE:
+        exact = exact_outside(values)
+        if exact is None:
+            return FieldFound(mask=mask)
+        return FieldFound(mask=mask & ~exact, parts=[{"what": "constant border", "pixels": int(exact.sum())}])
+    if cache is not None and cache.get("shape") == (rows, cols):
+        mask &= cache["collimation"]
+        parts = [dict(p) for p in cache["parts"]]
+    else:
+        collimation, parts = _collimation(v, values, signal_up, mask, blades)
+        mask &= collimation
+        if cache is not None:
+            cache.update(shape=(rows, cols), collimation=collimation, parts=[dict(p) for p in parts])
+    if graphics and mask.any():
+        strokes = find_graphics(v, mask)
+        if strokes.any():
+            mask &= ~strokes
+            parts.append({"what": "burned-in graphics", "pixels": int(strokes.sum())})
+    return FieldFound(mask=mask, parts=parts)
+
+
+def _collimation(
+    v: NDArray[np.float64], values: NDArray[Any], signal_up: bool, start: NDArray[np.bool_], blades: bool
+) -> tuple[NDArray[np.bool_], list[dict[str, Any]]]:
+    """The pixels the collimator leaves (outside and blades removed) and what was found."""
+    rows, cols = v.shape
+    mask = np.ones((rows, cols), dtype=bool)
+    parts: list[dict[str, Any]] = []
+    signal = v if signal_up else -v
+    exact = exact_outside(values)
+    outside = dark_outside(signal)
+    if exact is not None and (outside is None or (outside & ~exact).sum() <= 0.001 * rows * cols):
+        mask &= ~exact
+        parts.append({"what": "constant border", "pixels": int(exact.sum())})
+    elif outside is not None:
+        grown = ndimage.binary_dilation(outside, iterations=EDGE_MARGIN_PX)
+        if exact is not None:
+            grown |= exact
+        mask &= ~grown
+        parts.append({"what": "dark outside", "pixels": int(grown.sum())})
+    if blades and (mask & start).any():
+        for blade in find_blades(signal, mask & start):
+            cut = mask & start & (blade["distance"] < blade["edge"][1] - 0.5)
+            if not cut.any():
+                continue
+            mask &= ~cut
+            parts.append(
+                {
+                    "what": "collimator blade",
+                    "pixels": int(cut.sum()),
+                    "angle_deg": round(math.degrees(blade["theta"]), 1),
+                    "step": blade["step"],
+                    "structure_behind": blade["structure_behind"],
+                }
+            )
+    return mask, parts
