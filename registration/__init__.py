@@ -37,6 +37,7 @@ __all__ = [
     "XRayImage",
     "Example",
     "Assessment",
+    "Preparation",
     "register",
     "assess",
     "track",

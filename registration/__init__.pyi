@@ -2,6 +2,7 @@
 from registration.api import Assessment as Assessment
 from registration.api import CArm as CArm
 from registration.api import Example as Example
+from registration.api import Preparation as Preparation
 from registration.api import Volume as Volume
 from registration.api import XRayImage as XRayImage
 from registration.api import assess as assess

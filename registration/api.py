@@ -29,6 +29,7 @@ from registration.core import images as _images
 from registration.core import volume as _volume
 from registration.core.geometry import CArm
 from registration.core.metrics import residuals
+from registration.core.preparation import Preparation
 from registration.core.register import RegistrationResult
 from registration.core.register import register as _register
 from registration.core.tracking import TrackingRun, track_run
@@ -39,6 +40,7 @@ __all__ = [
     "XRayImage",
     "Example",
     "Assessment",
+    "Preparation",
     "register",
     "assess",
     "track",
@@ -200,15 +202,22 @@ class XRayImage(_images.XRayImage):
 def register(
     volume: _volume.Volume,
     images: _images.XRayImage | Sequence[_images.XRayImage],
+    *,
+    preparation: Preparation | None = None,
     **options: Any,
 ) -> RegistrationResult:
     """Estimate the patient motion between ``volume`` and one X-ray image (or a biplane pair).
 
-    ``images``: one :class:`XRayImage`, or plane A and plane B of one moment. Keyword options
-    are those of :func:`registration.core.register.register` (``initial_motion``, ``options``,
-    ``seed``, ``callback``, ``truth``, ...). The result's ``patient_motion`` is ``M``
-    (CONVENTIONS §4); ``.to_dict()`` gives its JSON form.
+    ``images``: one :class:`XRayImage`, or plane A and plane B of one moment. ``preparation``:
+    a :class:`Preparation` of the volume for these views, built once and held by the caller
+    (``Preparation.of(volume, images)``), to register several images with it or to
+    :func:`assess` the result on the same levels; without it the volume is prepared for this
+    call. Other keyword options are those of :func:`registration.core.register.register`
+    (``initial_motion``, ``options``, ``seed``, ``callback``, ``truth``, ...). The result's
+    ``patient_motion`` is ``M`` (CONVENTIONS §4); ``.to_dict()`` gives its JSON form.
     """
+    if preparation is not None:
+        options.setdefault("renderer", preparation.renderer)
     return _register(volume, images, **options)
 
 
@@ -223,16 +232,23 @@ class Assessment:
     evidence: dict
 
 
-def assess(result: RegistrationResult, images: _images.XRayImage | Sequence[_images.XRayImage],
-           volume: _volume.Volume) -> Assessment:  # fmt: skip
-    """The apply/withhold decision on ``result`` that the command line and the web app make."""
+def assess(
+    result: RegistrationResult,
+    images: _images.XRayImage | Sequence[_images.XRayImage],
+    preparation: Preparation | _volume.Volume,
+) -> Assessment:
+    """Whether to trust ``result``: the apply/withhold decision the command line and the web app
+    make. ``preparation``: the one the registration used (its probe levels render the
+    evidence), or the volume (then prepared here for ``images``)."""
     from registration.studies.cases import confidence_fields
 
-    fields = confidence_fields(volume, images, result)
+    if isinstance(preparation, _volume.Volume):
+        preparation = Preparation.of(preparation, images)
+    fields = confidence_fields(preparation.volume, images, result, preparation.probe_renderer())
     return Assessment(
         confidence=float(fields["confidence"]),
         applied=bool(fields["applied"]),
-        reason=str(fields.get("confidence_reason") or fields.get("reason") or ""),
+        reason=str(fields.get("withheld_reason") or ""),
         evidence=dict(fields.get("confidence_evidence") or {}),
     )
 

@@ -97,3 +97,17 @@ def test_shipped_example_is_what_the_simulation_makes() -> None:
     np.testing.assert_allclose(shipped.image.image, fresh.image.image, rtol=0, atol=1e-5)
     assert shipped.image.geometry == fresh.image.geometry
     np.testing.assert_array_equal(shipped.truth_motion, fresh.truth_motion)
+
+
+@pytest.mark.slow
+def test_register_and_assess_with_one_preparation() -> None:
+    import registration
+
+    ex = registration.load_example()
+    preparation = registration.Preparation.of(ex.volume, ex.image)
+    result = registration.register(ex.volume, ex.image, preparation=preparation)
+    error = registration.residuals(result.patient_motion, ex.truth_motion, ex.image.geometry)
+    assert error.success  # the shipped T4 case: 0.05 mm in-plane, 0.15 deg seen
+    decision = registration.assess(result, ex.image, preparation)
+    assert decision.applied and decision.confidence > 0.5, decision
+    np.testing.assert_array_equal(registration.register(ex.volume, ex.image).patient_motion, result.patient_motion)
