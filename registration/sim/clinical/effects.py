@@ -70,12 +70,14 @@ class Blades:
         _check("penumbra_px", self.penumbra_px, 0.0, 5.0)
 
     def at_strength(self, s: float) -> Blades:
-        s = _strength(s)
+        """Closed fractions scaled by ``sqrt(s)`` (strength 2: 1.4 x as far in, the field about
+        half as large), none at 0."""
+        f = math.sqrt(_strength(s))
         return replace(
             self,
-            closed=tuple(min(0.9, c * s) for c in self.closed),  # type: ignore[arg-type]
-            wedge_closed=min(0.9, self.wedge_closed * s),
-            iris_fraction=max(0.2, 1.0 - (1.0 - self.iris_fraction) * s),
+            closed=tuple(min(0.9, c * f) for c in self.closed),  # type: ignore[arg-type]
+            wedge_closed=min(0.9, self.wedge_closed * f),
+            iris_fraction=max(0.2, 1.0 - (1.0 - self.iris_fraction) * f),
         )
 
 
@@ -99,8 +101,11 @@ class BurnedInText:
             raise ValueError(f"lines must be an integer in [0, 8], got {self.lines}")
 
     def at_strength(self, s: float) -> BurnedInText:
+        """More lines (``lines x s``) and larger text (``1 + (s - 1) / 2`` times), none at 0."""
         s = _strength(s)
-        return replace(self, font_scale=max(0.2, self.font_scale * max(s, 0.2)), lines=min(8, round(self.lines * s)))
+        scale = max(0.2, self.font_scale * (1.0 + (s - 1.0) / 2.0))
+        return replace(self, font_scale=scale, lines=min(8, round(self.lines * s)), ruler=self.ruler and s > 0,
+                       inside_field=self.inside_field and s > 0)  # fmt: skip
 
 
 @dataclass(frozen=True)
