@@ -82,3 +82,12 @@ def test_site_builds_without_warnings(tmp_path: Path) -> None:
     assert not failing, "\n".join(failing)
     api = (tmp_path / "site" / "api" / "index.html").read_text()
     assert "from_array" in api and "load_example" in api  # the reference was generated from the code
+
+
+@pytest.mark.slow
+def test_readme_api_example_runs(tmp_path: Path) -> None:
+    readme = (ROOT / "README.md").read_text()
+    code = readme.split("```python\n", 1)[1].split("```", 1)[0]
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "success: True" in done.stdout, done.stdout
