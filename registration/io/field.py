@@ -84,6 +84,14 @@ def _median5(values: NDArray[np.float64]) -> NDArray[np.float64]:
     return cv2.medianBlur(np.ascontiguousarray(values, dtype=np.float32), 5).astype(np.float64)
 
 
+def _members(labels: NDArray[np.integer], n: int, ids: NDArray[np.integer]) -> NDArray[np.bool_]:
+    """Pixels whose label is one of ``ids`` (a look-up table: no sort of the image)."""
+    table = np.zeros(n + 1, dtype=bool)
+    table[np.asarray(ids, dtype=np.int64)] = True
+    table[0] = False
+    return table[labels]
+
+
 def _with_small_holes(outside: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """The outside with its small enclosed pieces (text or marks drawn on it) added."""
     holes = ndimage.binary_fill_holes(outside) & ~outside
@@ -92,7 +100,7 @@ def _with_small_holes(outside: NDArray[np.bool_]) -> NDArray[np.bool_]:
         return outside
     sizes = ndimage.sum(holes, labels, np.arange(1, n + 1))
     small = np.flatnonzero(sizes < 0.02 * outside.size) + 1
-    return outside | np.isin(labels, small)
+    return outside | _members(labels, n, small)
 
 
 def exact_outside(values: NDArray[Any]) -> NDArray[np.bool_] | None:
@@ -103,7 +111,7 @@ def exact_outside(values: NDArray[Any]) -> NDArray[np.bool_] | None:
     same = values == corners.pop()
     labels, _ = ndimage.label(same)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    outside = np.isin(labels, border[border > 0])
+    outside = _members(labels, int(labels.max()), border[border > 0])
     if not outside.any():
         return None
     outside = _with_small_holes(outside)
@@ -145,7 +153,7 @@ def dark_outside(signal: NDArray[np.float64]) -> NDArray[np.bool_] | None:
     border = border[border > 0]
     sizes = ndimage.sum(np.ones_like(labels), labels, border)
     keep = border[sizes >= 0.0005 * rows * cols]
-    outside = np.isin(labels, keep)
+    outside = _members(labels, n, keep)
     if not outside.any() or outside.mean() > 0.9:
         return None
     # A collimator's shadow ends at an edge: just inside it the signal is well above the shadow.
@@ -317,7 +325,7 @@ def _refine(
         return theta, rho
     pts = np.asarray(points)
     center = pts.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts - center)
+    _, _, vt = np.linalg.svd(pts - center, full_matrices=False)
     n = vt[1]  # the normal of the best-fitting line
     new_theta = math.atan2(n[1], n[0])
     if math.cos(new_theta - theta) < 0:
@@ -409,13 +417,16 @@ def find_graphics(values: NDArray[np.float64], field_mask: NDArray[np.bool_]) ->
             extent = max(boxes[k][0].stop - boxes[k][0].start, boxes[k][1].stop - boxes[k][1].start)
             thin.append((k, extent, extent >= 3.0 * max(stroke, 1.0), boxes[k]))
         centers = np.array([((b[0].start + b[0].stop) / 2, (b[1].start + b[1].stop) / 2) for _, _, _, b in thin])
+        accepted = []
         for i, (k, extent, elongated, _) in enumerate(thin):
             if not elongated:
                 reach = 3.0 * max(extent, 4)
                 near = np.hypot(*(centers - centers[i]).T) <= reach
                 if near.sum() < 3:
                     continue
-            out |= labels == k + 1
+            accepted.append(k + 1)
+        if accepted:
+            out |= _members(labels, n, np.asarray(accepted))
     if out.any():
         out = ndimage.binary_dilation(out, iterations=EDGE_MARGIN_PX)
     return out & field_mask
@@ -447,19 +458,19 @@ def find_field(
         if exact is None:
             return FieldFound(mask=mask)
         return FieldFound(mask=mask & ~exact, parts=[{"what": "constant border", "pixels": int(exact.sum())}])
+    strokes = find_graphics(v, mask) if graphics else np.zeros((rows, cols), dtype=bool)
     if cache is not None and cache.get("shape") == (rows, cols):
-        mask &= cache["collimation"]
+        collimation = cache["collimation"]
         parts = [dict(p) for p in cache["parts"]]
     else:
-        collimation, parts = _collimation(v, values, signal_up, mask, blades)
-        mask &= collimation
+        collimation, parts = _collimation(v, values, signal_up, mask & ~strokes, blades)
         if cache is not None:
             cache.update(shape=(rows, cols), collimation=collimation, parts=[dict(p) for p in parts])
-    if graphics and mask.any():
-        strokes = find_graphics(v, mask)
-        if strokes.any():
-            mask &= ~strokes
-            parts.append({"what": "burned-in graphics", "pixels": int(strokes.sum())})
+    mask &= collimation
+    strokes &= mask
+    if strokes.any():
+        mask &= ~strokes
+        parts.append({"what": "burned-in graphics", "pixels": int(strokes.sum())})
     return FieldFound(mask=mask, parts=parts)
 
 
@@ -484,14 +495,14 @@ def _collimation(
         parts.append({"what": "dark outside", "pixels": int(grown.sum())})
     if blades and (mask & start).any():
         for blade in find_blades(signal, mask & start):
-            cut = mask & start & (blade["distance"] < blade["edge"][1] - 0.5)
+            cut = mask & (blade["distance"] < blade["edge"][1] - 0.5)
             if not cut.any():
                 continue
             mask &= ~cut
             parts.append(
                 {
                     "what": "collimator blade",
-                    "pixels": int(cut.sum()),
+                    "pixels": int((cut & start).sum()),
                     "angle_deg": round(math.degrees(blade["theta"]), 1),
                     "step": blade["step"],
                     "structure_behind": blade["structure_behind"],

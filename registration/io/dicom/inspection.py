@@ -27,7 +27,7 @@ from registration.io.dicom._common import (
 )
 from registration.io.dicom.runs import frame_times
 from registration.io.dicom.volumes import read_volume
-from registration.io.dicom.xray import read_xray, read_xray_angles
+from registration.io.dicom.xray import field_summary, intensity_assumed, read_xray, read_xray_angles, xray_field
 
 
 def _range(values: NDArray[Any]) -> list[float]:
@@ -94,8 +94,17 @@ def inspect(
         except (ValueError, OSError) as exc:
             out["accepted"] = False
             out["problem"] = str(exc)
+            if out.get("header") is not None and "kind" not in out and _xray_header(path):
+                out.update(_inspect_xray_without_geometry(path, str(exc)))
     out["warnings"] = sorted({str(w.message) for w in caught})
     return out
+
+
+def _xray_header(path: Path) -> bool:
+    try:
+        return _is_xray(read_dataset(path, stop_before_pixels=True))
+    except (ValueError, OSError):
+        return False
 
 
 def _inspect_volume(volume: Volume) -> dict[str, Any]:
@@ -133,6 +142,35 @@ def _inspect_image_file(path: Path, *, sid_mm: float | None = None, sod_mm: floa
 _GEOMETRY_SOURCES = ("sid_from", "sod_from", "field_rotation", "field_of_view_origin")
 
 
+def _field_report(field: dict[str, Any]) -> dict[str, Any]:
+    """The field's entries of the report: how it was found, what was masked, how much is usable."""
+    if not field:
+        return {}
+    out: dict[str, Any] = {
+        "field": f"{field.get('found_by', '')}; {field.get('usable_pixels', 0)} pixels usable "
+        f"({100.0 * field.get('usable_fraction', 0.0):.1f} % of the image)"
+    }
+    lines = field_summary(field)
+    if lines:
+        out["field_masked"] = "; ".join(lines)
+    return out
+
+
+def _inspect_xray_without_geometry(path: Path, problem: str) -> dict[str, Any]:
+    """What can be said of an X-ray image whose geometry is missing: its field and intensities."""
+    try:
+        mask, field, intensity = xray_field(path)
+    except (ValueError, OSError):
+        return {}
+    return {
+        "kind": "xray",
+        "field_pixels": int(mask.sum()),
+        **_field_report(field),
+        "intensity_assumed": intensity_assumed(intensity),
+        "geometry": f"not usable: {problem}",
+    }
+
+
 def _inspect_xray(
     path: Path, header: Dataset, *, sid_mm: float | None = None, sod_mm: float | None = None
 ) -> dict[str, Any]:
@@ -147,7 +185,9 @@ def _inspect_xray(
         "geometry": image.geometry.to_dict(),
         "field_pixels": int(image.mask.sum()),
         "mask_from": image.meta.get("mask_from"),
+        **_field_report(image.meta.get("field") or {}),
         "intensity": f"{image.meta.get('pixel_intensity_relationship')}, sign {sign:+d}",
+        "intensity_assumed": intensity_assumed(image.meta),
         "attenuation_range": [round(v, 4) for v in _range(image.image[image.mask])],
         "decoder": image.meta.get("decoder", ""),
         "plane": image.meta.get("plane") or "not stated (PlaneIdentification 0018,9457 absent)",

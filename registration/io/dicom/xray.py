@@ -237,8 +237,10 @@ def _intensity_to_attenuation(
         )
         info["intensity_note"] = f"{relationship or 'missing'} read as LOG"
         relationship = "LOG"
+    sign_from = "PixelIntensityRelationshipSign"
     if sign_value is None or sign_value == "":
         sign = 1
+        sign_from = "assumed (no PixelIntensityRelationshipSign)"
         warnings.warn(f"{path}: missing {tag_name('PixelIntensityRelationshipSign')}; assuming +1", stacklevel=3)
     else:
         try:
@@ -265,8 +267,10 @@ def _intensity_to_attenuation(
     info.update(
         pixel_intensity_relationship=relationship,
         pixel_intensity_relationship_sign=sign,
+        sign_from=sign_from,
         rescale_slope=slope,
         rescale_intercept=intercept,
+        bits_stored=int(ds.get("BitsStored") or ds.get("BitsAllocated") or 0),
     )
     return att.astype(np.float32), info
 
@@ -598,6 +602,64 @@ def _field_mask(
     info["usable_pixels"] = int(mask.sum())
     info["usable_fraction"] = round(float(mask.mean()), 4)
     return mask, info
+
+
+def intensity_assumed(meta: dict[str, Any]) -> str:
+    """What the reader assumed about the stored values, in a sentence (for ``info``)."""
+    relationship = meta.get("pixel_intensity_relationship", "?")
+    sign = int(meta.get("pixel_intensity_relationship_sign", 1))
+    note = meta.get("intensity_note")
+    text = f"{note}" if note else f"{relationship} (from PixelIntensityRelationship)"
+    polarity = "lower stored values = more attenuation" if sign == 1 else "higher stored values = more attenuation"
+    text += f", sign {sign:+d} ({polarity}; {meta.get('sign_from', 'PixelIntensityRelationshipSign')})"
+    if meta.get("bits_stored"):
+        text += f", {meta['bits_stored']} bits stored"
+    slope, intercept = meta.get("rescale_slope", 1.0), meta.get("rescale_intercept", 0.0)
+    if (slope, intercept) != (1.0, 0.0):
+        text += f", rescale {slope:g} x + {intercept:g}"
+    if relationship == "LIN":
+        text += "; attenuation = ln(brightest field pixel / value)"
+    return text
+
+
+def field_summary(field: dict[str, Any]) -> list[str]:
+    """One line per part of the image that was masked (for ``info``)."""
+    lines = []
+    for key in ("shutter", "collimator"):
+        if key in field:
+            lines.append(f"{key} tags: {field[key]}")
+    if "shutter_presentation_value" in field:
+        lines.append(f"shutter presentation value {field['shutter_presentation_value']} (display only)")
+    for part in field.get("found_in_pixels", []):
+        text = f"{part['what']}: {part['pixels']} px"
+        if "angle_deg" in part:
+            text += f" (edge at {part['angle_deg']:+.1f} deg, step {part['step']:.2f} of the field's range)"
+        lines.append(text)
+    for note in field.get("overlays", []):
+        lines.append(f"{note['plane']} ({note['type']}, {note.get('from', '')}): {note['pixels']} px drawn, masked")
+    if "user_mask" in field:
+        lines.append(f"user mask {field['user_mask']}")
+    return lines
+
+
+def xray_field(
+    path: str | os.PathLike[str], *, frame: int = 0, image_mask: str | os.PathLike[str] | None = None
+) -> tuple[NDArray[np.bool_], dict[str, Any], dict[str, Any]]:
+    """The field mask (CONVENTIONS axes), how it was found and the intensity reading of one frame,
+    without the C-arm geometry (for files that lack it, as ``info`` shows them)."""
+    path = Path(path)
+    ds, frames, rows, cols = _open_xray(path)
+    if not 0 <= int(frame) < frames:
+        raise DicomError(path, f"frame {frame} out of range: {tag_name('NumberOfFrames')} is {frames}")
+    stored = _pixels(path, ds, index=frame if frames > 1 else None)
+    if stored.ndim == 3 and stored.shape[0] == 1:
+        stored = stored[0]
+    mask, info = _field_mask(path, ds, stored, int(frame), image_mask=image_mask)
+    _, intensity = _intensity_to_attenuation(path, ds, stored, int(frame), mask)
+    rotation, flip = _field_of_view(path, ds, frame)
+    if rotation or flip:
+        mask = _undo_field_of_view(mask, rotation, flip)
+    return mask, info, intensity
 
 
 def _xray_frame(

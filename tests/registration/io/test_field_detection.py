@@ -327,3 +327,22 @@ def test_pixels_search_is_quick_to_skip_small_images() -> None:
     rng = np.random.default_rng(0)
     found = find_field(rng.integers(0, 4000, (40, 40)))
     assert found.mask.all() and found.parts == []
+
+
+def test_info_says_how_the_field_was_found_and_what_was_assumed(tmp_path: Path) -> None:
+    distance, open_field = _blades(5.0)
+    behind = 1.0 - 1.0 / (1.0 + np.exp(distance / 0.7))
+    stored = _stored(_anatomy(9) + math.log(12.5) * (1.0 - behind), np.where(open_field, 12.0, 42.0), 9)
+    stored, _ = _burn(stored, WHITE)
+    report = dicom.inspect(xa_file(tmp_path / "i.dcm", stored, relationship=None, sign=None))
+    assert report["accepted"]
+    assert report["field"].startswith("collimator blade x4, burned-in graphics; ")
+    assert "% of the image" in report["field"] and report["field_pixels"] < open_field.sum()
+    assert "collimator blade:" in report["field_masked"] and "burned-in graphics:" in report["field_masked"]
+    assert report["intensity_assumed"].startswith("missing read as LOG, sign +1 (lower stored values")
+    assert "assumed (no PixelIntensityRelationshipSign)" in report["intensity_assumed"]
+    assert "12 bits stored" in report["intensity_assumed"]
+    # Without the C-arm geometry the field and the intensities are still reported.
+    report = dicom.inspect(xa_file(tmp_path / "nogeo.dcm", stored, sid=None))
+    assert not report["accepted"] and "DistanceSourceToDetector" in report["problem"]
+    assert report["field"].startswith("collimator blade x4") and "LOG (from" in report["intensity_assumed"]
