@@ -56,6 +56,8 @@ MAX_SERIES_BYTES = 4 * 1024**3
 RETRY_WAIT_MS = 500
 #: Seconds to wait for the server (connect, read).
 DEFAULT_TIMEOUT_S = (5.0, 120.0)
+#: Answers that say "busy, try later": the request is sent again (with the same back-off).
+RETRIED_HTTP_CODES = (408, 429, 502, 503, 504)
 
 #: Modalities that hold volumes and X-ray images, for the browser's labels.
 VOLUME_MODALITIES = {"CT", "MR"}
@@ -302,6 +304,7 @@ class Pacs:
             retry=settings.attempts > 1,
             max_attempts=max(1, settings.attempts),
             wait_exponential_multiplier=RETRY_WAIT_MS,
+            retriable_error_codes=RETRIED_HTTP_CODES,
         )
 
     @property
@@ -309,8 +312,14 @@ class Pacs:
         return self.settings.display_url
 
     def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)``, each of its requests tried up to ``settings.attempts`` times by
+        the DICOMweb client when the connection fails or times out or the server answers busy
+        (408/429/502/503/504), waiting RETRY_WAIT_MS, then twice as long each time. Errors
+        become :class:`PacsError` naming the server and the request, never the credentials."""
         import requests
+        import retrying
 
+        tries = f" after {self.settings.attempts} attempts" if self.settings.attempts > 1 else ""
         try:
             return fn(*args, **kwargs)
         except PacsError:
@@ -320,11 +329,16 @@ class Pacs:
                 f"PACS {self.name}: {what}: the server's certificate is not trusted (give --ca-bundle)"
             ) from None
         except requests.exceptions.HTTPError as exc:
-            code = exc.response.status_code if exc.response is not None else "?"
-            hint = " (wrong or missing credentials)" if code in (401, 403) else ""
-            raise PacsError(f"PACS {self.name}: {what}: HTTP {code}{hint}") from None
+            raise PacsError(_http_error_message(self.name, what, exc.response)) from None
+        except retrying.RetryError as exc:  # busy answers until the attempts ran out
+            value = exc.last_attempt.value
+            response = value if isinstance(value, requests.Response) else None
+            raise PacsError(_http_error_message(self.name, what, response) + tries) from None
+        except (requests.exceptions.ConnectionError, requests.exceptions.Timeout) as exc:
+            kind = "timed out" if isinstance(exc, requests.exceptions.Timeout) else "cannot connect"
+            raise PacsError(f"PACS {self.name}: {what}: {kind}{tries} ({type(exc).__name__})") from None
         except requests.exceptions.RequestException as exc:
-            raise PacsError(f"PACS {self.name}: {what}: cannot connect ({type(exc).__name__})") from None
+            raise PacsError(f"PACS {self.name}: {what}: request failed ({type(exc).__name__})") from None
         except (ValueError, KeyError, TypeError) as exc:
             raise PacsError(f"PACS {self.name}: {what}: unusable answer ({exc})") from None
 
@@ -491,6 +505,25 @@ class Pacs:
             stored += len(group)
         log.info("stored %d instance(s) on %s", stored, self.name)
         return stored
+
+
+def _http_error_message(server: str, what: str, response: Any) -> str:
+    """What an HTTP error answer means, naming the server and the request (method and path,
+    without query or credentials)."""
+    code = response.status_code if response is not None else "?"
+    request = ""
+    if response is not None and response.request is not None:
+        path = urlsplit(str(response.request.url or "")).path
+        request = f" ({response.request.method} {path})"
+    if code in (401, 403):
+        hint = "wrong or missing credentials" if code == 401 else "the account may not do this"
+    elif code == 404:
+        hint = "not found on the server"
+    elif isinstance(code, int) and code >= 500:
+        hint = "the server failed; try again later or ask its administrator"
+    else:
+        hint = "refused by the server"
+    return f"PACS {server}: {what}: HTTP {code} ({hint}){request}"
 
 
 def _save(ds: Dataset, path: Path) -> None:

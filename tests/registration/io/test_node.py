@@ -68,7 +68,8 @@ def test_unknown_calling_ae_title_is_refused(node: DicomNode, small_export: Path
     # calling the node by another name is refused too
     assoc = _scu("CARM").associate("127.0.0.1", node.port, ae_title="SOMEONE")
     assert assoc.is_rejected
-    assert node.got == [] and list(node.folder.iterdir()) == []  # type: ignore[attr-defined]
+    assert node.got == []  # type: ignore[attr-defined]
+    assert [p.name for p in node.folder.iterdir()] == [".incoming"] and not any((node.folder / ".incoming").iterdir())
 
 
 def test_configuration_is_checked(tmp_path: Path) -> None:
