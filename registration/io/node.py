@@ -210,12 +210,15 @@ class _GuardedDUL(DULServiceProvider):
         data = bytearray()
         while raw is not None and len(data) < count:
             left = deadline - time.monotonic()
-            if left <= 0 or self._node._stopping.is_set():
+            if self._node._stopping.is_set():
                 return None
             try:
-                raw.settimeout(min(left, 0.5))
+                # past the deadline, bytes already waiting are still taken (a starved thread is no stall)
+                raw.settimeout(min(left, 0.5) if left > 0 else 0.0)
                 chunk = raw.recv(min(count - len(data), 65536))
-            except TimeoutError:
+            except (TimeoutError, BlockingIOError):
+                if left <= 0:
+                    return None
                 continue
             except OSError:
                 return None
