@@ -262,3 +262,18 @@ def from_pinhole(camera_from_world: ArrayLike, carm: CArm, *, frame: str = "LPS"
     if frame == "RAS":
         world_from_camera = RAS_FROM_LPS @ world_from_camera
     return np.linalg.inv(world_from_camera @ np.linalg.inv(_carm_camera(carm)))
+
+
+def to_deepdrr(motion: ArrayLike, carm: CArm, *, frame: str = "LPS") -> tuple[Array, Array]:
+    """DeepDRR's ``CameraProjection(intrinsic, extrinsic)`` of the registered view: :func:`to_pinhole`.
+
+    ``extrinsic`` is DeepDRR's ``camera3d_from_world`` in the volume's world frame ("LPS" or
+    "RAS", as the DeepDRR volume's anatomical coordinate system); ``intrinsic`` its
+    ``index_from_camera2d``.
+    """
+    return to_pinhole(motion, carm, frame=frame)
+
+
+def from_deepdrr(extrinsic: ArrayLike, carm: CArm, *, frame: str = "LPS") -> Array:
+    """The patient motion ``M`` that DeepDRR's ``camera3d_from_world`` of the view ``carm`` means."""
+    return from_pinhole(extrinsic, carm, frame=frame)

@@ -20,9 +20,11 @@ from registration.io.transforms import (
     ITK_COMMENT,
     RAS_FROM_LPS,
     diffdrr_rays,
+    from_deepdrr,
     from_diffdrr,
     from_pinhole,
     read_itk_transform,
+    to_deepdrr,
     to_diffdrr,
     to_pinhole,
     write_itk_transform,
@@ -133,6 +135,9 @@ def test_pinhole_projection_equals_the_engines(carm: CArm, frame: str) -> None:
     # anatomy at X in the volume is imaged at M @ X (CONVENTIONS §4)
     np.testing.assert_allclose(p[:, :2] / p[:, 2:], carm.project((homogeneous @ motion.T)[:, :3]), atol=1e-7)
     np.testing.assert_allclose(from_pinhole(extrinsic, carm, frame=frame), motion, atol=1e-12)
+    k2, extrinsic2 = to_deepdrr(motion, carm, frame=frame)  # DeepDRR's CameraProjection is this pinhole
+    np.testing.assert_array_equal(k2, k)
+    np.testing.assert_allclose(from_deepdrr(extrinsic2, carm, frame=frame), motion, atol=1e-12)
 
 
 def test_shifted_detectors_are_refused() -> None:
