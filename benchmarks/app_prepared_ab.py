@@ -8,7 +8,7 @@ work, whatever the machine's load) and the residuals against the truth the image
 
 - ``old``: what ``FileData.renderer`` and the tracker built before: ``DRRRenderer(volume, levels=3)``
   (the index pyramid of the whole 23.5 M-voxel CT, couch and shoulders included).
-- ``new``: :func:`app.commands.prepare_for_registration` (``register``'s preparation: cropped to
+- ``new``: :func:`app.cli.commands.prepare_for_registration` (``register``'s preparation: cropped to
   what the field reaches over the search, isotropic 2 / 4 mm levels, the body only), made afresh
   each repeat (memory cleared, no disk cache: a first session's cost; later ones read the cache).
 
@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from app.commands import prepare_for_registration
+from app.cli.commands import prepare_for_registration
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, rigid
 from registration.core.metrics import residuals

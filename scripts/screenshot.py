@@ -49,7 +49,7 @@ def main() -> int:
 
     from playwright.sync_api import sync_playwright
 
-    from app.main import build_app, make_server, url_of
+    from app.web.main import build_app, make_server, url_of
 
     server = make_server("127.0.0.1", 0)
     app = build_app(server)

@@ -8,9 +8,9 @@ from collections.abc import Iterator
 
 import pytest
 
-from app.data import AppConfig
-from app.gui import RoadmapApp
-from app.main import build_app, make_server
+from app.web.data import AppConfig
+from app.web.gui import RoadmapApp
+from app.web.main import build_app, make_server
 
 #: Small grids so the suite stays fast (registration still has to reach < 1 mm in-plane), a
 #: coarse skull (the browser test draws it with software WebGL on the same 2 cores), the quick

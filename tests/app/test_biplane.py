@@ -7,8 +7,8 @@ import re
 
 import numpy as np
 
-from app.gui import RoadmapApp
-from app.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL
+from app.web.gui import RoadmapApp
+from app.web.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL
 from registration.sim.biplane import plane_b_spec
 
 from .conftest import parse_readout, wait_until

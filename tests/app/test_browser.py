@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.gui import RoadmapApp
-from app.main import url_of
+from app.web.gui import RoadmapApp
+from app.web.main import url_of
 
 from .conftest import READOUT, parse_readout
 

@@ -9,9 +9,9 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from app import data as app_data
-from app.data import AppConfig, PhantomData
-from app.gui import RoadmapApp
+from app.web import data as app_data
+from app.web.data import AppConfig, PhantomData
+from app.web.gui import RoadmapApp
 
 from .conftest import TEST_CONFIG, wait_until
 

@@ -16,7 +16,7 @@ import pytest
 from pydicom.data import get_testdata_file
 
 from app import cli
-from app import commands as cli_io
+from app.cli import commands as cli_io
 from registration.core.geometry import CArm
 from registration.core.metrics import residuals
 from registration.io import dicom

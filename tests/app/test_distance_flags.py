@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from app.net_commands import _Registrar
+from app.cli.net_commands import _Registrar
 from registration.io import dicom
 from registration.io.node import Received
 from tests.app.test_commands import run
@@ -42,22 +42,22 @@ class _Served(ValueError):
 
 
 def test_app_image_distances(nosid: dict[str, Path], monkeypatch: pytest.MonkeyPatch, capsys) -> None:
-    import app.main
+    import app.web.main
 
     read: list[float] = []
 
     def no_server(*_a: object, **_k: object) -> None:
         raise _Served("served")
 
-    original = app.main.FileData.from_paths
+    original = app.web.main.FileData.from_paths
 
     def from_paths(*a: object, **k: object) -> object:
         data = original(*a, **k)
         read.append(data.fixed_xray.geometry.sid_mm)
         return data
 
-    monkeypatch.setattr(app.main, "make_server", no_server)
-    monkeypatch.setattr(app.main.FileData, "from_paths", from_paths)
+    monkeypatch.setattr(app.web.main, "make_server", no_server)
+    monkeypatch.setattr(app.web.main.FileData, "from_paths", from_paths)
     args = ["app", "--volume", str(nosid["volume"]), "--image", str(nosid["image"])]
     code, _, err = run(args, capsys)
     assert code == 2 and "DistanceSourceToDetector (0018,1110)" in err and "--sid-mm" in err

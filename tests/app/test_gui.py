@@ -7,8 +7,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from app.gui import RoadmapApp
-from app.status import correction
+from app.web.gui import RoadmapApp
+from app.web.status import correction
 from registration.core.geometry import TABLE_I
 
 from .conftest import parse_readout, wait_until
@@ -76,8 +76,8 @@ def test_t4_then_register_reaches_sub_millimetre(fresh: RoadmapApp) -> None:
 def test_live_frames_show_the_newest_report_and_count_the_skipped_ones(app: RoadmapApp) -> None:
     """Reports that arrive while the presenter is busy are not queued: its next frame draws the
     newest one and counts the others as skipped, however fast or slow the machine is."""
-    from app.main import make_server
-    from app.session import RunState, Session
+    from app.web.main import make_server
+    from app.web.session import RunState, Session
     from registration.core.register import Progress
 
     server = make_server("127.0.0.1", 0)
@@ -209,7 +209,7 @@ def test_autocorrect_reregisters_when_the_patient_moves(fresh: RoadmapApp) -> No
 
 def test_stop_before_the_first_iteration_lets_the_run_go(fresh: RoadmapApp, monkeypatch) -> None:
     """Before the optimizer's first callback nothing can interrupt it: Stop still ends the run."""
-    import app.session as session_module
+    import app.web.session as session_module
 
     def slow_register(*args, **kwargs):
         time.sleep(1.5)  # preparing, no callback yet
@@ -233,7 +233,7 @@ def test_a_wrong_estimate_is_withheld_and_the_roadmap_keeps_its_pose(fresh: Road
     """The app's Register assesses its estimate (CONVENTIONS §7): here the optimizer's result is
     replaced by a pose 2 mm / 4 degrees off the truth (a wrong optimum), which the confidence
     rule withholds (the measure's peak is not there); the roadmap stays where it was."""
-    import app.session as session_module
+    import app.web.session as session_module
     from registration.core.geometry import offsets_to_matrix
 
     app = fresh

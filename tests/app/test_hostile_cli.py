@@ -99,12 +99,12 @@ def test_pixel_spacing_1e300_is_refused_by_info_and_register(inputs, capsys) -> 
 
 def test_arithmetic_errors_still_end_in_a_message(monkeypatch, capsys) -> None:
     """Anything no check caught (OverflowError, RecursionError, ...) is `error:` and exit 2."""
-    import app.commands
+    import app.cli.commands
 
     def overflow(**_kwargs):
         raise OverflowError("cannot convert float infinity to integer")
 
-    monkeypatch.setattr(app.commands, "run_info", lambda *a, **k: overflow())
+    monkeypatch.setattr(app.cli.commands, "run_info", lambda *a, **k: overflow())
     code, _, err = run(["info", "whatever.dcm"], capsys)
     assert code == 2 and err.startswith("error: OverflowError") and "ROADMAP3D_DEBUG=1" in err
     assert "on the input of: roadmap3d info whatever.dcm" in err  # names the file given

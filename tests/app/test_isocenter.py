@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.data import FileData
-from app.gui import RoadmapApp
-from app.upload import ISOCENTER_MARGIN_MM
+from app.web.data import FileData
+from app.web.gui import RoadmapApp
+from app.web.upload import ISOCENTER_MARGIN_MM
 from registration.core.geometry import TABLE_I, offsets_to_matrix
 from registration.core.metrics import residuals
 from registration.io.dicom import read_volume, read_xray, write_npz, write_xray
@@ -27,7 +27,7 @@ TRUE_ISO = (10.0, -5.0, 8.0)
 @pytest.fixture(scope="module")
 def off_center(app: RoadmapApp, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, np.ndarray]:
     """The phantom's 3DRA (.npz) and a T4-moved fluoro image taken about TRUE_ISO (XA), and the truth."""
-    from app.data import simulate_xray
+    from app.web.data import simulate_xray
 
     folder = tmp_path_factory.mktemp("off-center")
     phantom = app._phantom_data  # noqa: SLF001
@@ -78,7 +78,7 @@ def test_a_bad_isocenter_changes_nothing_and_says_why(fresh: RoadmapApp, user_da
 
 
 def test_the_bound_is_the_volume_grid_plus_the_margin(fresh: RoadmapApp, user_data: FileData) -> None:
-    from app.upload import isocenter_field
+    from app.web.upload import isocenter_field
 
     volume = user_data.volume()
     top = float(np.asarray(volume.world_corners_mm())[:, 2].max())  # the grid's last voxel centre on z
@@ -102,7 +102,7 @@ def test_the_phantom_keeps_its_isocenter(fresh: RoadmapApp) -> None:
 def test_a_good_isocenter_moves_the_marker_and_the_next_registration_uses_it(
     fresh: RoadmapApp, user_data: FileData, off_center, monkeypatch
 ) -> None:
-    import app.session as session_module
+    import app.web.session as session_module
 
     app = fresh
     _, _, truth = off_center

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import viser
 
-from app.data import DataSource, FileData, PhantomData
-from app.gui import PANELS, RoadmapApp
-from app.main import make_server
-from app.panels import BasePanel, Panel, PanelContext
-from app.session import Session
+from app.web.data import DataSource, FileData, PhantomData
+from app.web.gui import PANELS, RoadmapApp
+from app.web.main import make_server
+from app.web.panels import BasePanel, Panel, PanelContext
+from app.web.session import Session
 
 
 def test_phantom_and_file_data_implement_the_data_source_protocol(app: RoadmapApp) -> None:
@@ -23,7 +23,7 @@ def test_phantom_and_file_data_implement_the_data_source_protocol(app: RoadmapAp
 
 
 class CountingPanel(BasePanel):
-    """A panel as app/playback.py or app/pacs_panel.py would write it."""
+    """A panel as app/web/playback.py or app/web/pacs_panel.py would write it."""
 
     def __init__(self, ctx: PanelContext) -> None:
         self.ctx = ctx
@@ -73,7 +73,8 @@ def test_the_command_line_offers_the_engines_volume_sources() -> None:
     """The CLI's choices are typing.Literal declarations: they must stay the engine's list."""
     import typing
 
-    from app import cli, options
+    from app import cli
+    from app.cli import options
     from registration.sim.threedra import VOLUME_SOURCES
 
     for hints in (typing.get_type_hints(options.PhantomStudy), typing.get_type_hints(cli.phantom)):
@@ -88,7 +89,7 @@ def test_the_data_tab_supplies_distances_a_file_lacks(fresh: RoadmapApp, tmp_pat
 
     import pydicom
 
-    from app.data import simulate_xray
+    from app.web.data import simulate_xray
     from registration.io.dicom import write_npz, write_xray
 
     app = fresh

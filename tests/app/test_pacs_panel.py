@@ -1,4 +1,4 @@
-"""The app's PACS tab (app/pacs_panel.py) against a real Orthanc: the issue's "done when".
+"""The app's PACS tab (app/web/pacs_panel.py) against a real Orthanc: the issue's "done when".
 
 The app lists the stored studies, loads the 3DRA and the fluoro image from the PACS, registers,
 stores the REG object (and the overlay) back; the REG object read back from Orthanc holds the
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.gui import RoadmapApp
-from app.pacs_panel import PacsPanel
+from app.web.gui import RoadmapApp
+from app.web.pacs_panel import PacsPanel
 from registration.io import dicom
 from registration.io.pacs import Pacs, PacsSettings
 from tests.orthanc import OrthancServer

@@ -170,7 +170,7 @@ def test_track_a_biplane_pair_from_pacs(
 ) -> None:
     """``track --pacs --run A --run-b B``: both planes' runs retrieved from the study and tracked
     together, frame for frame what the same files give from disk (the same bytes, the same seed)."""
-    from app import track_commands as tc
+    from app.cli import track_commands as tc
 
     export = biplane_run_export
     orthanc.clear()

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from app.playback import motion_message
+from app.web.playback import motion_message
 from registration.sim.fluoro import RunScript
 from registration.studies.tracking import TrackingCase
 from tests.app.conftest import wait_until
@@ -131,7 +131,7 @@ def test_a_biplane_run_plays_in_biplane_mode(fresh) -> None:
     together, shown side by side; both C-arms in the scene show the run's views, then the session's."""
     import viser.transforms as vtf
 
-    from app.playback import DISPLAY_PX
+    from app.web.playback import DISPLAY_PX
 
     panel, presenter = fresh.playback, fresh.presenter
     panel.case = SHORT
@@ -219,9 +219,9 @@ def test_an_uploaded_run_is_read_about_the_datas_isocenter(fresh, tmp_path, monk
     data uses (the data's, here the volume's IsocenterPosition), not about the world origin."""
     from dataclasses import replace
 
-    import app.playback
-    from app.data import FileData
-    from app.status import correction
+    import app.web.playback
+    from app.web.data import FileData
+    from app.web.status import correction
     from registration.core.geometry import matrix_to_offsets, rigid
     from registration.core.metrics import residuals
     from registration.core.volume import Volume
@@ -235,7 +235,7 @@ def test_an_uploaded_run_is_read_about_the_datas_isocenter(fresh, tmp_path, monk
         seen.append(tuple(float(v) for v in isocenter_mm))
         return correction(before, after, isocenter_mm)
 
-    monkeypatch.setattr(app.playback, "correction", spy)
+    monkeypatch.setattr(app.web.playback, "correction", spy)
     panel = fresh.playback
     run = case_runs(SHORT)[0]  # the phantom imaged about the world origin, its truth per frame
     to_iso, from_iso = rigid(None, RUN_ISO), rigid(None, -np.asarray(RUN_ISO))

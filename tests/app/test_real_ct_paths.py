@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from app import cli
-from app.data import AppConfig, FileData
+from app.web.data import AppConfig, FileData
 from registration.core.geometry import CArm, rigid
 from registration.io import dicom
 from registration.studies.runs import axis_angle_matrix

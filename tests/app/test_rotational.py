@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app import cli, rotational_commands
+from app import cli
+from app.cli import rotational_commands
 from registration.io import dicom
 from registration.sim.calibration import CalibrationTable
 

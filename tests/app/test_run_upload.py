@@ -1,7 +1,7 @@
 """Runs for Play run under abuse: read in the upload sandbox (a separate process, capped memory,
 a time limit, the one upload budget), refused with a message naming the file, the server alive.
 
-Every case goes through :meth:`app.playback.PlaybackPanel.load_run` (what the "Upload a run"
+Every case goes through :meth:`app.web.playback.PlaybackPanel.load_run` (what the "Upload a run"
 button calls) or ``load_run_file`` (what the DICOM node calls), as the Data tab's hostile-upload
 tests go through the app's upload handler."""
 
@@ -17,8 +17,8 @@ import numpy as np
 import pydicom
 import pytest
 
-from app.gui import RoadmapApp
-from app.upload import read_run_upload
+from app.web.gui import RoadmapApp
+from app.web.upload import read_run_upload
 from registration.io import dicom
 from tests.registration.io.test_fuzz import _xray
 
@@ -91,17 +91,17 @@ def test_hostile_runs_are_refused_by_the_panels_handler(fresh: RoadmapApp, tmp_p
 def test_a_run_whose_reader_hangs_or_swells_is_abandoned(
     fresh: RoadmapApp, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import app.upload
+    import app.web.upload
 
     raw = _run_bytes(tmp_path)
     private = tmp_path / "tmp"
     private.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(private))  # the sandbox's folders, away from others'
     monkeypatch.setenv("ROADMAP3D_UPLOAD_READ_S", "1")
-    monkeypatch.setattr(app.upload, "_read_run", hanging_run_reader)  # pickled by name: the child runs it
+    monkeypatch.setattr(app.web.upload, "_read_run", hanging_run_reader)  # pickled by name: the child runs it
     _refused(fresh, "stuck.dcm", raw, "reading took longer than 1 s and was abandoned")
     monkeypatch.setenv("ROADMAP3D_UPLOAD_READ_S", "60")
-    monkeypatch.setattr(app.upload, "_read_run", swelling_run_reader)
+    monkeypatch.setattr(app.web.upload, "_read_run", swelling_run_reader)
     _refused(fresh, "swell.dcm", raw, "needs more than 6.4 GB of memory")  # READER_MEMORY_BYTES, 6 GiB
     assert not list(private.iterdir())  # the abandoned readers' folders (the run's copy) are removed
 
@@ -110,14 +110,14 @@ def test_a_received_run_is_read_in_the_sandbox_too(
     fresh: RoadmapApp, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """What the DICOM node hands Play run (a file in its folder) goes through the same reader."""
-    import app.upload
+    import app.web.upload
 
     path = tmp_path / "received.dcm"
     path.write_bytes(_edited(_run_bytes(tmp_path), NumberOfFrames=2**31 - 1))
     assert not fresh.playback.load_run_file(path, "XA run from CARM")
     assert "XA run from CARM" in fresh.playback.message.content and str(path) not in fresh.playback.message.content
     monkeypatch.setenv("ROADMAP3D_UPLOAD_READ_S", "1")
-    monkeypatch.setattr(app.upload, "_read_run", hanging_run_reader)
+    monkeypatch.setattr(app.web.upload, "_read_run", hanging_run_reader)
     assert not fresh.playback.load_run_file(path, "XA run from CARM")
     assert "abandoned" in fresh.playback.message.content
 
@@ -153,7 +153,7 @@ def test_reads_in_flight_share_one_budget(fresh: RoadmapApp, tmp_path: Path, mon
     run uploaded meanwhile is refused at once with a message, not queued; it reads when they end."""
     import threading
 
-    from app.upload import MAX_READERS, read_upload, shutdown_readers
+    from app.web.upload import MAX_READERS, read_upload, shutdown_readers
     from tests.app.conftest import TEST_CONFIG
     from tests.app.test_upload_server import _upload, hanging_reader
 

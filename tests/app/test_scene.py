@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from skimage.measure import marching_cubes
 
-from app.scene import _decimated
+from app.web.scene import _decimated
 
 
 def _shell(outer_voxels: float = 35.0, inner_voxels: float = 20.0) -> trimesh.Trimesh:

@@ -10,7 +10,7 @@ import viser
 import viser._viser
 from websockets.sync.client import connect
 
-from app.main import make_server
+from app.web.main import make_server
 
 
 class FakeTunnel:

@@ -10,8 +10,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.session import RunState
-from app.status import badge_state, correction, moved_text, run_outcome
+from app.web.session import RunState
+from app.web.status import badge_state, correction, moved_text, run_outcome
 from registration.core.geometry import rigid, rotation_z
 
 

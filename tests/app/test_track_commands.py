@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from app import cli
-from app import track_commands as tc
+from app.cli import track_commands as tc
 from registration.io import dicom
 
 SMALL = ["--pixels", "64", "--voxels", "128", "--volume-source", "resampled", "--seconds", "2", "--sudden-moves", "1"]

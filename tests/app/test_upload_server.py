@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from app.main import network_warning
-from app.upload import UploadBudget, read_upload, shutdown_readers
+from app.web.main import network_warning
+from app.web.upload import UploadBudget, read_upload, shutdown_readers
 from registration.io.dicom import UploadError
 from tests.app.conftest import TEST_CONFIG
 
@@ -155,8 +155,8 @@ def test_binding_beyond_this_machine_is_warned_about(host: str, warned: bool) ->
 
 SERVER_WITH_A_HUNG_READER = """
 import threading, time
-import app.main as main
-from app.upload import read_upload
+import app.web.main as main
+from app.web.upload import read_upload
 from tests.app.conftest import TEST_CONFIG
 from tests.app.test_upload_server import _upload, hanging_reader
 
@@ -218,8 +218,8 @@ def test_an_all_zero_uploaded_volume_is_not_registered_in_the_app() -> None:
     """An all-zero uploaded volume got the "REGISTERED" badge at the search bounds."""
     import numpy as np
 
-    from app.data import FileData
-    from app.session import Session
+    from app.web.data import FileData
+    from app.web.session import Session
     from registration.core.volume import Volume
     from tests.registration.io.test_fuzz import _xray
 
@@ -238,7 +238,7 @@ def test_an_all_zero_uploaded_volume_is_not_registered_in_the_app() -> None:
 
 def test_the_printed_address_is_the_one_listened_on() -> None:
     """`--host 0.0.0.0` printed http://localhost:PORT while listening on every interface."""
-    from app.main import url_of
+    from app.web.main import url_of
 
     class Server:
         def __init__(self, host: str) -> None:
@@ -267,7 +267,7 @@ def test_the_budget_is_wired_into_viser_s_upload_handlers() -> None:
     import viser
     from viser import _messages
 
-    from app.upload import limit_uploads
+    from app.web.upload import limit_uploads
 
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:

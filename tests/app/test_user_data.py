@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.data import FileData
-from app.gui import RoadmapApp
-from app.upload import read_upload
+from app.web.data import FileData
+from app.web.gui import RoadmapApp
+from app.web.upload import read_upload
 from registration.core.geometry import TABLE_I, offsets_to_matrix
 from registration.io.dicom import UploadError, write_npz, write_xray
 
@@ -24,7 +24,7 @@ def exported(app: RoadmapApp, tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("user-data")
     phantom = app._phantom_data  # noqa: SLF001
     write_npz(phantom.volume(27.0), folder / "volume.npz")
-    from app.data import simulate_xray
+    from app.web.data import simulate_xray
 
     geometry = app.session.settings.geometry(TEST_CONFIG.pixels)
     xray = simulate_xray(phantom.phantom(True), geometry, motion=offsets_to_matrix(TABLE_I["T4"], geometry))
@@ -72,7 +72,7 @@ def test_a_volume_without_contrast_shows_no_vessels_and_says_why(fresh: RoadmapA
     """The user's volume without contrast agent (the phantom with blood, not iodine, in its
     arteries): no vessel surface in the scene, and the panel says why; back on the phantom
     (contrast) its vessels and no note."""
-    from app.data import simulate_xray
+    from app.web.data import simulate_xray
     from registration.sim.phantom import make_head_phantom, registration_volume
 
     app = fresh
@@ -126,7 +126,7 @@ def test_the_users_skull_is_drawn_whole_on_a_ct_like_grid() -> None:
     surface is the skull in one closed piece (its outer and inner surfaces), not plates. The app
     strided the voxels (ceil(240 / skull_detail 32) = 8: 10 x 10 x 24 mm cells) and drew the 3 mm
     shell as dozens of loose plates."""
-    from app.scene import _decimated
+    from app.web.scene import _decimated
     from registration.core.geometry import CArm
     from registration.core.images import XRayImage
     from tests.registration.io.test_meshes import SHELL_RADIUS_MM, _components, _ct_like_skull

@@ -12,7 +12,7 @@ MEMORY_BOUND.
 
 Hostile zip uploads (zip-slip ``..`` names, absolute paths, symlinks, a 1 GB zero bomb,
 10,000 tiny members, not a zip, a compressed-zeros .npz inside) go through the app's
-upload handler, :func:`app.upload.read_upload`, in the same suite.
+upload handler, :func:`app.web.upload.read_upload`, in the same suite.
 
 The default run (the CI suite) mutates DEFAULT_FILES files; ``pytest --fuzz-long`` mutates
 LONG_FILES (and may be given ``--fuzz-seed``).
@@ -559,7 +559,7 @@ def _hostile_uploads(xa: bytes) -> list[tuple[str, str, bytes, str]]:
 def test_hostile_uploads_are_refused_by_the_app_handler(
     sources: dict[str, tuple[bytes, str]], upload_config, tmp_path: Path
 ) -> None:
-    from app.upload import read_upload
+    from app.web.upload import read_upload
 
     for case, name, content, needle in _hostile_uploads(sources["xa"][0]):
         tracemalloc.start()
@@ -577,7 +577,7 @@ def test_hostile_uploads_are_refused_by_the_app_handler(
 
 def test_fuzz_mutated_uploads(sources: dict[str, tuple[bytes, str]], upload_config, fuzz_seed: int) -> None:
     """A valid upload (XA + Enhanced CT), its bytes mutated: refused with a message or read."""
-    from app.upload import read_upload
+    from app.web.upload import read_upload
 
     valid = _zip([("ct/enhanced.dcm", sources["enhanced-ct"][0]), ("xa.dcm", sources["xa"][0])])
     read_upload("ok.zip", valid, max_bytes=16 * 1024**2, config=upload_config)  # the unmutated upload reads

@@ -218,7 +218,7 @@ def test_error_measure_is_zero_for_identical_and_scales_with_a_shift():
 
 def test_cli_json(capsys):
     from app.cli import CalibrationStudy
-    from app.study_commands import run_calibration_study
+    from app.cli.study_commands import run_calibration_study
 
     assert run_calibration_study(CalibrationStudy(json=True, seed=0, samples=5)) == 0
     out = json.loads(capsys.readouterr().out)

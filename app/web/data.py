@@ -303,9 +303,9 @@ class FileData:
     ) -> FileData:  # fmt: skip
         """Read with the engine's DICOM readers (their errors name the file and the tag);
         ``sid_mm`` / ``sod_mm`` for an image that lacks the distances; ``isocenter`` as
-        ``register --isocenter`` (:func:`app.commands.resolve_isocenter`: "x,y,z" mm,
+        ``register --isocenter`` (:func:`app.cli.commands.resolve_isocenter`: "x,y,z" mm,
         "volume-center", default the volume's IsocenterPosition, else the world origin)."""
-        from app.commands import resolve_isocenter
+        from app.cli.commands import resolve_isocenter
         from registration.io.dicom import read_volume, read_xray
 
         volume = read_volume(volume_path)
@@ -325,12 +325,13 @@ class FileData:
         views: Sequence[XRayImage] | None = None,
         initial_motion: np.ndarray | None = None,
     ) -> PreparedVolume:
-        """The volume prepared as ``roadmap3d register`` prepares it (:func:`app.commands.prepare_for_registration`):
+        """The volume prepared as ``roadmap3d register`` prepares it
+        (:func:`app.cli.commands.prepare_for_registration`):
         cropped to what ``views``' fields (default: the user's image) reach over a registration's
         search from ``initial_motion`` (default: none), levels resampled in mm. Prepared once per
         views; another start reuses it when the search stays within its reach, else slices the
         cached levels again (fast). The view-independent part is kept on disk for the next session."""
-        from app.commands import prepare_for_registration
+        from app.cli.commands import prepare_for_registration
 
         with self._lock:  # one preparation at a time: a second caller finds the first's in memory
             prepared, _store = prepare_for_registration(
@@ -352,9 +353,9 @@ class FileData:
         views: Sequence[XRayImage],
         initial_motion: np.ndarray | None = None,
     ) -> DRRRenderer:
-        """As ``register --confidence`` assesses (:func:`app.commands.confidence_renderer`): the
+        """As ``register --confidence`` assesses (:func:`app.cli.commands.confidence_renderer`): the
         registration's prepared levels, with level 0 over the prepared box where the rule reads it."""
-        from app.commands import confidence_renderer
+        from app.cli.commands import confidence_renderer
 
         return confidence_renderer(self.prepared(views, initial_motion), planes=len(views))
 

@@ -1,6 +1,6 @@
 """The app's PACS browser: patients -> studies -> series over DICOMweb, load, store the result.
 
-A control tab "PACS" beside Data (:mod:`app.panels`). The PACS is ``roadmap3d app --pacs URL``
+A control tab "PACS" beside Data (:mod:`app.web.panels`). The PACS is ``roadmap3d app --pacs URL``
 (or ``ROADMAP3D_PACS_URL``); credentials come from the environment or the config file
 (:mod:`registration.io.pacs`), never from the page. Listing and loading run on a worker thread;
 the retrieved series stay in a private temporary folder until the next load or the app closes.
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import viser
 
-from app.panels import BasePanel, PanelContext
+from app.web.panels import BasePanel, PanelContext
 
 if TYPE_CHECKING:
     from registration.io.pacs import Pacs, PacsSettings, SeriesEntry, StudyEntry
@@ -72,7 +72,7 @@ class PacsPanel(BasePanel):
         self._node_folder: Path | None = None
         self.received: Any = None
         #: Called with (path, name) when the node receives a multi-frame run (the app wires the
-        #: Play run panel's :meth:`~app.playback.PlaybackPanel.load_run_file` here).
+        #: Play run panel's :meth:`~app.web.playback.PlaybackPanel.load_run_file` here).
         self.run_receivers: list[Callable[[Path, str], bool]] = []
         node = node_settings_from_env()
         if node is not None:
@@ -181,8 +181,8 @@ class PacsPanel(BasePanel):
     # ----- loading -----------------------------------------------------------------------
     def load_selected(self) -> None:
         """Retrieve the chosen series (WADO-RS) and show them as the app's data."""
-        from app.commands import resolve_isocenter
-        from app.data import FileData
+        from app.cli.commands import resolve_isocenter
+        from app.web.data import FileData
         from registration.io import dicom
 
         vol_s = self._series.get(self.volume_series.value)
@@ -224,7 +224,7 @@ class PacsPanel(BasePanel):
     # ----- storing -----------------------------------------------------------------------
     def store_result(self) -> None:
         """The current estimate as a REG object + the overlay capture, into the image's study (STOW-RS)."""
-        from app.net_commands import overlay_rgb
+        from app.cli.net_commands import overlay_rgb
         from registration.io import dicom
         from registration.io.dicom.capture import write_overlay_capture
 
@@ -308,8 +308,8 @@ class PacsPanel(BasePanel):
 
     def show_received(self) -> None:
         """The received image (a run: its last frame) with the volume now shown."""
-        from app.commands import resolve_isocenter
-        from app.data import FileData
+        from app.cli.commands import resolve_isocenter
+        from app.web.data import FileData
         from registration.io import dicom
 
         item = self.received

@@ -3,7 +3,7 @@
 It watches :attr:`Session.version` and the run's progress and redraws at up to
 :data:`LIVE_HZ`, so slow work (re-forming an X-ray image) never blocks a callback and a
 fast-moving slider only costs the latest frame. Everything it shows goes to the widgets of
-the :class:`~app.layout.Layout` and to the :class:`~app.scene.Scene`, batched in one
+the :class:`~app.web.layout.Layout` and to the :class:`~app.web.scene.Scene`, batched in one
 ``server.atomic()`` block per frame.
 """
 
@@ -19,18 +19,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app import status, views
-from app.layout import Layout, badge
-from app.scene import Scene
-from app.session import Session
+from app.web import status, views
+from app.web.layout import Layout, badge
+from app.web.scene import Scene
+from app.web.session import Session
 from registration.core.geometry import CArm, matrix_to_offsets
 from registration.io.meshes import NO_VESSELS_NOTE
 
 if TYPE_CHECKING:
     import viser
 
-    from app.data import DataSource
-    from app.panels import Panel
+    from app.web.data import DataSource
+    from app.web.panels import Panel
 
 log = logging.getLogger(__name__)
 

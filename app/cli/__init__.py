@@ -17,7 +17,7 @@ from typing import Annotated, Literal, NoReturn
 
 import tyro
 
-from app.options import (
+from app.cli.options import (
     BiplaneStudy,
     CalibrationStudy,
     ClinicalStudy,
@@ -53,34 +53,34 @@ Study = (
 def validate(study: Study) -> int:
     """Run one of the paper's validation studies."""
     if isinstance(study, Table1):
-        from app.study_commands import run_table1
+        from app.cli.study_commands import run_table1
 
         return run_table1(study)
     if isinstance(study, PhantomStudy):
-        from app.study_commands import run_phantom_study
+        from app.cli.study_commands import run_phantom_study
 
         return run_phantom_study(study)
     if isinstance(study, ClinicalStudy):
-        from app.study_commands import run_clinical_study
+        from app.cli.study_commands import run_clinical_study
 
         return run_clinical_study(study)
     if isinstance(study, TrackingStudy):
-        from app.study_commands import run_tracking_study
+        from app.cli.study_commands import run_tracking_study
 
         return run_tracking_study(study)
     if isinstance(study, VolumeStudy):
-        from app.study_commands import run_volume_validation
+        from app.cli.study_commands import run_volume_validation
 
         return run_volume_validation(study)
     if isinstance(study, RotationalRunStudy):
-        from app.rotational_commands import run_rotational_validation
+        from app.cli.rotational_commands import run_rotational_validation
 
         return run_rotational_validation(study)
     if isinstance(study, BiplaneStudy):
-        from app.study_commands import run_biplane_study
+        from app.cli.study_commands import run_biplane_study
 
         return run_biplane_study(study)
-    from app.study_commands import run_calibration_study
+    from app.cli.study_commands import run_calibration_study
 
     return run_calibration_study(study)
 
@@ -96,7 +96,7 @@ def bench(json: bool = False, quick: bool = False, seed: int = 0) -> int:
         quick: Fewer repetitions and no 256^3 case (for smoke tests).
         seed: Seed of the phantom and the annealing.
     """
-    from app.study_commands import run_bench
+    from app.cli.study_commands import run_bench
 
     return run_bench(json=json, quick=quick, seed=seed)
 
@@ -168,7 +168,7 @@ def register(
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
         if confidence:
             raise UserError("--confidence works on files only (not with --pacs) for now")
-        from app.net_commands import run_register_pacs
+        from app.cli.net_commands import run_register_pacs
 
         return run_register_pacs(
             pacs=pacs,
@@ -191,10 +191,10 @@ def register(
         raise UserError("--study, --store and --ca-bundle need --pacs URL")
     if len(image) not in (1, 2):
         raise UserError(f"--image takes one X-ray file, or two (plane A and plane B of one moment); got {len(image)}")
-    from app.prefetch import read_ahead_for_register
+    from app.web.prefetch import read_ahead_for_register
 
     read_ahead_for_register(volume, image)  # the OS reads the files in while the engine is imported
-    from app.commands import run_register
+    from app.cli.commands import run_register
 
     return run_register(
         volume=volume,
@@ -245,7 +245,7 @@ def info(path: Path, /, json: bool = False, sid_mm: float | None = None, sod_mm:
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
     """
-    from app.commands import run_info
+    from app.cli.commands import run_info
 
     return run_info(path, as_json=json, sid_mm=sid_mm, sod_mm=sod_mm)
 
@@ -278,7 +278,7 @@ def phantom(
         pixels: X-ray image size (square).
         volume_source: 3DRA series: FDK of a simulated rotational run (minutes once, then cached) or resampled phantom.
     """
-    from app.commands import run_phantom_export
+    from app.cli.commands import run_phantom_export
 
     return run_phantom_export(
         out=out,
@@ -305,7 +305,7 @@ def mesh(volume: Path, out: Path, vessel_hu: float | None = None, bone_hu: float
         bone_hu: Bone threshold in HU (default 700).
         step: Marching-cubes step in voxels (2 or more: fewer faces, faster).
     """
-    from app.commands import run_mesh
+    from app.cli.commands import run_mesh
 
     return run_mesh(volume=volume, out=out, vessel_hu=vessel_hu, bone_hu=bone_hu, step=step)
 
@@ -335,7 +335,7 @@ def listen(
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
     """
-    from app.net_commands import run_listen
+    from app.cli.net_commands import run_listen
 
     return run_listen(ae_title=ae_title, port=port, host=host, allow=allow, folder=folder, volume=volume,
                       sid_mm=sid_mm, sod_mm=sod_mm)  # fmt: skip
@@ -352,7 +352,7 @@ def demo(port: int = 8080, host: str = "127.0.0.1", open_browser: bool = False) 
         host: Interface to bind; 127.0.0.1 keeps the app on this machine.
         open_browser: Open the page in the default browser.
     """
-    from app.main import run_app
+    from app.web.main import run_app
 
     return run_app(host=host, port=port, volume=None, image=None, open_browser=open_browser)
 
@@ -394,7 +394,7 @@ def app(
             volume, else the origin), as for register.
     """
     if listen_port is not None:
-        from app.pacs_panel import ENV_NODE_ALLOW, ENV_NODE_PORT
+        from app.web.pacs_panel import ENV_NODE_ALLOW, ENV_NODE_PORT
         from registration.io.node import check_ae_title
 
         if not allow:
@@ -404,7 +404,7 @@ def app(
         os.environ[ENV_NODE_ALLOW] = "\\".join(titles)
     elif allow:
         raise UserError("--allow needs --listen-port")
-    from app.main import run_app
+    from app.web.main import run_app
 
     if pacs is not None:
         from registration.io.pacs import ENV_URL, PacsSettings
@@ -464,7 +464,7 @@ def track(
         frame_time_ms: Frame spacing for runs without FrameTimeVector, FrameTime or CineRate.
     """
     if pacs is not None:
-        from app.net_commands import run_track_pacs
+        from app.cli.net_commands import run_track_pacs
 
         return run_track_pacs(
             pacs=pacs, study=study, volume_series=str(volume), run_series=str(run), ca_bundle=ca_bundle,
@@ -473,7 +473,7 @@ def track(
         )  # fmt: skip
     if study or ca_bundle:
         raise UserError("--study and --ca-bundle need --pacs URL")
-    from app.track_commands import run_track
+    from app.cli.track_commands import run_track
 
     return run_track(
         volume=volume, run=run, run_b=run_b, out=out, truth=truth, isocenter=isocenter, seed=seed,
@@ -509,7 +509,7 @@ def phantom_run(
         voxels: 3DRA grid size along each axis.
         volume_source: 3DRA series: FDK of a simulated rotational run, or the resampled phantom.
     """
-    from app.track_commands import run_phantom_run_export
+    from app.cli.track_commands import run_phantom_run_export
 
     return run_phantom_run_export(
         out=out, seconds=seconds, pixels=pixels, image_format=image_format, primary_deg=primary_deg,

@@ -17,7 +17,15 @@ from typing import Any
 
 import numpy as np
 
-from app.options import BiplaneStudy, CalibrationStudy, ClinicalStudy, PhantomStudy, Table1, TrackingStudy, VolumeStudy
+from app.cli.options import (
+    BiplaneStudy,
+    CalibrationStudy,
+    ClinicalStudy,
+    PhantomStudy,
+    Table1,
+    TrackingStudy,
+    VolumeStudy,
+)
 from registration import __version__
 from registration.sim.calibration import ERROR_REGION_RADIUS_MM, calibration_study
 from registration.studies import bench, runs
@@ -283,7 +291,7 @@ def _read_study_volume(args: VolumeStudy) -> Any:
     import shutil
     import tempfile
 
-    from app.net_commands import retrieve_volume
+    from app.cli.net_commands import retrieve_volume
     from registration.io.pacs import Pacs, PacsSettings
 
     client = Pacs(PacsSettings.resolve(args.pacs, ca_bundle=args.ca_bundle))
@@ -303,7 +311,7 @@ def run_volume_validation(args: VolumeStudy) -> int:
     one JSON object with ``--json``; ``--out`` keeps results.jsonl, summary.json and report.md."""
     import warnings
 
-    from app.commands import resolve_isocenter
+    from app.cli.commands import resolve_isocenter
     from registration.studies.volume import SUMMARY_KEYS, VolumeStudyConfig, report_markdown, run_volume_study
 
     try:

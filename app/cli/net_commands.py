@@ -82,7 +82,7 @@ class _Registrar:
             return [dicom.read_xray(item.path, **self.distances_mm)]
 
     def _register(self, item: Received) -> None:
-        from app.commands import prepare_for_registration
+        from app.cli.commands import prepare_for_registration
         from registration.core.register import register
 
         (xray,) = self.read(item)
@@ -101,7 +101,7 @@ class _Registrar:
 
     def _track(self, item: Received) -> None:
         """A received run: tracked frame by frame (CONVENTIONS §7), every frame (a replay)."""
-        from app.commands import prepare_for_registration
+        from app.cli.commands import prepare_for_registration
         from registration.core.tracking import track_run
 
         run = self._open_run(item)
@@ -271,7 +271,7 @@ def run_track_pacs(
     import shutil
     import tempfile
 
-    from app.track_commands import run_track
+    from app.cli.track_commands import run_track
     from registration.io.pacs import Pacs, PacsSettings
 
     if run_b_series is not None and str(run_b_series) == str(run_series):
@@ -309,7 +309,7 @@ def run_register_pacs(
     import shutil
     import tempfile
 
-    from app.commands import run_register
+    from app.cli.commands import run_register
     from registration.io.dicom.capture import write_overlay_capture
     from registration.io.pacs import Pacs, PacsSettings
 

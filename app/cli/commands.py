@@ -696,7 +696,7 @@ def run_phantom_export(
         dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed,
                          acquired_at=moment + timedelta(seconds=EXPOSURE_AFTER_FLUORO_S))  # fmt: skip
         if volume_source == "fdk":  # the run the 3DRA was reconstructed from (validate rotational-run)
-            from app.rotational_commands import export_phantom_run
+            from app.cli.rotational_commands import export_phantom_run
 
             truth["files"].update(
                 export_phantom_run(

@@ -14,11 +14,11 @@ from types import FrameType
 
 import viser
 
-from app.data import AppConfig, FileData, PhantomData
-from app.gui import RoadmapApp
-from app.session import Session
-from app.share import refuse_share_requests
-from app.upload import shutdown_readers
+from app.web.data import AppConfig, FileData, PhantomData
+from app.web.gui import RoadmapApp
+from app.web.session import Session
+from app.web.share import refuse_share_requests
+from app.web.upload import shutdown_readers
 
 log = logging.getLogger(__name__)
 

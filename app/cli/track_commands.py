@@ -68,7 +68,7 @@ def run_track(
 
     ``sid_mm``, ``sod_mm`` and ``frame_time_ms`` fill in what a run's files lack
     (:func:`registration.io.dicom.read_xray_run`)."""
-    from app.commands import parse_isocenter, prepare_for_registration
+    from app.cli.commands import parse_isocenter, prepare_for_registration
     from registration.core.metrics import residuals
     from registration.core.tracking import track_run
 
@@ -227,7 +227,7 @@ def run_phantom_run_export(
 ) -> int:
     """Write a simulated fluoroscopy run of the phantom (multi-frame XA with its frame times),
     its per-frame truth, and the 3DRA series to track it with."""
-    from app.commands import _phantom_3dra
+    from app.cli.commands import _phantom_3dra
     from registration.core.geometry import CArm
     from registration.sim.fluoro import RunScript, simulate_biplane_run
     from registration.sim.phantom import make_head_phantom

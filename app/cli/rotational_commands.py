@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app.options import RotationalRunStudy
+from app.cli.options import RotationalRunStudy
 from registration.io import dicom
 
 if TYPE_CHECKING:

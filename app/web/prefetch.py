@@ -25,7 +25,7 @@ PREPARED_BYTES = 96 * 1024**2
 
 def kernel_files() -> list[Path]:
     """The engine's compiled kernels (numba's cache beside ``registration/core``)."""
-    core = Path(__file__).resolve().parents[1] / "registration" / "core" / "__pycache__"
+    core = Path(__file__).resolve().parents[2] / "registration" / "core" / "__pycache__"
     return sorted(core.glob("*.nbi")) + sorted(core.glob("*.nbc"))
 
 

@@ -6,7 +6,7 @@ the tracker (:class:`registration.core.tracking.Tracker`) follows the patient. E
 carries the roadmap (the vessel outline at the last applied pose) and the product's message on
 top of the image ("motion corrected 3.2 mm, 1.1°", "motion detected, correction withheld"), and
 the 3-D scene follows it (the volume's surfaces at that pose, the run's C-arm with the frame on
-its detector, the true pose as the ghost: :class:`app.presenter.FollowedPose`); a strip chart
+its detector, the true pose as the ghost: :class:`app.web.presenter.FollowedPose`); a strip chart
 shows the estimated (shown) and true motion and the per-frame latency. Frames that arrive
 while the engine is busy are skipped (the picture always shows the newest frame).
 
@@ -22,7 +22,7 @@ session's current volume, about the iso-center a registration of that data uses 
 strip chart shows the roadmap's motion only.
 A multi-frame run the app's DICOM node receives (``roadmap3d app --listen-port P --allow AE``)
 becomes the run to play the same way, read in the same sandbox (:meth:`PlaybackPanel.load_run_file`, wired
-in :mod:`app.gui`).
+in :mod:`app.web.gui`).
 """
 
 from __future__ import annotations
@@ -37,10 +37,10 @@ import cv2
 import numpy as np
 import viser
 
-from app import views
-from app.panels import BasePanel, PanelContext
-from app.presenter import FollowedPose
-from app.status import corrected_text, correction
+from app.web import views
+from app.web.panels import BasePanel, PanelContext
+from app.web.presenter import FollowedPose
+from app.web.status import corrected_text, correction
 from registration.core.geometry import CArm, matrix_to_offsets
 
 if TYPE_CHECKING:
@@ -60,7 +60,7 @@ GREEN, ORANGE, GRAY = (64, 192, 87), (253, 126, 20), (134, 142, 150)
 
 
 def motion_message(est: FrameEstimate, previous: np.ndarray, geometry: CArm) -> tuple[str, tuple[int, int, int]]:
-    """The product's message for one frame and its colour (the words of :mod:`app.status`)."""
+    """The product's message for one frame and its colour (the words of :mod:`app.web.status`)."""
     if est.status == "applied":
         return corrected_text(*correction(previous, est.patient_motion, geometry.isocenter_mm)), GREEN
     if est.status == "withheld":
@@ -298,7 +298,7 @@ class PlaybackPanel(BasePanel):
         return self._read(name, path=Path(path))
 
     def _read(self, name: str, *, content: bytes | None = None, path: Any = None) -> bool:
-        from app.upload import read_run_upload
+        from app.web.upload import read_run_upload
 
         if self.playing:
             raise ValueError("stop the run playing first")

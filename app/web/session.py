@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from app.data import AppConfig, DataSource, PhantomData, XRayImage, simulate_xray
+from app.web.data import AppConfig, DataSource, PhantomData, XRayImage, simulate_xray
 from registration.core.geometry import (
     DEFAULT_SID_MM,
     TABLE_I,
@@ -166,7 +166,7 @@ class Session:
         from). The roadmap restarts from the sensor pose: a pose found about the old iso-center
         belongs to another geometry. Refused while a registration runs and for the phantom (its
         C-arm's iso-center is the world origin, where its images are formed)."""
-        from app.data import FileData
+        from app.web.data import FileData
 
         with self.lock:
             self._refuse_while_running()

@@ -3,10 +3,10 @@
 The session is **shared**: every browser tab shows and controls the same patient, C-arm and
 registration (server-level GUI and scene). The parts, each in its own module:
 
-- :mod:`app.layout`: which widgets exist and where (the tab groups new panels open tabs in);
-- :mod:`app.controller`: what the widgets do (callbacks change only the :class:`Session`);
-- :mod:`app.presenter`: one thread that draws the session into the widgets and the scene;
-- :mod:`app.panels`: optional panels (the calibration view, ...) mounted after the layout.
+- :mod:`app.web.layout`: which widgets exist and where (the tab groups new panels open tabs in);
+- :mod:`app.web.controller`: what the widgets do (callbacks change only the :class:`Session`);
+- :mod:`app.web.presenter`: one thread that draws the session into the widgets and the scene;
+- :mod:`app.web.panels`: optional panels (the calibration view, ...) mounted after the layout.
 
 :class:`RoadmapApp` wires them together and keeps the handles tests and scripts use
 (``app.register_button``, ``app.readout``, ...) on itself.
@@ -19,18 +19,18 @@ from typing import TYPE_CHECKING, Any
 
 import viser
 
-from app.calibration import CalibrationPanel
-from app.controller import Controller
-from app.layout import Layout
-from app.pacs_panel import PacsPanel
-from app.panels import Panel, PanelContext, PanelFactory, mount
-from app.playback import PlaybackPanel
-from app.presenter import Presenter
-from app.scene import Scene
-from app.session import Session
+from app.web.calibration import CalibrationPanel
+from app.web.controller import Controller
+from app.web.layout import Layout
+from app.web.pacs_panel import PacsPanel
+from app.web.panels import Panel, PanelContext, PanelFactory, mount
+from app.web.playback import PlaybackPanel
+from app.web.presenter import Presenter
+from app.web.scene import Scene
+from app.web.session import Session
 
 if TYPE_CHECKING:
-    from app.data import DataSource
+    from app.web.data import DataSource
 
 #: The optional panels every app mounts, in tab order after the layout's own tabs (left:
 #: Roadmap; right: Patient motion, C-arm, Data, Display). A new panel: one line here.

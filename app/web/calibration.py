@@ -30,10 +30,10 @@ import cv2
 import numpy as np
 import viser
 
-from app import views
-from app.data import PhantomData
-from app.panels import PanelContext
-from app.scene import M_PER_MM
+from app.web import views
+from app.web.data import PhantomData
+from app.web.panels import PanelContext
+from app.web.scene import M_PER_MM
 from registration.core.geometry import CArm
 from registration.sim.bending import default_bending, machine_based_error_mm
 from registration.sim.calibration import machine_based_geometry
@@ -381,7 +381,7 @@ class CalibrationView:
 
 
 class CalibrationPanel(CalibrationView):
-    """The calibration view mounted as the app's "Calibration" tab (:mod:`app.panels`)."""
+    """The calibration view mounted as the app's "Calibration" tab (:mod:`app.web.panels`)."""
 
     def __init__(self, ctx: PanelContext) -> None:
         session = ctx.session

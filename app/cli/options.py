@@ -1,5 +1,5 @@
 """The options of ``roadmap3d validate`` (what tyro turns into flags), shared by the command line
-and the runners of :mod:`app.study_commands`. Light: importing it loads no engine module.
+and the runners of :mod:`app.cli.study_commands`. Light: importing it loads no engine module.
 """
 
 from __future__ import annotations

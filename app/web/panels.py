@@ -3,7 +3,7 @@
 A panel is a class whose constructor takes a :class:`PanelContext`, builds its widgets inside
 a tab it opens itself, and implements :class:`Panel`. To add one:
 
-1. write it in its own module (``app/playback.py``, ``app/pacs_panel.py``, ...), e.g.::
+1. write it in its own module (``app/web/playback.py``, ``app/web/pacs_panel.py``, ...), e.g.::
 
        class PlaybackPanel(BasePanel):
            def __init__(self, ctx: PanelContext) -> None:
@@ -12,9 +12,9 @@ a tab it opens itself, and implements :class:`Panel`. To add one:
                    self.play = ctx.server.gui.add_button("Play")                 # control_tab: right
                self.play.on_click(ctx.guarded(lambda _e: ...))
 
-2. add its class to ``PANELS`` in :mod:`app.gui` (the order there is the order of the tabs).
+2. add its class to ``PANELS`` in :mod:`app.web.gui` (the order there is the order of the tabs).
 
-What a panel may use (all on the context): the shared :class:`~app.session.Session` (change it
+What a panel may use (all on the context): the shared :class:`~app.web.session.Session` (change it
 under ``session.lock``, or through its methods, which refuse while a registration runs), the
 layout's handles, ``message`` for the status line, ``refresh`` to make the presenter redraw,
 ``guarded`` to turn a failing callback into a message in the page, and ``server`` for the
@@ -34,9 +34,9 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import viser
 
 if TYPE_CHECKING:
-    from app.data import PhantomData
-    from app.layout import Layout
-    from app.session import Session
+    from app.web.data import PhantomData
+    from app.web.layout import Layout
+    from app.web.session import Session
 
 
 @runtime_checkable
@@ -92,7 +92,7 @@ class PanelContext:
     guarded: Callable[[Callable[..., None]], Callable[..., None]]
     #: The limit of one browser upload (bytes); every transfer is also held to the app's budget.
     max_upload_bytes: int = 512_000_000
-    #: Let the 3-D scene follow a played run (an :class:`app.presenter.FollowedPose`; None: back
+    #: Let the 3-D scene follow a played run (an :class:`app.web.presenter.FollowedPose`; None: back
     #: to the session). The presenter draws it at its next frame.
     follow: Callable[[Any], None] = _ignore
 

@@ -1,7 +1,7 @@
 """The app's layout: every panel, tab and widget, created once and never re-arranged.
 
-Only *what is where*: no callbacks (:mod:`app.controller` binds them) and no drawing
-(:mod:`app.presenter` fills the widgets). Two tab groups take the app's panels:
+Only *what is where*: no callbacks (:mod:`app.web.controller` binds them) and no drawing
+(:mod:`app.web.presenter` fills the widgets). Two tab groups take the app's panels:
 
 - ``view_tabs`` on the left, what the clinician looks at: **Roadmap** (the fluoro + DRR
   picture, the badge, the residual readout, the convergence plot), then the mounted panels
@@ -10,7 +10,7 @@ Only *what is where*: no callbacks (:mod:`app.controller` binds them) and no dra
   **C-arm**, **Data**, **Display**, then the mounted panels.
 
 A new panel does not edit this file: it opens its tab with :meth:`Layout.view_tab` or
-:meth:`Layout.control_tab` from its constructor (see :mod:`app.panels`).
+:meth:`Layout.control_tab` from its constructor (see :mod:`app.web.panels`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import viser
 
-from app.session import PLANE_B_PRIMARY_DEG, ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
+from app.web.session import PLANE_B_PRIMARY_DEG, ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
 from registration.core.geometry import DEFAULT_SID_MM, IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I
 from registration.sim.biplane import plane_b_spec
 

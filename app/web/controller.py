@@ -1,6 +1,6 @@
 """The controller: what the user's clicks and slider moves do.
 
-Each callback changes only the :class:`~app.session.Session` (which validates and refuses
+Each callback changes only the :class:`~app.web.session.Session` (which validates and refuses
 while a registration runs) and then wakes the presenter; it never draws. The controller also
 shows the session's state back in the controls (:meth:`Controller.sync_controls`, without
 re-triggering their callbacks), enables and disables them around a run, and runs
@@ -18,17 +18,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app import status
-from app.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL, Layout, format_cm, format_option, offset_limit
-from app.session import RunState, Session
-from app.upload import limit_uploads
+from app.web import status
+from app.web.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL, Layout, format_cm, format_option, offset_limit
+from app.web.session import RunState, Session
+from app.web.upload import limit_uploads
 from registration.core.geometry import clinically_relevant
 
 if TYPE_CHECKING:
     import viser
 
-    from app.data import DataSource
-    from app.panels import Panel
+    from app.web.data import DataSource
+    from app.web.panels import Panel
 
 log = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ class Controller:
 
     def load_upload(self, name: str, content: bytes) -> bool:
         """Read an uploaded zip and show it; a refusal becomes a message in the page."""
-        from app.upload import distance_mm, read_upload
+        from app.web.upload import distance_mm, read_upload
 
         ui = self.layout
         self.message(f"Reading {name} ({len(content) / 1e6:.1f} MB)…")
@@ -275,7 +275,7 @@ class Controller:
     def show_isocenter(self) -> None:
         """The Data tab's iso-center: where it is, where it came from, the field showing it."""
         ui, data = self.layout, self.session.data
-        from app.data import FileData
+        from app.web.data import FileData
 
         if isinstance(data, FileData):
             iso = data.isocenter_mm
@@ -290,7 +290,7 @@ class Controller:
         self._enable_isocenter(self.session.running)
 
     def _enable_isocenter(self, running: bool) -> None:
-        from app.data import FileData
+        from app.web.data import FileData
 
         fixed = not isinstance(self.session.data, FileData)
         for control in self.layout.isocenter_controls:
@@ -298,10 +298,10 @@ class Controller:
 
     def set_isocenter(self, text: str) -> None:
         """The iso-center typed into the Data tab (or "volume center"): checked against the volume
-        (:func:`app.upload.isocenter_field`), then the user's image is placed about it, the scene's
+        (:func:`app.web.upload.isocenter_field`), then the user's image is placed about it, the scene's
         marker moves there and the next Register uses it. A bad value changes nothing: it is said
         in the page (the guard turns the ValueError into a red status line and a notification)."""
-        from app.upload import isocenter_field
+        from app.web.upload import isocenter_field
 
         s = self.session
         iso, source = isocenter_field(text, s.data.volume(s.settings.volume_format_cm))
@@ -357,7 +357,7 @@ class Controller:
 
     def _announce_outcome(self) -> None:
         """Tell a registration's outcome (applied, withheld, stopped, failed) in the status line,
-        once per run, in the words of the badge (:func:`app.status.run_outcome`)."""
+        once per run, in the words of the badge (:func:`app.web.status.run_outcome`)."""
         s = self.session
         with s.lock:
             run = s.run

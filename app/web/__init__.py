@@ -1,0 +1,1 @@
+"""The web app: layout, controller, presenter, panels and the shared session (viser)."""
