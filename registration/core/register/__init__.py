@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -29,6 +30,7 @@ from numpy.typing import ArrayLike
 from registration.core.checks import check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
 from registration.core.images import XRayImage
+from registration.core.intensity import match_views
 from registration.core.metrics import residuals
 from registration.core.problem import support_mask
 from registration.core.register.biplane import (
@@ -125,12 +127,30 @@ def register(
     for view in inputs.views:
         check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
     start = time.perf_counter()
+    inputs, intensity = _matched_intensities(inputs, options)
     space = SearchSpace.for_views(inputs.views[0].geometry, inputs.initial_motion,
                                   optimize_tz=options.optimizes_tz(len(inputs.views)),
                                   bound_mm=options.bound_mm, bound_deg=options.bound_deg)  # fmt: skip
     run = Run(inputs, options, space, np.random.default_rng(seed), Monitor(space, callback, start))
     state = build_plan(inputs, options).run(State(run, space.start(), space))
-    return _result(state, vessel_points_mm, time.perf_counter() - start)
+    result = _result(state, vessel_points_mm, time.perf_counter() - start)
+    result.intensity = intensity
+    return result
+
+
+def _matched_intensities(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs, tuple[dict | None, ...]]:
+    """The views with their intensities matched to the DRR's as ``options.intensity`` asks
+    (:mod:`registration.core.intensity`), and what each assumed (None: as read)."""
+    coarsest = max(lv.volume_level for lv in options.levels)
+    level = next((L for L in range(coarsest, -1, -1) if inputs.renderer.has_level(L)), 0)
+    margin = options.margin_mm(0) or 0.0
+    views, infos = match_views(
+        inputs.renderer, inputs.views, inputs.initial_motion, options.intensity, level=level,
+        support=lambda g: support_mask(inputs.renderer.volume, g, inputs.initial_motion, margin),
+    )  # fmt: skip
+    if all(i is None for i in infos):
+        return inputs, ()
+    return replace(inputs, views=views), tuple(None if i is None else i.to_dict() | {"note": i.note()} for i in infos)
 
 
 def registration_plan(

@@ -275,6 +275,10 @@ class RegistrationOptions:
     biplane: BiplaneOptions = field(default_factory=BiplaneOptions)
     depth: DepthOptions = field(default_factory=DepthOptions)
     rotation_check: RotationCheckOptions = field(default_factory=RotationCheckOptions)
+    #: The image's intensities (:mod:`registration.core.intensity`; default "auto": matched to
+    #: the DRR's when the reader could not know them to be line integrals, display-processed
+    #: pixels or a missing relationship tag; "match": always; "as-read": never).
+    intensity: str = "auto"
 
     def __init__(self, **kwargs: Any) -> None:
         own = {f.name: f for f in fields(self)}
@@ -315,6 +319,8 @@ class RegistrationOptions:
         self.__post_init__()
 
     def __post_init__(self) -> None:
+        if self.intensity not in ("auto", "as-read", "match"):
+            raise ValueError(f"intensity must be 'auto', 'as-read' or 'match', got {self.intensity!r}")
         if not self.levels:
             raise ValueError("at least one level is needed")
         if not (self.bound_mm > 0 and self.bound_deg > 0):

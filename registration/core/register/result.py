@@ -69,6 +69,10 @@ class RegistrationResult:
     #: <= 0; > 0 only when the last check still moved the estimate; None: every polish came
     #: back). None: no check ran.
     rotation_check: RotationCheck | None = None
+    #: Per view, what the intensity matching assumed (:mod:`registration.core.intensity`: the
+    #: polarity, its margin, the stored levels, a note), None for a view used as read; () when
+    #: every view was used as read.
+    intensity: tuple[dict | None, ...] = ()
 
     @property
     def success(self) -> bool | None:
@@ -98,6 +102,8 @@ class RegistrationResult:
             out["depth_moves_mm"] = list(self.depth_moves_mm)
         if self.rotation_check is not None:
             out["rotation_check"] = self.rotation_check.to_dict()
+        if self.intensity:
+            out["intensity"] = list(self.intensity)
         return out
 
 
