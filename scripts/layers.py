@@ -26,7 +26,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("sim", ("registration.sim",)),
     ("studies", ("registration.studies",)),
     ("api", ("registration.api",)),  # the public face; registration/__init__ reaches it by name, lazily
-    ("app", ("app",)),
+    ("web", ("app.web",)),  # the web app: never imports the command line
+    ("cli", ("app", "app.cli")),  # the command line: the engine's commands, and it starts the web app
 )
 PACKAGES = ("registration", "app")
 

@@ -8,15 +8,14 @@ set ``ROADMAP3D_DEBUG=1`` to see the traceback instead.
 
 from __future__ import annotations
 
-import atexit
 import os
 import sys
-import threading
 from pathlib import Path
 from typing import Annotated, Literal, NoReturn
 
 import tyro
 
+from app.cli._perf import exit_code, exit_without_teardown, small_pages
 from app.cli.options import (
     BiplaneStudy,
     CalibrationStudy,
@@ -164,7 +163,7 @@ def register(
         explain: Print the plan of stages the registration runs (annealing levels, polishes, depth correction,
             rotation check, with their budgets) before running it.
     """
-    _small_pages()
+    small_pages()
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
         if confidence:
             raise UserError("--confidence works on files only (not with --pacs) for now")
@@ -191,7 +190,7 @@ def register(
         raise UserError("--study, --store and --ca-bundle need --pacs URL")
     if len(image) not in (1, 2):
         raise UserError(f"--image takes one X-ray file, or two (plane A and plane B of one moment); got {len(image)}")
-    from app.web.prefetch import read_ahead_for_register
+    from app.cli._perf import read_ahead_for_register
 
     read_ahead_for_register(volume, image)  # the OS reads the files in while the engine is imported
     from app.cli.commands import run_register
@@ -215,19 +214,6 @@ def register(
         cache=not no_cache,
         explain=explain,
     )
-
-
-def _small_pages() -> None:
-    """numpy without transparent huge pages for this short process (``NUMPY_MADVISE_HUGEPAGE=0``,
-    unless the caller set it; only before numpy is imported).
-
-    numpy asks the kernel for 2 MB pages for every large array. On this kind of VM a fresh
-    process then waits for each such page to be found and cleared on first touch: reading the
-    real CT (its 94 MB volume) took 0.30-0.39 s instead of 0.19-0.20 s and loading its cached
-    preparation 0.41-0.45 s instead of 0.29-0.32 s in back-to-back runs, the registration the
-    same with 4 kB pages (1.56-1.60 s against 1.56-1.62 s at load ~2)."""
-    if "numpy" not in sys.modules:
-        os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 
 def _one_image(images: list[Path], flag: str) -> Path:
@@ -533,31 +519,15 @@ COMMANDS = {
 }
 
 
-def _exit_now(code: int) -> NoReturn:
-    """End the process with ``code`` without the interpreter's teardown.
-
-    Tearing down a process that loaded numba, llvmlite and scipy (freeing every module's
-    objects one by one) takes ~0.4 s after a command's work is done. The exit handlers run
-    (``atexit``: logging, temporary files, caches), the output is flushed, then the process
-    ends. Only when no other Python thread that the interpreter would wait for is running;
-    otherwise the ordinary exit.
-    """
-    if any(t is not threading.main_thread() and t.is_alive() and not t.daemon for t in threading.enumerate()):
-        sys.exit(code)
-    atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a closed pipe (| head): nothing more can be said
-            pass
-    os._exit(code)
-
-
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``roadmap3d`` console script."""
     debug = os.environ.get("ROADMAP3D_DEBUG") == "1"
-    # the console script (no argv given) ends at once; a caller of main(argv) gets SystemExit as before
-    finish = _exit_now if argv is None else sys.exit
+    if argv is None:  # the console script: the process ends after its exit handlers, without teardown
+        exit_without_teardown()
+
+    def finish(code: int) -> NoReturn:
+        sys.exit(exit_code(code) if argv is None else code)
+
     try:
         code = tyro.extras.subcommand_cli_from_dict(
             COMMANDS, args=argv, config=(tyro.conf.OmitArgPrefixes,), prog="roadmap3d"

@@ -26,6 +26,7 @@ import numpy as np
 
 from registration.core.geometry import OFFSET_NAMES, TABLE_I, CArm, check_rigid, matrix_to_offsets, offsets_to_matrix
 from registration.io import dicom
+from registration.io.isocenter import VOLUME_CENTER, resolve_isocenter
 from registration.io.transforms import ITK_SUFFIXES, write_itk_transform
 from registration.sim.threedra import VOLUME_SOURCES, VolumeRecipe
 
@@ -118,44 +119,10 @@ def _progress(message: str, *, after_s: float | None = None, every_s: float | No
         _say(f"  done in {time.perf_counter() - start:.0f} s", stream=sys.stderr)
 
 
-#: ``--isocenter`` keyword: the center of the volume's voxel grid.
-VOLUME_CENTER = "volume-center"
-
-
 def parse_isocenter(text: str | None, volume: Volume | None = None) -> tuple[float, float, float]:
     """``"x,y,z"`` in mm, ``"volume-center"`` (needs ``volume``), or the default of
     :func:`resolve_isocenter` (the volume's IsocenterPosition, else the world origin, CONVENTIONS §1)."""
     return resolve_isocenter(text, volume)[0]
-
-
-def resolve_isocenter(text: str | None, volume: Volume | None = None) -> tuple[tuple[float, float, float], str]:
-    """The iso-center (mm, world frame) for ``--isocenter`` and where it came from.
-
-    * ``"x,y,z"``: as given;
-    * ``"volume-center"``: the center of the volume's voxel grid (``Volume.center_mm``);
-    * absent: IsocenterPosition (300A,012C) when the volume's files carry it (read into
-      ``volume.meta["isocenter_mm"]``), else the world origin (CONVENTIONS §1).
-    """
-    if text is None or text.strip() == "":
-        if volume is not None and volume.meta.get("isocenter_mm") is not None:
-            iso = tuple(float(v) for v in volume.meta["isocenter_mm"])
-            return (iso[0], iso[1], iso[2]), str(volume.meta.get("isocenter_from", "the volume's files"))
-        return (0.0, 0.0, 0.0), "the world origin (default)"
-    if text.strip().lower() == VOLUME_CENTER:
-        if volume is None:
-            raise ValueError(f"--isocenter {VOLUME_CENTER} needs the volume (--volume)")
-        center = [float(v) for v in volume.center_mm]
-        return (center[0], center[1], center[2]), "the center of the volume's grid (--isocenter volume-center)"
-    parts = text.replace(" ", "").split(",")
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        raise ValueError(
-            f"--isocenter must be three numbers 'x,y,z' in mm or '{VOLUME_CENTER}', got {text!r}"
-        ) from None
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"--isocenter must be three finite numbers 'x,y,z' in mm or '{VOLUME_CENTER}', got {text!r}")
-    return (values[0], values[1], values[2]), "--isocenter"
 
 
 def parse_offset(text: str) -> tuple[str, np.ndarray]:
@@ -272,20 +239,25 @@ REGISTRATION_KERNELS = (
 
 
 def kernels_to_compile() -> list[str]:
-    """The registration kernels with no usable compiled copy on disk: the first run after an
-    install or an update compiles them (all of them: 20-50 s on 2 cores). ``[]`` when they are all cached or
-    when numba's cache cannot be inspected."""
+    """The registration kernels with no compiled copy on disk newer than their source: the first run
+    after an install or an update compiles them (all of them: 20-50 s on 2 cores). Read from the
+    file names numba's on-disk cache uses beside each module (``__pycache__/<module>.<function>-*.nbi``);
+    a hint only."""
     import importlib
 
     missing = []
     for module, names in REGISTRATION_KERNELS:
-        mod = importlib.import_module(module)
+        source = Path(importlib.import_module(module).__file__ or "")
+        stem = source.stem
         for name in names:
-            cache = getattr(getattr(mod, name, None), "_cache", None)
-            try:  # numba's index of compiled copies (empty when absent or stale for the source)
-                if cache is not None and not cache._cache_file._load_index():
+            qualname = getattr(
+                getattr(getattr(importlib.import_module(module), name, None), "py_func", None), "__qualname__", name
+            )
+            indexes = list((source.parent / "__pycache__").glob(f"{stem}.{qualname}-*.nbi"))
+            try:
+                if not any(index.stat().st_mtime >= source.stat().st_mtime for index in indexes):
                     missing.append(name)
-            except Exception:  # noqa: BLE001 - a hint only; numba's internals may change
+            except OSError:
                 continue
     return missing
 

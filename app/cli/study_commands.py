@@ -311,7 +311,7 @@ def run_volume_validation(args: VolumeStudy) -> int:
     one JSON object with ``--json``; ``--out`` keeps results.jsonl, summary.json and report.md."""
     import warnings
 
-    from app.cli.commands import resolve_isocenter
+    from registration.io.isocenter import resolve_isocenter
     from registration.studies.volume import SUMMARY_KEYS, VolumeStudyConfig, report_markdown, run_volume_study
 
     try:

@@ -303,10 +303,10 @@ class FileData:
     ) -> FileData:  # fmt: skip
         """Read with the engine's DICOM readers (their errors name the file and the tag);
         ``sid_mm`` / ``sod_mm`` for an image that lacks the distances; ``isocenter`` as
-        ``register --isocenter`` (:func:`app.cli.commands.resolve_isocenter`: "x,y,z" mm,
+        ``register --isocenter`` (:func:`registration.io.isocenter.resolve_isocenter`: "x,y,z" mm,
         "volume-center", default the volume's IsocenterPosition, else the world origin)."""
-        from app.cli.commands import resolve_isocenter
         from registration.io.dicom import read_volume, read_xray
+        from registration.io.isocenter import resolve_isocenter
 
         volume = read_volume(volume_path)
         iso, iso_from = resolve_isocenter(isocenter, volume)
@@ -326,18 +326,18 @@ class FileData:
         initial_motion: np.ndarray | None = None,
     ) -> PreparedVolume:
         """The volume prepared as ``roadmap3d register`` prepares it
-        (:func:`app.cli.commands.prepare_for_registration`):
+        (:meth:`registration.core.preparation.Preparation.of`, its view-independent part in the disk cache):
         cropped to what ``views``' fields (default: the user's image) reach over a registration's
         search from ``initial_motion`` (default: none), levels resampled in mm. Prepared once per
         views; another start reuses it when the search stays within its reach, else slices the
         cached levels again (fast). The view-independent part is kept on disk for the next session."""
-        from app.cli.commands import prepare_for_registration
+        from registration.core.preparation import Preparation
+        from registration.io.cache import PreparationCache
 
         with self._lock:  # one preparation at a time: a second caller finds the first's in memory
-            prepared, _store = prepare_for_registration(
-                self._volume, list(views) if views else [self.fixed_xray], initial_motion
-            )  # the store writes from its own threads; the app goes on
-            return prepared
+            store = PreparationCache(background=True)  # writes from its own threads; the app goes on
+            views = list(views) if views else [self.fixed_xray]
+            return Preparation.of(self._volume, views, initial_motion=initial_motion, store=store).prepared
 
     def renderer(
         self, _volume_format_cm: float | None = None, views: Sequence[XRayImage] | None = None,
@@ -353,11 +353,11 @@ class FileData:
         views: Sequence[XRayImage],
         initial_motion: np.ndarray | None = None,
     ) -> DRRRenderer:
-        """As ``register --confidence`` assesses (:func:`app.cli.commands.confidence_renderer`): the
-        registration's prepared levels, with level 0 over the prepared box where the rule reads it."""
-        from app.cli.commands import confidence_renderer
+        """As ``register --confidence`` assesses (:func:`registration.core.preparation.probe_renderer`):
+        the registration's prepared levels, with level 0 over the prepared box where the rule reads it."""
+        from registration.core.preparation import probe_renderer
 
-        return confidence_renderer(self.prepared(views, initial_motion), planes=len(views))
+        return probe_renderer(self.prepared(views, initial_motion), planes=len(views))
 
     @property
     def vessel_step(self) -> int:

@@ -181,9 +181,9 @@ class PacsPanel(BasePanel):
     # ----- loading -----------------------------------------------------------------------
     def load_selected(self) -> None:
         """Retrieve the chosen series (WADO-RS) and show them as the app's data."""
-        from app.cli.commands import resolve_isocenter
         from app.web.data import FileData
         from registration.io import dicom
+        from registration.io.isocenter import resolve_isocenter
 
         vol_s = self._series.get(self.volume_series.value)
         img_s = self._series.get(self.image_series.value)
@@ -224,9 +224,9 @@ class PacsPanel(BasePanel):
     # ----- storing -----------------------------------------------------------------------
     def store_result(self) -> None:
         """The current estimate as a REG object + the overlay capture, into the image's study (STOW-RS)."""
-        from app.cli.net_commands import overlay_rgb
         from registration.io import dicom
         from registration.io.dicom.capture import write_overlay_capture
+        from registration.io.overlay import overlay_rgb
 
         with self._lock:
             loaded = self._loaded
@@ -308,9 +308,9 @@ class PacsPanel(BasePanel):
 
     def show_received(self) -> None:
         """The received image (a run: its last frame) with the volume now shown."""
-        from app.cli.commands import resolve_isocenter
         from app.web.data import FileData
         from registration.io import dicom
+        from registration.io.isocenter import resolve_isocenter
 
         item = self.received
         if item is None:

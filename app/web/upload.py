@@ -254,7 +254,7 @@ def _unpack_and_read(
     if found["volume"] is None or found["image"] is None:
         missing = "volume" if found["volume"] is None else "XA/RF image"
         raise UploadError(f"{name}: found no {missing}; expected {EXPECTED}")
-    from app.cli.commands import resolve_isocenter
+    from registration.io.isocenter import resolve_isocenter
 
     volume = read_volume(found["volume"])
     iso, _ = resolve_isocenter(None, volume)  # the volume's IsocenterPosition, else the origin (as register)
@@ -351,7 +351,7 @@ def read_upload(
         name, content=content, max_bytes=max_bytes, timeout_s=timeout_s, memory_bytes=memory_bytes, reader=reader,
         distances_mm=(sid_mm, sod_mm), file_name="upload.zip",
     )  # fmt: skip
-    from app.cli.commands import resolve_isocenter
+    from registration.io.isocenter import resolve_isocenter
 
     iso, iso_from = resolve_isocenter(None, volume)  # how the reader placed the image (as register)
     if not np.allclose(xray.geometry.isocenter_mm, iso):

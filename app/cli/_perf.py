@@ -1,4 +1,11 @@
-"""Ask the OS to read ahead the files a command is about to need (Linux; elsewhere nothing).
+"""The command line's start-up and exit tweaks, each measured, none reaching into another
+library's private API.
+
+- :func:`small_pages`: numpy without transparent huge pages for a short process.
+- :func:`read_ahead_for_register`: the OS reads the input files while the engine is imported.
+- :func:`exit_without_teardown`: the process ends after the exit handlers, without the interpreter's teardown.
+
+Read-ahead (Linux; elsewhere nothing):
 
 A first ``roadmap3d register`` after a while finds little in the OS page cache (this kind of
 VM reclaims idle file pages within minutes): the CT's slices, the prepared volume on disk and
@@ -12,7 +19,10 @@ warm page cache it costs a few milliseconds. Light: imports nothing beyond the s
 
 from __future__ import annotations
 
+import atexit
+import logging
 import os
+import sys
 import threading
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -103,3 +113,39 @@ def read_ahead_for_register(volume: str | os.PathLike[str], images: Sequence[str
         except ImportError:
             cache = None
     read_ahead(input_files([volume, *images]) + kernel_files() + prepared_files(cache))
+
+
+def small_pages() -> None:
+    """numpy without transparent huge pages (``NUMPY_MADVISE_HUGEPAGE=0`` unless the caller set it,
+    only before numpy is imported): a fresh process read the real CT in 0.19 s instead of 0.30-0.39 s."""
+    if "numpy" not in sys.modules:
+        os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+
+
+_exit_code: list[int] = []
+
+
+def _end_process() -> None:
+    if _exit_code:
+        logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # a closed pipe (| head): nothing more can be said
+                pass
+        os._exit(_exit_code[0])
+
+
+def exit_without_teardown() -> None:
+    """Have the process end right after the exit handlers registered later than this call, skipping
+    the interpreter's teardown of numba, llvmlite and scipy (~0.4 s after a command's work).
+
+    Registered first, it runs last (``atexit`` runs handlers in reverse order); other threads are
+    waited for before any handler runs. Call :func:`exit_code` with the code before ``sys.exit``."""
+    atexit.register(_end_process)
+
+
+def exit_code(code: int) -> int:
+    """Remember ``code`` for :func:`exit_without_teardown`; returns it."""
+    _exit_code[:] = [code]
+    return code

@@ -1,11 +1,11 @@
-"""The read-ahead hints of ``roadmap3d register`` (app/web/prefetch.py): which files it names."""
+"""The read-ahead hints of ``roadmap3d register`` (app/cli/_perf.py): which files it names."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
-from app.web import prefetch
+from app.cli import _perf as prefetch
 
 
 def test_inputs_are_the_series_files_and_the_images(tmp_path: Path) -> None:
