@@ -330,17 +330,33 @@ def listen(
 # --------------------------------------------------------------------------------------
 # the web app
 # --------------------------------------------------------------------------------------
-def demo(port: int = 8080, host: str = "127.0.0.1", open_browser: bool = False) -> int:
+def demo(
+    port: int = 8080,
+    host: str = "127.0.0.1",
+    open_browser: bool = False,
+    token: str | None = None,
+    no_sign_in: bool = False,
+    certfile: Path | None = None,
+    keyfile: Path | None = None,
+    allow_origin: tuple[str, ...] = (),
+) -> int:
     """Start the web app on the built-in phantom.
 
     Args:
         port: Port to listen on (the next free one is taken if busy).
         host: Interface to bind; 127.0.0.1 keeps the app on this machine.
         open_browser: Open the page in the default browser.
+        token: Sign-in token (default: ROADMAP3D_TOKEN, else a random one); the address printed carries it once.
+        no_sign_in: Serve without sign-in (127.0.0.1 only).
+        certfile: TLS certificate (PEM, with its chain): serve https:// and wss://.
+        keyfile: TLS private key (PEM) of --certfile (when not inside it).
+        allow_origin: Other web origins (scheme://host:port) whose pages may connect, e.g. behind a proxy.
     """
     from app.web.main import run_app
 
-    return run_app(host=host, port=port, volume=None, image=None, open_browser=open_browser)
+    return run_app(host=host, port=port, volume=None, image=None, open_browser=open_browser,
+                   token=token, no_sign_in=no_sign_in, certfile=certfile, keyfile=keyfile,
+                   allow_origin=allow_origin)  # fmt: skip
 
 
 def app(
@@ -358,6 +374,11 @@ def app(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     isocenter: str | None = None,
+    token: str | None = None,
+    no_sign_in: bool = False,
+    certfile: Path | None = None,
+    keyfile: Path | None = None,
+    allow_origin: tuple[str, ...] = (),
 ) -> int:
     """Start the web app, optionally on your own DICOM data.
 
@@ -378,6 +399,11 @@ def app(
         sod_mm: Source-iso-center distance for an --image without DistanceSourceToPatient (0018,1111).
         isocenter: Iso-center of --volume/--image, "x,y,z" mm or "volume-center" (default: IsocenterPosition of the
             volume, else the origin), as for register.
+        token: Sign-in token (default: ROADMAP3D_TOKEN, else a random one); the address printed carries it once.
+        no_sign_in: Serve without sign-in (127.0.0.1 only).
+        certfile: TLS certificate (PEM, with its chain): serve https:// and wss://.
+        keyfile: TLS private key (PEM) of --certfile (when not inside it).
+        allow_origin: Other web origins (scheme://host:port) whose pages may connect, e.g. behind a proxy.
     """
     if listen_port is not None:
         from app.web.pacs_panel import ENV_NODE_ALLOW, ENV_NODE_PORT
@@ -409,6 +435,11 @@ def app(
         sid_mm=sid_mm,
         sod_mm=sod_mm,
         isocenter=isocenter,
+        token=token,
+        no_sign_in=no_sign_in,
+        certfile=certfile,
+        keyfile=keyfile,
+        allow_origin=allow_origin,
     )
 
 

@@ -7,17 +7,35 @@ into ``error: ...`` and exit code 2.
 
 from __future__ import annotations
 
-import queue
 import signal
 import sys
 import threading
 import warnings
+from collections import deque
 from pathlib import Path
 from typing import Any
 
-from registration.io import dicom
+from registration.io import audit, dicom
 from registration.io.node import DicomNode, Received
 from registration.io.overlay import overlay_rgb
+
+#: After SIGTERM/Ctrl-C ``listen`` ends within this many seconds, whatever peers or registrations do.
+EXIT_GRACE_S = 4.5
+
+
+def _exit_soon(code: int, grace_s: float = EXIT_GRACE_S) -> None:
+    """End the process ``grace_s`` seconds from now if it is still alive."""
+    import os
+    import time
+
+    def watchdog() -> None:
+        time.sleep(grace_s)
+        _say("stopped (forced: something did not end in time)")
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+    threading.Thread(target=watchdog, name="exit-watchdog", daemon=True).start()
 
 
 def _say(text: str = "") -> None:
@@ -49,19 +67,67 @@ class _Registrar:
             warnings.simplefilter("ignore")
             self.volume = dicom.read_volume(volume_path)
         self.results = results
-        self.queue: queue.Queue[Received | None] = queue.Queue()
+        #: Received images not yet taken up, in arrival order.
+        self.pending: deque[Received] = deque()
+        self.counts = {"registered": 0, "tracked": 0, "skipped": 0, "failed": 0, "not registered": 0}
+        self._busy: Received | None = None
+        self._closing = False
+        self._cond = threading.Condition()
         self.thread = threading.Thread(target=self._work, name="roadmap3d-listen-register", daemon=True)
         self.thread.start()
 
+    def put(self, item: Received) -> None:
+        """Queue a received image (said when others wait for the one being registered)."""
+        with self._cond:
+            self.pending.append(item)
+            waiting = len(self.pending)
+            self._cond.notify()
+        if waiting > 1 or self._busy is not None:
+            _say(f"queued {item.path.name}: {waiting} waiting")
+
+    def _next(self) -> Received | None:
+        """The next image to work on: a run in its turn, else the newest single image (the older
+        single images waiting are skipped: the newest shows where the patient is now)."""
+        with self._cond:
+            while not self.pending and not self._closing:
+                self._cond.wait()
+            if self._closing:
+                return None
+            runs = [i for i in self.pending if i.frames > 1]
+            if runs:
+                item = runs[0]
+                self.pending.remove(item)
+                self._busy = item
+                return item
+            item = self.pending.pop()
+            skipped = list(self.pending)
+            self.pending.clear()
+            self._busy = item
+        for old in skipped:
+            self.counts["skipped"] += 1
+            _say(f"skipped {old.path.name}: a newer image ({item.path.name}) arrived while registering")
+            audit.record("registration", client=old.peer, study_uid=old.study_uid, series_uids=[old.series_uid],
+                         instance_uid=old.instance_uid, result="skipped: a newer image arrived")  # fmt: skip
+        return item
+
     def _work(self) -> None:
-        while (item := self.queue.get()) is not None:
+        while (item := self._next()) is not None:
             try:
                 if item.frames > 1:
                     self._track(item)
+                    self.counts["tracked"] += 1
                 else:
                     self._register(item)
-            except ValueError as exc:
+                    self.counts["registered"] += 1
+            except Exception as exc:  # a message for the user, and the next image still registered
+                self.counts["failed"] += 1
                 _err(f"error: cannot register {item.path}: {exc}")
+                audit.record("registration", client=item.peer, study_uid=item.study_uid,
+                             series_uids=[item.series_uid], instance_uid=item.instance_uid,
+                             result=f"failed: {str(exc)[:200]}")  # fmt: skip
+            finally:
+                with self._cond:
+                    self._busy = None
 
     def _write(self, item: Received, document: dict) -> Path:
         self.results.mkdir(mode=0o700, exist_ok=True)
@@ -95,6 +161,14 @@ class _Registrar:
         document["image"] = {"path": str(item.path), "frame": xray.meta.get("frame", 0)}
         document["volume"] = {"label": self.volume.label}
         out = self._write(item, document)
+        audit.record(
+            "registration",
+            client=item.peer,
+            study_uid=item.study_uid,
+            series_uids=[item.series_uid],
+            instance_uid=item.instance_uid,
+            result=f"registered: similarity {result.similarity:.4f}",
+        )
         _say(
             f"registered {item.path.name}: translation ({m[0, 3]:+.2f}, {m[1, 3]:+.2f}, {m[2, 3]:+.2f}) mm, "
             f"similarity {result.similarity:.4f}, {result.seconds:.1f} s -> {out}"
@@ -118,11 +192,25 @@ class _Registrar:
         for f in result.frames:
             counts[f.status] = counts.get(f.status, 0) + 1
         statuses = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+        audit.record("tracking", client=item.peer, study_uid=item.study_uid, series_uids=[item.series_uid],
+                     instance_uid=item.instance_uid, count=len(frames), result=f"tracked: {statuses}")  # fmt: skip
         _say(f"tracked {item.path.name}: {len(frames)} frames ({statuses}) -> {out}")
 
-    def close(self) -> None:
-        self.queue.put(None)
-        self.thread.join(timeout=60)
+    def close(self, wait_s: float = 2.0) -> None:
+        """Stop: what waits is said not registered, as is a registration still running after ``wait_s``."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        self.thread.join(timeout=wait_s)
+        with self._cond:
+            left = ([self._busy] if self._busy is not None else []) + list(self.pending)
+            self.pending.clear()
+        for item in left:
+            self.counts["not registered"] += 1
+            _say(f"not registered {item.path.name}: stopped before it was done")
+            audit.record("registration", client=item.peer, study_uid=item.study_uid, series_uids=[item.series_uid],
+                         instance_uid=item.instance_uid, result="not registered: stopped")  # fmt: skip
+        _say("registrations: " + ", ".join(f"{n} {what}" for what, n in self.counts.items()))
 
 
 def run_listen(
@@ -148,9 +236,10 @@ def run_listen(
             f"({item.frames} frame{'s' * (item.frames != 1)})"
         )
         if registrar is not None and item.role == "xray":
-            registrar.queue.put(item)
+            registrar.put(item)
 
-    node = DicomNode(folder, allowed=allow, ae_title=ae_title, host=host, port=port, on_received=received)
+    node = DicomNode(folder, allowed=allow, ae_title=ae_title, host=host, port=port, on_received=received,
+                     audit=audit.record)  # fmt: skip
     stop = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -172,6 +261,7 @@ def run_listen(
     except KeyboardInterrupt:
         pass
     finally:
+        _exit_soon(0)  # whatever a peer or a registration does, the process ends within EXIT_GRACE_S
         node.stop()
         signal.signal(signal.SIGTERM, previous)
         if registrar is not None:

@@ -18,7 +18,9 @@ from app.web.data import AppConfig, FileData, PhantomData
 from app.web.gui import RoadmapApp
 from app.web.session import Session
 from app.web.share import refuse_share_requests
+from app.web.signin import ENV_TOKEN, Guard, check_token, guarded, new_token, parse_origins, tls_context
 from app.web.upload import shutdown_readers
+from registration.io import audit
 
 log = logging.getLogger(__name__)
 
@@ -26,9 +28,12 @@ log = logging.getLogger(__name__)
 BRAND_RGB = (34, 139, 230)
 
 
-def make_server(host: str = "127.0.0.1", port: int = 8080, *, allow_share: bool = False) -> viser.ViserServer:
-    """A viser server in the app's dark theme; share-tunnel requests refused unless allowed."""
-    server = viser.ViserServer(host=host, port=port, label="3D roadmap", verbose=False)
+def make_server(
+    host: str = "127.0.0.1", port: int = 8080, *, allow_share: bool = False, guard: Guard | None = None
+) -> viser.ViserServer:
+    """A viser server in the app's dark theme; share-tunnel requests refused unless allowed.
+    ``guard``: sign-in, origin check and TLS (:mod:`app.web.signin`); None serves without them."""
+    server = guarded(guard, lambda: viser.ViserServer(host=host, port=port, label="3D roadmap", verbose=False))
     if not allow_share:
         refuse_share_requests(server)
     server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=allow_share, brand_color=BRAND_RGB)
@@ -45,11 +50,43 @@ LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 EXIT_GRACE_S = 5.0
 
 
-def url_of(server: viser.ViserServer) -> str:
-    """The address the server really listens on (a wildcard host as given: every interface)."""
+def url_of(server: viser.ViserServer, guard: Guard | None = None, *, with_token: bool = False) -> str:
+    """The address the server really listens on (a wildcard host as given: every interface);
+    https with TLS, and ``/?token=TOKEN`` when ``with_token`` and the guard signs in."""
     host = server.get_host()
     shown = f"[{host}]" if ":" in host else host
-    return f"http://{shown}:{server.get_port()}"
+    if guard is None:
+        return f"http://{shown}:{server.get_port()}"
+    url = guard.url(host, server.get_port())
+    return url if with_token else url.split("?", 1)[0].rstrip("/")
+
+
+def make_guard(
+    host: str,
+    *,
+    token: str | None = None,
+    no_sign_in: bool = False,
+    certfile: Path | None = None,
+    keyfile: Path | None = None,
+    allow_origin: tuple[str, ...] = (),
+) -> Guard:
+    """The app's guard from its flags: the token given, else ROADMAP3D_TOKEN, else a new random
+    one; serving beyond this machine without sign-in is refused."""
+    if no_sign_in:
+        if token is not None:
+            raise ValueError("--token and --no-sign-in contradict each other")
+        if host not in LOOPBACK_HOSTS:
+            raise ValueError(
+                f"--host {host} without sign-in is refused: anyone on the network could see the patient's images. "
+                "Drop --no-sign-in (a token is printed), or serve on 127.0.0.1"
+            )
+        chosen = None
+    else:
+        chosen = check_token(token or os.environ.get(ENV_TOKEN) or new_token())
+    if keyfile is not None and certfile is None:
+        raise ValueError("--keyfile needs --certfile")
+    context = tls_context(certfile, keyfile) if certfile is not None else None
+    return Guard(chosen, context, parse_origins(allow_origin), audit=audit.record)
 
 
 def network_warning(host: str, port: int) -> str | None:
@@ -67,9 +104,9 @@ def network_warning(host: str, port: int) -> str | None:
         except OSError:
             reachable = ""
     return (
-        f"roadmap3d: WARNING: listening on {where}{reachable}. Anyone who can reach this port can see the "
-        "patient's images and drive the one shared session: there is no authentication. Put it behind an "
-        "authenticating reverse proxy (see the README, 'Serving beyond this machine') or use --host 127.0.0.1."
+        f"roadmap3d: WARNING: listening on {where}{reachable}. Whoever has the address with its token can see "
+        "the patient's images and drive the one shared session; without --certfile/--keyfile the token and the "
+        "images cross the network unencrypted (see docs/deployment.md)."
     )
 
 
@@ -155,8 +192,14 @@ def run_app(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     isocenter: str | None = None,
+    token: str | None = None,
+    no_sign_in: bool = False,
+    certfile: Path | None = None,
+    keyfile: Path | None = None,
+    allow_origin: tuple[str, ...] = (),
 ) -> int:
-    """Serve the app until Ctrl-C (or SIGTERM); returns the exit code. ``sid_mm`` / ``sod_mm``
+    """Serve the app until Ctrl-C (or SIGTERM); returns the exit code. Sign-in, origins and TLS
+    as :func:`make_guard`. ``sid_mm`` / ``sod_mm``
     supply the distances of an ``image`` that lacks them; ``isocenter`` places it (as
     ``register --isocenter``: "x,y,z" mm or "volume-center"; default the volume's
     IsocenterPosition, else the world origin)."""
@@ -171,6 +214,8 @@ def run_app(
         raise ValueError("--sid-mm/--sod-mm apply to --volume/--image only")
     if image is None and isocenter is not None:
         raise ValueError("--isocenter applies to --volume/--image only")
+    guard = make_guard(host, token=token, no_sign_in=no_sign_in, certfile=certfile, keyfile=keyfile,
+                       allow_origin=allow_origin)  # fmt: skip
     data = None
     if volume is not None and image is not None:
         # Read (and reject with a message naming the file and tag) before serving anything.
@@ -178,14 +223,16 @@ def run_app(
             volume, image, frame=frame, config=config, sid_mm=sid_mm, sod_mm=sod_mm, isocenter=isocenter
         )
         print(f"roadmap3d: iso-center {data.isocenter_text}", flush=True)
-    server = make_server(host, port, allow_share=allow_share)
-    url = url_of(server)
-    print(f"roadmap3d: serving on {url}  (Ctrl-C to stop)", flush=True)
+    server = make_server(host, port, allow_share=allow_share, guard=guard)
+    url = url_of(server, guard)
+    signed = url_of(server, guard, with_token=True)
+    # the only place the token is shown
+    print(f"roadmap3d: serving on {signed}  (Ctrl-C to stop)", flush=True)
     warning = network_warning(server.get_host(), server.get_port())
     if warning:
         print(warning, file=sys.stderr, flush=True)
     if open_browser:
-        threading.Thread(target=webbrowser.open, args=(url,), daemon=True).start()
+        threading.Thread(target=webbrowser.open, args=(signed,), daemon=True).start()
 
     def terminate(_signum: int, _frame: FrameType | None) -> None:
         raise KeyboardInterrupt

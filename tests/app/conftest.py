@@ -11,6 +11,7 @@ import pytest
 from app.web.data import AppConfig
 from app.web.gui import RoadmapApp
 from app.web.main import build_app, make_server
+from app.web.signin import Guard
 
 #: Small grids so the suite stays fast (registration still has to reach < 1 mm in-plane), a
 #: coarse skull (the browser test draws it with software WebGL on the same 2 cores), the quick
@@ -39,9 +40,23 @@ def wait_until(predicate, timeout: float, step: float = 0.05) -> bool:
     return predicate()
 
 
+#: The shared app's sign-in token (the browser tests open the page with it, as a user does).
+TEST_TOKEN = "test-token-0123456789abcdef"
+#: Its guard: sign-in and the origin check, as ``roadmap3d app`` serves.
+TEST_GUARD = Guard(TEST_TOKEN)
+
+
+@pytest.fixture(autouse=True)
+def _audit_in_tmp(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The audit log of the app tests in a folder of the test run, not the user's."""
+    from registration.io.audit import ENV_AUDIT_DIR
+
+    monkeypatch.setenv(ENV_AUDIT_DIR, str(tmp_path_factory.getbasetemp() / "audit"))
+
+
 @pytest.fixture(scope="session")
 def app() -> Iterator[RoadmapApp]:
-    server = make_server("127.0.0.1", 0)
+    server = make_server("127.0.0.1", 0, guard=TEST_GUARD)
     built = build_app(server, TEST_CONFIG)
     yield built
     built.close()

@@ -16,6 +16,7 @@ import pytest
 
 from app.web.gui import RoadmapApp
 from app.web.main import url_of
+from tests.app.conftest import TEST_GUARD
 
 from .conftest import READOUT, parse_readout
 
@@ -73,7 +74,7 @@ def readout_of(page) -> str:
 
 def test_page_renders_and_t4_register_converges(fresh: RoadmapApp, browser) -> None:
     app = fresh
-    url = url_of(app.server)
+    url = url_of(app.server, TEST_GUARD, with_token=True)
     # Generous timeouts: Chromium draws WebGL in software here, on the same 2 cores as the app.
     page = browser.new_page(viewport={"width": 1280, "height": 760})
     second = browser.new_page(viewport={"width": 800, "height": 500})
@@ -126,7 +127,7 @@ def test_biplane_mode_in_the_page(fresh: RoadmapApp, browser) -> None:
     page = browser.new_page(viewport={"width": 1280, "height": 760})
     out_of_plane = re.compile(r"out-of-plane (\d+\.\d\d) mm")
     try:
-        page.goto(url_of(app.server))
+        page.goto(url_of(app.server, TEST_GUARD, with_token=True))
         page.get_by_role("button", name="Register").wait_for(timeout=90_000)
         page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
         page.get_by_text("Biplane", exact=True).click(force=True, timeout=120_000)  # software WebGL: slow page

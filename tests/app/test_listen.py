@@ -105,3 +105,116 @@ def test_listen_receives_and_registers(tmp_path: Path, small_export: Path) -> No
         proc.wait(timeout=60)
     assert proc.returncode == 0, proc.stderr.read()  # type: ignore[union-attr]
     _read_until(lines, r"stopped; 2 instance\(s\) received", seen)
+
+
+def _start_listen(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen, queue.Queue[str | None], list[str], int]:
+    cmd = [sys.executable, "-c", "from app.cli import main; main()", "listen", "--port", "0", "--allow", "CARM",
+           "--folder", str(tmp_path / "received"), *extra]  # fmt: skip
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    seen: list[str] = []
+    lines = _lines(proc)
+    port = int(_read_until(lines, r"listening on 127\.0\.0\.1:(\d+) as ROADMAP3D", seen)[1])
+    return proc, lines, seen, port
+
+
+def _peak_rss_mb(pid: int) -> float:
+    """The process's peak resident memory (VmHWM, Linux), MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmHWM")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc for the memory reading")
+def test_listen_ends_on_sigterm_whatever_peers_do(tmp_path: Path) -> None:
+    import socket
+    import struct
+
+    from tests.registration.io.test_node_hostile import association_request, hostile_connections, open_from
+
+    proc, lines, seen, port = _start_listen(tmp_path)
+    socks = []
+    try:
+        # 4 GiB claimed in one PDU, then 256 MiB streamed into it: the node reads the header only
+        for header in (b"\x01\x00" + struct.pack(">L", 0xFFFFFFFF), b"\x04\x00" + struct.pack(">L", 0xFFFFFFFF)):
+            s = open_from("127.0.0.2", port)
+            sent = 0
+            try:
+                s.sendall(header)
+                chunk = b"\0" * (1024 * 1024)
+                while sent < 256 * 1024**2:
+                    s.sendall(chunk)
+                    sent += len(chunk)
+            except OSError:
+                pass
+            s.close()
+            assert sent < 256 * 1024**2
+        peak = _peak_rss_mb(proc.pid)
+        print(f"listen peak memory after two 4 GiB PDU claims: {peak:.0f} MB")
+        assert peak < 200  # the issue's bound; measured ~90 MB
+        socks = hostile_connections(port, association_request())
+        idle = socket.create_connection(("127.0.0.1", port))  # a connection that never says anything
+        socks.append(idle)
+        time.sleep(0.5)
+        start = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=5.0)  # the bound itself: SIGTERM ends listen within 5 s
+        print(f"listen ended {time.monotonic() - start:.2f} s after SIGTERM with 21 hostile connections open")
+    finally:
+        for s in socks:
+            s.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, proc.stderr.read()  # type: ignore[union-attr]
+    _read_until(lines, r"stopped; 0 instance\(s\) received", seen)
+
+
+def test_listen_at_15_fps_reports_every_frame(tmp_path: Path, small_export: Path) -> None:
+    from pydicom.uid import generate_uid
+
+    proc, lines, seen, port = _start_listen(tmp_path, "--volume", str(small_export / "volume"))
+    names = []
+    try:
+        ae = AE(ae_title="CARM")
+        ae.add_requested_context(XRayAngiographicImageStorage)
+        assoc = ae.associate("127.0.0.1", port, ae_title="ROADMAP3D")
+        assert assoc.is_established
+        ds = dicom.read_dataset(small_export / "xa_fluoro.dcm")
+        series = generate_uid()
+        start = time.monotonic()
+        for n in range(151):  # 10 s of single frames at 15 fps, each its own instance
+            ds.SOPInstanceUID = generate_uid()
+            ds.SeriesInstanceUID = series
+            ds.InstanceNumber = n + 1
+            assert assoc.send_c_store(ds).Status == 0x0000
+            names.append(f"{ds.SOPInstanceUID}.dcm")
+            time.sleep(max(0.0, start + (n + 1) / 15 - time.monotonic()))
+        assoc.release()
+        _read_until(lines, r"registered \S+: ", seen)  # at least one registration finished
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=10)
+    while True:  # the rest of the output, to its end (the pump thread reads stdout)
+        try:
+            line = lines.get(timeout=2)
+        except queue.Empty:
+            break
+        if line is None:
+            break
+        seen.append(line)
+    text = "".join(seen)
+    assert proc.returncode == 0
+    outcome = {}
+    for name in names:
+        said = re.findall(rf"^(registered|skipped|not registered) {re.escape(name)}", text, flags=re.M)
+        assert len(said) == 1, (name, said, [line for line in seen if name in line])
+        outcome[name] = said[0]
+    counts = {k: list(outcome.values()).count(k) for k in ("registered", "skipped", "not registered")}
+    summary = re.search(r"registrations: (\d+) registered, 0 tracked, (\d+) skipped, 0 failed, (\d+) not registered",
+                        text)  # fmt: skip
+    assert summary, text[-2000:]
+    assert (int(summary[1]), int(summary[2]), int(summary[3])) == (
+        counts["registered"], counts["skipped"], counts["not registered"])  # fmt: skip
+    print(f"151 frames at 15 fps: {counts}")

@@ -149,7 +149,7 @@ def test_binding_beyond_this_machine_is_warned_about(host: str, warned: bool) ->
     text = network_warning(host, 8080)
     assert (text is not None) == warned
     if text:
-        assert "no authentication" in text and "README" in text
+        assert "token" in text and "--certfile" in text and "docs/deployment.md" in text
         assert ("every network interface" in text) == (host == "0.0.0.0")
 
 
