@@ -14,8 +14,9 @@ unusable for registration:
   never keeps one step along a straight line across the field). Found on Canny edges by a
   Hough transform and checked along the line; the whole side behind the edge is masked, up
   to where the step ends (the penumbra). Behind an opaque blade there is only noise (or the
-  display window's black); behind a semi-transparent wedge filter some anatomy remains, but
-  at another exposure, with its own edge: it is masked too.
+  display window's black). A weaker step (less than ``BLADE_MEDIAN_STEP`` of the field's
+  range) along a sharp straight edge is a semi-transparent wedge filter: the anatomy goes on
+  behind it, so only the edge is masked.
 * **burned-in graphics**: text, rulers and markers drawn at the largest value (full white) in
   thin strokes that stand out from their surroundings; masked with a margin.
 
@@ -49,6 +50,9 @@ BLADE_RUN_FRACTION = 0.4
 BLADE_MIN_STEP = 0.08
 #: ... and a median step of at least this fraction (blades remove most of the X-rays).
 BLADE_MEDIAN_STEP = 0.25
+#: ... and either a shadow that persists 10-40 px behind the edge, or an edge this sharp (px from
+#: 10 % to 90 % of its step): anatomy's long straight edges are neither.
+BLADE_SHARP_PX = 4.0
 #: ... along at least this fraction of the image's smaller side.
 BLADE_MIN_LENGTH = 0.25
 #: A blade never leaves less than this fraction of the field.
@@ -163,6 +167,22 @@ def dark_outside(signal: NDArray[np.float64]) -> NDArray[np.bool_] | None:
     return _with_small_holes(outside)
 
 
+def infer_signal_up(values: NDArray[Any]) -> bool | None:
+    """Whether larger stored values mean more X-rays, read from the collimated outside (which
+    has none): True when the outside is the image's darkest, False when it is the brightest,
+    None when there is no such outside or only a digitally blanked (constant) one."""
+    values = np.asarray(values)
+    if min(values.shape) < MIN_SEARCH_SIZE:
+        return None
+    if exact_outside(values) is not None:
+        return None  # a digitally blanked outside is often black whatever the polarity
+    v = values.astype(np.float64)
+    dark, bright = dark_outside(v) is not None, dark_outside(-v) is not None
+    if dark != bright:
+        return dark
+    return None
+
+
 def _line_points(
     inside: NDArray[np.bool_], theta: float, rho: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -254,8 +274,11 @@ def find_blades(
             continue  # the edge must run along most of the line's chord through the field
         piece = np.flatnonzero(valid)[run]
         step = step[run]
-        if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION or np.median(step) < BLADE_MEDIAN_STEP:
+        if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION:
             continue
+        filter_edge = bool(np.median(step) < BLADE_MEDIAN_STEP)
+        if filter_edge and not _sharp_step(prof[piece], ok[piece], offsets):
+            continue  # a weak step: only a sharp straight edge counts (a semi-transparent filter's)
         # A blade's shadow persists away from its edge; an anatomical edge's step does not.
         wide = np.where(ok[piece], prof[piece], np.nan)
         with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -264,8 +287,13 @@ def find_blades(
             near_wide = np.nanmedian(wide[:, (offsets >= 10) & (offsets <= 40)], axis=1)
         persists = (near_wide - far_wide) / span > BLADE_MIN_STEP
         known = np.isfinite(far_wide) & np.isfinite(near_wide)
-        if known.sum() >= 10 and np.mean(persists[known]) < BLADE_STEP_FRACTION:
-            continue
+        if (
+            not filter_edge
+            and known.sum() >= 10
+            and np.mean(persists[known]) < BLADE_STEP_FRACTION
+            and not _sharp_step(prof[piece], ok[piece], offsets)
+        ):
+            continue  # neither a persisting shadow nor a sharp edge (a display window can hide the shadow)
         theta, rho = _refine(prof[piece], ok[piece], offsets, px[piece], py[piece], near_sign * normal, theta, rho)
         near_sign = 1.0 if cx * math.cos(theta) + cy * math.sin(theta) - rho > 0 else -1.0
         px, py, normal = _line_points(inside, theta, rho)
@@ -289,6 +317,7 @@ def find_blades(
                 "rho": rho,
                 "distance": distance,
                 "edge": edge,
+                "filter": filter_edge,
                 "structure_behind": round(ratio, 3),
                 "step": round(float(np.median(step)), 3),
                 "length_px": int(step.size * 2),
@@ -332,6 +361,22 @@ def _refine(
         new_theta += math.pi
     new_theta = (new_theta + math.pi) % (2 * math.pi) - math.pi
     return new_theta, float(center[0] * math.cos(new_theta) + center[1] * math.sin(new_theta))
+
+
+def _sharp_step(prof: NDArray[np.float64], ok: NDArray[np.bool_], offsets: NDArray[np.float64]) -> bool:
+    """Whether the mean profile across the line is a sharp step between two flat levels: at most
+    ``BLADE_SHARP_PX`` from 10 % to 90 %, each side 4..12 px away flat within a quarter of the step."""
+    lo, hi = _edge_extent(prof, ok, offsets)
+    if hi - lo > BLADE_SHARP_PX:
+        return False
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(np.where(ok, prof, np.nan), axis=0)
+    far, near = mean[(offsets <= -4) & (offsets >= -12)], mean[(offsets >= 4) & (offsets <= 12)]
+    step = float(np.nanmedian(near) - np.nanmedian(far))
+    if not np.isfinite(step) or step <= 0:
+        return False
+    return bool(np.nanstd(far) <= 0.25 * step and np.nanstd(near) <= 0.25 * step)
 
 
 def _longest_run(flags: NDArray[np.bool_], gap: int = 3) -> slice:
@@ -495,13 +540,17 @@ def _collimation(
         parts.append({"what": "dark outside", "pixels": int(grown.sum())})
     if blades and (mask & start).any():
         for blade in find_blades(signal, mask & start):
-            cut = mask & (blade["distance"] < blade["edge"][1] - 0.5)
+            lo, hi = blade["edge"]
+            if blade["filter"]:  # the anatomy continues behind a semi-transparent filter: its edge only
+                cut = mask & (blade["distance"] > lo - EDGE_MARGIN_PX) & (blade["distance"] < hi + EDGE_MARGIN_PX)
+            else:
+                cut = mask & (blade["distance"] < hi - 0.5)
             if not cut.any():
                 continue
             mask &= ~cut
             parts.append(
                 {
-                    "what": "collimator blade",
+                    "what": "filter edge" if blade["filter"] else "collimator blade",
                     "pixels": int((cut & start).sum()),
                     "angle_deg": round(math.degrees(blade["theta"]), 1),
                     "step": blade["step"],

@@ -221,8 +221,17 @@ def _geometry(
 
 
 def _intensity_to_attenuation(
-    path: Path, ds: Dataset, stored: NDArray[Any], frame: int, field: NDArray[np.bool_]
+    path: Path,
+    ds: Dataset,
+    stored: NDArray[Any],
+    frame: int,
+    field: NDArray[np.bool_],
+    inferred_sign: int | None = None,
 ) -> tuple[NDArray[np.float32], dict]:
+    """Attenuation line integrals from the stored values (see the module docstring).
+
+    ``inferred_sign``: the sign the collimated outside shows, used when the file states none.
+    """
     relationship = _text(ds, "PixelIntensityRelationship").upper()
     if not relationship:
         found = lookup(ds, "PixelIntensityRelationship", frame)
@@ -238,7 +247,14 @@ def _intensity_to_attenuation(
         info["intensity_note"] = f"{relationship or 'missing'} read as LOG"
         relationship = "LOG"
     sign_from = "PixelIntensityRelationshipSign"
-    if sign_value is None or sign_value == "":
+    if (sign_value is None or sign_value == "") and inferred_sign is not None:
+        sign = inferred_sign
+        sign_from = "no PixelIntensityRelationshipSign: read from the collimated outside (no X-rays)"
+        warnings.warn(
+            f"{path}: missing {tag_name('PixelIntensityRelationshipSign')}; the collimated outside says {sign:+d}",
+            stacklevel=3,
+        )
+    elif sign_value is None or sign_value == "":
         sign = 1
         sign_from = "assumed (no PixelIntensityRelationshipSign)"
         warnings.warn(f"{path}: missing {tag_name('PixelIntensityRelationshipSign')}; assuming +1", stacklevel=3)
@@ -559,15 +575,21 @@ def _field_mask(
     finds in the pixels (the collimated outside, blades, burned-in graphics), the complement of
     the overlay planes' graphics, and the user's mask.
     """
-    from registration.io.field import find_field
+    from registration.io.field import find_field, infer_signal_up
 
     rows, cols = stored.shape
     frames = _frames(path, ds)
     shutter, shutter_info = shutter_field(path, ds, rows, cols, frame)
-    found = find_field(stored, signal_up=_signal_up(ds, frame), start=shutter, cache=cache)
+    signal_up = _signal_up(ds, frame)
+    info: dict[str, Any] = {**shutter_info}
+    if lookup(ds, "PixelIntensityRelationshipSign", frame) in (None, ""):
+        inferred = infer_signal_up(stored)
+        if inferred is not None:
+            signal_up = inferred
+            info["sign_inferred"] = 1 if inferred else -1
+    found = find_field(stored, signal_up=signal_up, start=shutter, cache=cache)
     mask = found.mask
     found_by: list[str] = []
-    info: dict[str, Any] = {**shutter_info}
     if shutter is not None:
         found_by.append(shutter_text(shutter_info))
     pixel_parts = [p["what"] for p in found.parts]
@@ -655,7 +677,7 @@ def xray_field(
     if stored.ndim == 3 and stored.shape[0] == 1:
         stored = stored[0]
     mask, info = _field_mask(path, ds, stored, int(frame), image_mask=image_mask)
-    _, intensity = _intensity_to_attenuation(path, ds, stored, int(frame), mask)
+    _, intensity = _intensity_to_attenuation(path, ds, stored, int(frame), mask, info.get("sign_inferred"))
     rotation, flip = _field_of_view(path, ds, frame)
     if rotation or flip:
         mask = _undo_field_of_view(mask, rotation, flip)
@@ -697,7 +719,7 @@ def _xray_frame(
         mask = _undo_field_of_view(mask, *_field_of_view(path, ds, frame))
     rows, cols = stored.shape
     geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, iso, sid_mm=sid_mm, sod_mm=sod_mm)
-    image, intensity = _intensity_to_attenuation(path, ds, stored, frame, mask)
+    image, intensity = _intensity_to_attenuation(path, ds, stored, frame, mask, field_info.get("sign_inferred"))
     image = np.where(mask, image, np.float32(0.0)).astype(np.float32)
     meta: dict[str, Any] = {
         "source": str(path),

@@ -346,3 +346,24 @@ def test_info_says_how_the_field_was_found_and_what_was_assumed(tmp_path: Path) 
     report = dicom.inspect(xa_file(tmp_path / "nogeo.dcm", stored, sid=None))
     assert not report["accepted"] and "DistanceSourceToDetector" in report["problem"]
     assert report["field"].startswith("collimator blade x4") and "LOG (from" in report["intensity_assumed"]
+
+
+def test_a_missing_sign_is_read_from_the_collimated_outside(tmp_path: Path) -> None:
+    # Bone bright (higher stored values = more attenuation), no sign tag: the outside of the
+    # circular field, where no X-rays arrive, is the brightest value and gives the polarity.
+    # (A digitally blanked, constant outside is not used: systems blank it black whatever the
+    # polarity.)
+    att = _anatomy(10)
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE]
+    circle = np.hypot(yy - 127.5, xx - 127.5) < 120
+    rng = np.random.default_rng(10)
+    shadow = 4000.0 + rng.normal(0, 15.0, att.shape)
+    stored = np.clip(np.rint(np.where(circle, 400.0 + UNITS * att, shadow)), 0, 4095).astype(np.uint16)
+    path = xa_file(tmp_path / "bright.dcm", stored, relationship="LOG", sign=None)
+    with pytest.warns(UserWarning, match=r"collimated outside says -1"):
+        image = dicom.read_xray(path)
+    assert image.meta["pixel_intensity_relationship_sign"] == -1
+    inside = image.mask & ndimage.binary_erosion(circle, iterations=3)
+    assert np.corrcoef(image.image[inside], att[inside])[0, 1] > 0.99  # attenuation grows with attenuation
+    assert not (image.mask & ~circle).any()
+    assert "collimated outside" in dicom.inspect(path)["intensity_assumed"]
