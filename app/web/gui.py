@@ -26,6 +26,7 @@ from app.web.pacs_panel import PacsPanel
 from app.web.panels import Panel, PanelContext, PanelFactory, mount
 from app.web.playback import PlaybackPanel
 from app.web.presenter import Presenter
+from app.web.qa_panel import ComparePanel
 from app.web.scene import Scene
 from app.web.session import Session
 
@@ -34,7 +35,7 @@ if TYPE_CHECKING:
 
 #: The optional panels every app mounts, in tab order after the layout's own tabs (left:
 #: Roadmap; right: Patient motion, C-arm, Data, Display). A new panel: one line here.
-PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel, PlaybackPanel)
+PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel, PlaybackPanel, ComparePanel)
 
 #: Handles of the layout that are also reachable as ``app.<name>`` (tests, scripts, panels).
 _LAYOUT_HANDLES = frozenset(
@@ -97,6 +98,7 @@ class RoadmapApp:
         self._wire_panels()
         self.controller.panels = self.panels
         self.presenter.panels = self.panels
+        self.presenter.compare = next((p for p in self.panels if isinstance(p, ComparePanel)), None)
         self.controller.bind()
 
     def _wire_panels(self) -> None:

@@ -25,15 +25,21 @@ from app.web.scene import Scene
 from app.web.session import Session
 from registration.core.geometry import CArm, matrix_to_offsets
 from registration.io.meshes import NO_VESSELS_NOTE
+from registration.studies import qa_images
 
 if TYPE_CHECKING:
     import viser
 
     from app.web.data import DataSource
     from app.web.panels import Panel
+    from app.web.qa_panel import ComparePanel, CompareSettings
 
 log = logging.getLogger(__name__)
 
+#: The fluoro tile's size in the large single-image layout (pixels).
+LARGE_TILE_PX = 768
+#: The fluoro tile's caption when the volume has no vessel surface.
+NO_ROADMAP = "no roadmap: no vessels in the volume"
 #: Live updates during a run (the issue asks for at least 5 per second).
 LIVE_HZ = 10.0
 
@@ -85,6 +91,10 @@ class Presenter:
         self.tick = tick
         self.show_source = show_source
         self.panels: Sequence[Panel] = ()
+        #: The Compare tab (overlay mode, zoom, camera), None: the vessel outline, no zoom.
+        self.compare: ComparePanel | None = None
+        self._camera_key: tuple | None = None
+        self._frame_request = 0
         self.shown_version = -1
         self.shown_geometry: CArm | None = None
         self.frames_shown = 0
@@ -102,7 +112,7 @@ class Presenter:
         self._last_live = 0.0
         self._mesh_key: tuple | None = None
         self._shown_carm: tuple | None = None
-        self._tiles_by_image: dict[int, tuple[Any, dict[str, np.ndarray]]] = {}
+        self._tiles_by_image: dict[tuple[int, int], tuple[Any, dict[str, np.ndarray]]] = {}
         self._shown_carm_b: tuple | None = None
         self._preview_version = -1
         self._plotted = False
@@ -223,6 +233,8 @@ class Presenter:
             self.message("Loading the volume and its surfaces…")
             meshes = data.meshes(volume_format_cm)
             self.scene.set_anatomy(meshes)
+            self.scene.frame_anatomy()  # the camera on the vessels (every open tab too)
+            self._camera_key = None
             self.layout.vessel_info.content = (
                 "" if "vessels" in meshes else f"<small>⚠ {NO_VESSELS_NOTE[:1].upper() + NO_VESSELS_NOTE[1:]}.</small>"
             )
@@ -264,12 +276,13 @@ class Presenter:
         self._live_last_report = reports
         self.live_reports.append(reports)
 
-    def _image_tiles(self, xray: Any) -> dict[str, np.ndarray]:
-        """What depends on the X-ray image only, computed once per image (per plane)."""
-        cached = self._tiles_by_image.get(id(xray))
+    def _image_tiles(self, xray: Any, size: int | None = None) -> dict[str, np.ndarray]:
+        """What depends on the X-ray image only, computed once per image (per plane) and size
+        (the display's, or ``size``)."""
+        size = self.session.config.display_px if size is None else int(size)
+        cached = self._tiles_by_image.get((id(xray), size))
         if cached is not None and cached[0] is xray:
             return cached[1]
-        size = self.session.config.display_px
         mask_u8 = xray.mask.astype(np.uint8)
         tiles = {
             "fluoro": views.resize(views.to_gray(xray.image, xray.mask), size),
@@ -277,39 +290,78 @@ class Presenter:
             "mask_half": views.resize(mask_u8, size // 2).astype(bool),
             "mask_third": views.resize(mask_u8, size // 3).astype(bool),
             "gradient": views.resize(views.gradient_image(xray.image, xray.mask), size),
+            "attenuation": views.resize(np.asarray(xray.image, np.float32), size),
         }
         if len(self._tiles_by_image) >= 4:  # plane A and B, each shown and about to be shown
             self._tiles_by_image.pop(next(iter(self._tiles_by_image)))
-        self._tiles_by_image[id(xray)] = (xray, tiles)
+        self._tiles_by_image[(id(xray), size)] = (xray, tiles)
         return tiles
 
+    def settings(self) -> CompareSettings:
+        """The Compare tab's settings (defaults without the tab)."""
+        from app.web.qa_panel import CompareSettings
+
+        return self.compare.settings() if self.compare is not None else CompareSettings()
+
     def _plane_pictures(
-        self, xray: Any, motion: np.ndarray, volume_format: float, *, live: bool, plane: str
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """One plane's row (fluoro with the roadmap outline | DRR at the estimate), its detector
-        picture for the 3-D scene, and what the gradient row needs (DRR, its mask)."""
+        self, xray: Any, motion: np.ndarray, volume_format: float, *, live: bool, plane: str,
+        initial: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+        """One plane's row (fluoro with the Compare tab's overlay | DRR at the estimate; the fluoro
+        tile alone in the large layout), its detector picture for the 3-D scene, and what the
+        gradient row needs (DRR, its mask). ``initial``: the machine-based pose (before / after)."""
+        initial = np.eye(4) if initial is None else initial
         s = self.session
-        size = s.config.display_px
+        settings = self.settings()
+        size = LARGE_TILE_PX if settings.large else s.config.display_px
         geometry: CArm = xray.geometry
-        tiles = self._image_tiles(xray)
-        fluoro = views.gray_rgb(tiles["fluoro"])
-        meshes = s.data.meshes(volume_format)
-        vessels = meshes.get("vessels")
+        tiles = self._image_tiles(xray, size)
+        vessels = s.data.meshes(volume_format).get("vessels")
+        mode = "outline" if live else settings.mode  # while the optimizer runs: the outline only
+        tile_geometry = geometry.resized(size, size)
+        thickness = 1 if size <= 400 else 2
+        silhouette = initial_silhouette = None
         if vessels is not None:
             spacing = s.data.mesh_spacing_mm(volume_format)
-            silhouette = views.vessel_silhouette(
-                np.asarray(vessels.vertices), motion, geometry.resized(size, size), spacing
-            )
-            views.draw_outline(fluoro, silhouette, thickness=1 if size <= 400 else 2)
+            silhouette = views.vessel_silhouette(np.asarray(vessels.vertices), motion, tile_geometry, spacing)
+        if mode == "outline":
+            fluoro = views.gray_rgb(tiles["fluoro"])
+            if silhouette is not None:
+                views.draw_outline(fluoro, silhouette, thickness=thickness)
+        else:
+            renderer = s.data.renderer(volume_format)
+            drr_tile = renderer.render(tile_geometry, motion, level=1)
+            drr_initial = None
+            if mode == "wipe":
+                drr_initial = renderer.render(tile_geometry, initial, level=1)
+                if vessels is not None:
+                    initial_silhouette = views.vessel_silhouette(
+                        np.asarray(vessels.vertices), initial, tile_geometry, s.data.mesh_spacing_mm(volume_format)
+                    )
+            fluoro = qa_images.compare(
+                mode, image=tiles["attenuation"], drr=drr_tile, mask=tiles["mask"], outline=silhouette,
+                drr_initial=drr_initial, outline_initial=initial_silhouette, tile_px=settings.checker_px,
+                wipe_fraction=settings.wipe, thickness=thickness,
+            )  # fmt: skip
+        if settings.zoom > 1.0:
+            fluoro = qa_images.zoomed(fluoro, settings.zoom, settings.pan)
         prefix = f"PLANE {plane}  " if plane else ""
         views.label(fluoro, f"{prefix}{xray.kind.upper()}  {views.angles_text(geometry)}")
-        outline = "red: roadmap at the estimate" if vessels is not None else "no roadmap: no vessels in the volume"
-        views.label(fluoro, outline, corner="bottom-left")
+        captions = {
+            "outline": "red: roadmap at the estimate" if vessels is not None else NO_ROADMAP,
+            "edges": "green: DRR edges at the estimate",
+            "checkerboard": "checkerboard: image / DRR at the estimate",
+            "difference": "image - DRR at the estimate (gray: agree)",
+            "wipe": "left: before (machine-based) | right: registered",
+        }
+        views.label(fluoro, captions[mode], corner="bottom-left")
 
         # The DRR thumbnail: coarser while the optimizer runs (it competes for the same cores).
         drr_px = size // 3 if live else size // 2
         drr_mask = tiles["mask_third"] if live else tiles["mask_half"]
         drr = s.data.renderer(volume_format).render(geometry.resized(drr_px, drr_px), motion, level=2 if live else 1)
+        if settings.large:  # the fluoro tile alone (the panel is wider)
+            return fluoro, views.resize(fluoro, 256), tiles["gradient"], drr, drr_mask
         drr_gray = views.resize(views.to_gray(drr, drr_mask), size)
         drr_gray[~tiles["mask"]] = 0
         drr_tile = views.label(views.gray_rgb(drr_gray), "DRR at the estimate")
@@ -323,11 +375,16 @@ class Presenter:
         geometry: CArm = xray.geometry
         biplane = s.biplane
         xray_b = s.xray_b() if biplane else None
+        with s.lock:  # before / after: the pose the last registration started from (the machine-based one)
+            initial = s.run.initial_motion if s.run.result is not None else None
+        initial = np.eye(4) if initial is None else np.asarray(initial, np.float64)
         composite, detector_image, gradient, drr, drr_mask = self._plane_pictures(
-            xray, motion, volume_format, live=live, plane="A" if biplane else ""
+            xray, motion, volume_format, live=live, plane="A" if biplane else "", initial=initial
         )
         if xray_b is not None:
-            row_b, detector_b, _, _, _ = self._plane_pictures(xray_b, motion, volume_format, live=live, plane="B")
+            row_b, detector_b, _, _, _ = self._plane_pictures(
+                xray_b, motion, volume_format, live=live, plane="B", initial=initial
+            )
             composite = views.stacked(composite, row_b)
         if ui.show_gradients.value:
             g1 = views.label(views.gray_rgb(gradient), "gradient: image")
@@ -365,10 +422,13 @@ class Presenter:
                 self._shown_carm_b = carm_b_key
             elif xray_b is not None:
                 self.scene.set_detector_image(detector_b, plane_b=True)
+            settings = self.settings()
             if followed is None:
-                self.scene.place(motion, truth, show_ghost=bool(ui.show_ghost.value) and not hidden)
+                self.scene.place(motion, truth, show_ghost=bool(ui.show_ghost.value) and not hidden,
+                                 initial=initial, show_initial=settings.show_initial and not hidden)  # fmt: skip
                 for handle in self.scene.patient:
                     handle.visible = not hidden and ("vessel" in handle.name or bool(ui.show_skull.value))
+            self._camera(geometry, motion, settings)
             ui.images.image = composite
             ui.readout.content = readout
             ui.badge.content = badge_html
@@ -376,6 +436,22 @@ class Presenter:
             if it or self._plotted:
                 self._plot(it, sim, temp)
         self.frames_shown += 1
+
+    def _camera(self, geometry: CArm, motion: np.ndarray, settings: CompareSettings) -> None:
+        """View from the source (following the C-arm), or back on the vessels when it is switched
+        off or "Frame the vessels" was asked for (inside the caller's ``server.atomic()``)."""
+        if settings.frame_request != self._frame_request:
+            self._frame_request = settings.frame_request
+            self.scene.frame_anatomy(motion)
+        key = None
+        if settings.view_from_source:
+            key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, geometry.isocenter_mm)
+        if key != self._camera_key:
+            if key is not None:
+                self.scene.view_from_source(geometry)
+            elif self._camera_key is not None:
+                self.scene.frame_anatomy(motion)
+            self._camera_key = key
 
     def _plot(self, it: list[int], sim: list[float], temp: list[float]) -> None:
         n = min(len(it), len(sim), len(temp))

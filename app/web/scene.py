@@ -21,10 +21,70 @@ M_PER_MM = 1e-3
 BONE_RGB = (226, 216, 196)
 VESSEL_RGB = (214, 38, 38)
 GHOST_RGB = (90, 200, 255)
+#: The vessels at the machine-based (initial) pose, beside the registered roadmap.
+INITIAL_RGB = (255, 190, 60)
 CARM_RGB = (120, 128, 140)
 SOURCE_RGB = (255, 190, 60)
 #: Plane B's beam and source (biplane mode): its own colour beside plane A's amber.
 PLANE_B_RGB = (190, 120, 255)
+
+
+#: The default camera: from above the patient's feet (anterior is up),
+#: looking at the vessels, which fill this fraction of the view's height (and at most EDGE_FILL
+#: of its width: the app's 3-D view is often narrow between its panels).
+CAMERA_DIRECTION = (0.0, -0.84, -0.54)
+CAMERA_FOV_DEG = 50.0
+CAMERA_FILL = 0.6
+EDGE_FILL = 0.95
+#: The canvas aspect (width / height) assumed before a browser reports its own.
+CAMERA_ASPECT = 1.0
+#: Vertices of the vessels the camera frames (a regular subsample).
+FRAMED_POINTS = 4000
+
+
+def _camera_basis(direction: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    forward = -direction / np.linalg.norm(direction)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    return forward, right, np.cross(right, forward)
+
+
+def screen_extent(
+    points: np.ndarray, position: np.ndarray, look_at: np.ndarray, up: np.ndarray, fov_rad: float, aspect: float
+) -> tuple[float, float]:
+    """The fractions of a perspective view's height and width that the screen box of ``points``
+    spans (camera at ``position`` looking at ``look_at``, vertical field of view ``fov_rad``,
+    canvas width / height ``aspect``)."""
+    forward, right, true_up = _camera_basis(np.asarray(position) - np.asarray(look_at), np.asarray(up, float))
+    rel = np.asarray(points, float) - np.asarray(position, float)
+    depth = np.maximum(rel @ forward, 1e-9)
+    t = math.tan(fov_rad / 2.0)
+    ndc_y = (rel @ true_up) / (depth * t)
+    ndc_x = (rel @ right) / (depth * t * aspect)
+    return float(np.ptp(ndc_y) / 2.0), float(np.ptp(ndc_x) / 2.0)
+
+
+def frame_points(
+    points: np.ndarray, *, direction=CAMERA_DIRECTION, up=(0.0, -1.0, 0.0),  # noqa: ANN001
+    fov_rad: float = math.radians(CAMERA_FOV_DEG), fill: float = CAMERA_FILL, aspect: float = CAMERA_ASPECT,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(position, look_at) of a camera looking at the center of ``points``' box from
+    ``direction``, as near as it may be for their screen box to span at most ``fill`` of the
+    view's height and EDGE_FILL of its width."""
+    pts = np.asarray(points, float)
+    center = (pts.min(axis=0) + pts.max(axis=0)) / 2.0
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    radius = max(float(np.linalg.norm(pts - center, axis=1).max()), 1e-6)
+    near, far = radius * 1.01, radius * 1e3
+
+    def fits(dist: float) -> bool:
+        h, w = screen_extent(pts, center + dist * d, center, np.asarray(up, float), fov_rad, aspect)
+        return h <= fill and w <= EDGE_FILL
+
+    for _ in range(60):  # bisection on the distance: nearer is larger on the screen
+        mid = math.sqrt(near * far)
+        near, far = (near, mid) if fits(mid) else (mid, far)
+    return center + far * d, center
 
 
 def pose_of(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -92,6 +152,14 @@ class Scene:
         self.scene.add_label("/isocenter/label", "iso-center", position=(0.0, 0.0, -0.1), font_screen_scale=0.8)
         self.patient: list = []
         self.ghost: list = []
+        #: The vessels at the machine-based pose (the pose before the last registration).
+        self.initial: list = []
+        #: The points (world m, at the volume's pose) the default camera frames: the vessels', else the anatomy's.
+        self.framed_m: np.ndarray | None = None
+        #: The C-arm whose source the cameras look from (None: the default camera on the vessels).
+        self.source_view: CArm | None = None
+        self._framed_motion: np.ndarray | None = None
+        server.on_client_connect(self._on_connect)
         self.frustum: viser.CameraFrustumHandle | None = None
         self.frustum_b: viser.CameraFrustumHandle | None = None
         self.plane_b_nodes: list = []
@@ -99,9 +167,15 @@ class Scene:
     # ----- the patient ------------------------------------------------------------------
     def set_anatomy(self, meshes: dict[str, trimesh.Trimesh], *, max_faces: int = 120_000) -> None:
         """(Re)create skull and vessel nodes from meshes in world mm at the volume's pose."""
-        for handle in self.patient + self.ghost:
+        for handle in self.patient + self.ghost + self.initial:
             handle.remove()
-        self.patient, self.ghost = [], []
+        self.patient, self.ghost, self.initial = [], [], []
+        framed = [np.asarray(m.vertices) for name, m in meshes.items() if "vessel" in name and len(m.vertices)]
+        framed = framed or [np.asarray(m.vertices) for m in meshes.values() if len(m.vertices)]
+        self.framed_m = None
+        if framed:
+            pts = np.concatenate(framed)
+            self.framed_m = pts[:: max(1, len(pts) // FRAMED_POINTS)] * M_PER_MM
         for name, mesh in meshes.items():
             is_vessel = "vessel" in name
             shown = _decimated(mesh, max_faces if is_vessel else max_faces)
@@ -124,8 +198,27 @@ class Scene:
                         f"/truth/{name}", verts, faces, color=GHOST_RGB, opacity=0.35, visible=False
                     )
                 )
+                self.initial.append(
+                    self.scene.add_mesh_simple(
+                        f"/initial/{name}", verts, faces, color=INITIAL_RGB, opacity=0.45, visible=False
+                    )
+                )
 
-    def place(self, estimate: np.ndarray, truth: np.ndarray | None, *, show_ghost: bool) -> None:
+    def place(
+        self,
+        estimate: np.ndarray,
+        truth: np.ndarray | None,
+        *,
+        show_ghost: bool,
+        initial: np.ndarray | None = None,
+        show_initial: bool = False,
+    ) -> None:
+        """The patient at ``estimate``; the ghosts at ``truth`` (blue) and ``initial`` (amber, the
+        machine-based pose) when shown."""
+        wxyz_i, pos_i = pose_of(np.eye(4) if initial is None else initial)
+        for handle in self.initial:
+            handle.visible = show_initial and initial is not None
+            handle.wxyz, handle.position = wxyz_i, pos_i
         wxyz, pos = pose_of(estimate)
         for handle in self.patient:
             handle.wxyz, handle.position = wxyz, pos
@@ -205,3 +298,78 @@ class Scene:
         frustum = self.frustum_b if plane_b else self.frustum
         if frustum is not None:
             frustum.image = np.ascontiguousarray(image[:, ::-1])
+
+    # ----- the camera -------------------------------------------------------------------
+    def _framed_at(self, motion: np.ndarray | None) -> np.ndarray | None:
+        if self.framed_m is None:
+            return None
+        m = np.eye(4) if motion is None else np.asarray(motion, float)
+        return self.framed_m @ m[:3, :3].T + m[:3, 3] * M_PER_MM
+
+    def _aim(self, camera, aspect: float) -> None:  # noqa: ANN001 - a client's camera or the initial one
+        """Point ``camera`` as the scene asks: from the source, or on the vessels."""
+        if self.source_view is not None:
+            g = self.source_view
+            half_h = g.rows * g.pixel_mm[0] / 2.0
+            fov = 2.0 * math.atan(half_h / g.sid_mm) * 1.15  # a margin around the field
+            up, look_at, position = (
+                -np.asarray(g.v, float),
+                np.asarray(g.isocenter_mm) * M_PER_MM,
+                g.source_mm * M_PER_MM,
+            )
+        else:
+            points = self._framed_at(self._framed_motion)
+            if points is None:
+                return
+            fov, up = math.radians(CAMERA_FOV_DEG), np.array([0.0, -1.0, 0.0])
+            position, look_at = frame_points(points, aspect=aspect)
+        if isinstance(camera, viser.CameraHandle):
+            camera.fov = fov
+            if self.source_view is not None:
+                camera.up_direction = tuple(up)
+        else:
+            camera.fov = fov
+            if self.source_view is not None:
+                camera.up = tuple(up)
+        camera.position = tuple(position)  # then look_at: a client's position moves its look_at along
+        camera.look_at = tuple(look_at)
+
+    def _aim_all(self) -> None:
+        self._aim(self.server.initial_camera, CAMERA_ASPECT)
+        for client in self.server.get_clients().values():
+            self._aim(client.camera, _aspect(client))
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        """A new tab: aimed when its canvas reports its size, and again while the canvas changes
+        its shape (the page's panels settle) as long as nobody moved the camera since."""
+        aimed: dict[str, object] = {}
+
+        def on_update(camera: viser.CameraHandle) -> None:
+            aspect = _aspect(client)
+            last = aimed.get("aspect")
+            untouched = last is None or np.allclose(camera.position, aimed["position"], atol=1e-6)  # type: ignore[arg-type]
+            if untouched and (last is None or abs(aspect / float(last) - 1.0) > 0.02):  # type: ignore[arg-type]
+                self._aim(camera, aspect)
+                aimed.update(aspect=aspect, position=np.array(camera.position))
+
+        client.camera.on_update(on_update)
+
+    def frame_anatomy(self, motion: np.ndarray | None = None) -> None:
+        """The default camera and every open tab's on the vessels at ``motion`` (:func:`frame_points`)."""
+        self.source_view = None
+        self._framed_motion = None if motion is None else np.asarray(motion, float)
+        self._aim_all()
+
+    def view_from_source(self, geometry: CArm) -> None:
+        """Every tab's camera (and the default one) at the X-ray source, looking at the
+        iso-center, image rows downward (as the detector sees the patient), over the beam's field."""
+        self.source_view = geometry
+        self._aim_all()
+
+
+def _aspect(client: viser.ClientHandle) -> float:
+    """The width / height of a tab's canvas (CAMERA_ASPECT until it has reported it)."""
+    try:
+        return float(client.camera.aspect)
+    except (AssertionError, ZeroDivisionError):
+        return CAMERA_ASPECT

@@ -188,6 +188,7 @@ def profiles_figure(
     evidence: Mapping[str, object] | None = None,
     reason: str = "",
     rule: ConfidenceRule = DEFAULT_RULE,
+    columns: int | None = None,
 ) -> bytes:
     """One small plot per parameter: the relative measure, the estimate at 0, the margin's probe
     points (+-1 mm / deg; +-3 deg along rx, ry), the level the rule asks the peak to stand above
@@ -196,8 +197,13 @@ def profiles_figure(
     plt = pyplot()
     ev = dict(evidence or {})
     term = withheld_term(ev, rule) if ev else None
-    fig, axes = plt.subplots(1, len(profiles), figsize=(2.3 * len(profiles), 2.9), sharey=False)
-    axes = np.atleast_1d(axes)
+    cols = len(profiles) if columns is None else max(1, min(columns, len(profiles)))
+    rows = math.ceil(len(profiles) / cols)
+    fig, grid = plt.subplots(rows, cols, figsize=(2.3 * cols, 2.9 * rows), squeeze=False)
+    axes = grid.ravel()
+    for ax in axes[len(profiles) :]:
+        ax.set_visible(False)
+    axes = axes[: len(profiles)]
     rival = ev.get("rival_gain")
     for ax, p in zip(axes, profiles, strict=True):
         x, y = np.asarray(p.offsets), np.asarray(p.relative) * 1e3
@@ -225,13 +231,11 @@ def profiles_figure(
             fails = True  # the mean margin failed though no single one did: every plot shares it
         if fails:
             _mark_withheld(ax, reason)
-    axes[0].set_ylabel("vs the estimate (x 1e-3)", fontsize=7)
-    fig.suptitle(
-        "Gradient difference around the estimate (orange dots: the confidence's margin probes; "
-        "dashed: the margin it asks for)",
-        fontsize=8,
-    )
-    fig.tight_layout(rect=(0, 0, 1, 0.92))
+    for ax in grid[:, 0]:
+        ax.set_ylabel("vs the estimate (x 1e-3)", fontsize=7)
+    title = "Gradient difference around the estimate (orange dots: the confidence's margin probes; dashed: the margin"
+    fig.suptitle(f"{title} it asks for)" if cols > 3 else f"{title}\nit asks for)", fontsize=8)
+    fig.tight_layout(rect=(0, 0, 1, 0.92 if rows == 1 else 0.94))
     return png_of(fig)
 
 
