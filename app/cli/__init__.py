@@ -125,6 +125,8 @@ def register(
     confidence: bool = False,
     no_cache: bool = False,
     explain: bool = False,
+    report: Path | None = None,
+    report_identify: bool = False,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -162,11 +164,14 @@ def register(
             ROADMAP3D_NO_CACHE=1 does the same as this flag).
         explain: Print the plan of stages the registration runs (annealing levels, polishes, depth correction,
             rotation check, with their budgets) before running it.
+        report: Write a report folder here (new or empty): report.html with the images, overlays, evidence
+            plots, numbers and inputs (docs/report.md); assesses the confidence.
+        report_identify: Name the patient (name, ID) and the file paths in the report (left out by default).
     """
     small_pages()
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
-        if confidence:
-            raise UserError("--confidence works on files only (not with --pacs) for now")
+        if confidence or report is not None:
+            raise UserError("--confidence and --report work on files only (not with --pacs) for now")
         from app.cli.net_commands import run_register_pacs
 
         return run_register_pacs(
@@ -213,6 +218,8 @@ def register(
         confidence=confidence,
         cache=not no_cache,
         explain=explain,
+        report=report,
+        report_identify=report_identify,
     )
 
 
@@ -461,6 +468,8 @@ def track(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     frame_time_ms: float | None = None,
+    report: Path | None = None,
+    report_identify: bool = False,
 ) -> int:
     """Follow patient motion over a fluoroscopy run at its frame times (CONVENTIONS §7).
 
@@ -479,8 +488,13 @@ def track(
         sid_mm: Source-detector distance for runs without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for runs without DistanceSourceToPatient (0018,1111).
         frame_time_ms: Frame spacing for runs without FrameTimeVector, FrameTime or CineRate.
+        report: Write a report folder here (new or empty): strip charts, per-frame decisions, the last frame
+            compared in place (docs/report.md).
+        report_identify: Name the patient (name, ID) and the file paths in the report (left out by default).
     """
     if pacs is not None:
+        if report is not None:
+            raise UserError("--report works on files only (not with --pacs) for now")
         from app.cli.net_commands import run_track_pacs
 
         return run_track_pacs(
@@ -494,7 +508,8 @@ def track(
 
     return run_track(
         volume=volume, run=run, run_b=run_b, out=out, truth=truth, isocenter=isocenter, seed=seed,
-        every_frame=every_frame, sid_mm=sid_mm, sod_mm=sod_mm, frame_time_ms=frame_time_ms,
+        every_frame=every_frame, sid_mm=sid_mm, sod_mm=sod_mm, frame_time_ms=frame_time_ms, report=report,
+        report_identify=report_identify,
     )  # fmt: skip
 
 

@@ -344,14 +344,22 @@ def run_register(
     confidence: bool = False,
     cache: bool = True,
     explain: bool = False,
+    report: Path | None = None,
+    report_identify: bool = False,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
     ``verbose``: where the time went, on stderr. ``confidence``: the estimate's confidence and
     decision (applied / withheld, CONVENTIONS §7) by the studies' rule. ``cache``: keep the
     preparation's view-independent part on disk (:class:`registration.io.cache.PreparationCache`)
-    and use it. ``explain``: print the registration's plan of stages first."""
+    and use it. ``explain``: print the registration's plan of stages first. ``report``: write the
+    report folder there (:mod:`app.cli.report_commands`; assesses the confidence);
+    ``report_identify``: with the patient's name, ID and the file paths."""
+    from app.cli.report_commands import check_report_folder
+
     clock = _Stopwatch()
+    check_report_folder(report)
+    confidence = confidence or report is not None
     images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
     if len(images) not in (1, 2):
         raise ValueError(f"one X-ray image, or two (plane A and plane B of one moment), got {len(images)}")
@@ -467,7 +475,7 @@ def run_register(
             file=sys.stderr,
         )
         return 2
-    if out is not None:
+    if out is not None or report is not None:
         document = result.to_dict()
         document["volume"] = {"path": str(volume), "label": vol.label}
         described = [
@@ -482,8 +490,18 @@ def run_register(
             keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
             document.update({k: assessed[k] for k in keys})
         document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
+    if out is not None:
         dicom.write_text_atomic(out, dicom.json_dumps(document))
         _say(f"wrote {out}")
+    if report is not None:
+        from app.cli.report_commands import write_register_report
+
+        write_register_report(
+            report, document=document, assessed=assessed, volume=vol, views=list(views),
+            renderer=confidence_renderer(prepared, planes=len(views)), initial_motion=m_init, identify=report_identify,
+        )  # fmt: skip
+        clock.lap("report")
+        _say(f"wrote {report}/ (open {Path(report) / 'report.html'})")
     if out_dicom is not None:
         dicom.write_registration(
             out_dicom,

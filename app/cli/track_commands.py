@@ -63,8 +63,12 @@ def run_track(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     frame_time_ms: float | None = None,
+    report: Path | None = None,
+    report_identify: bool = False,
 ) -> int:
-    """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON.
+    """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON and,
+    with ``report``, the report folder (:mod:`app.cli.report_commands`; ``report_identify``: with the
+    patient's name, ID and the file paths).
 
     ``sid_mm``, ``sod_mm`` and ``frame_time_ms`` fill in what a run's files lack
     (:func:`registration.io.dicom.read_xray_run`)."""
@@ -74,6 +78,9 @@ def run_track(
 
     if out is not None and Path(out).is_dir():
         raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
+    from app.cli.report_commands import check_report_folder
+
+    check_report_folder(report)
     if isocenter is not None and isocenter.strip().lower() != "volume-center":
         parse_isocenter(isocenter)  # a bad value is refused before any file is read
     given = {"sid_mm": sid_mm, "sod_mm": sod_mm, "frame_time_ms": frame_time_ms}
@@ -208,6 +215,15 @@ def run_track(
     if out is not None:
         dicom.write_text_atomic(out, dicom.json_dumps(document))
         _say(f"wrote {out}")
+    if report is not None:
+        from app.cli.report_commands import write_run_report
+
+        last = result.frames[-1].frame if result.frames else len(times) - 1
+        write_run_report(
+            report, document=document, volume=vol, last_views=[f[last] for f in frames], renderer=prepared.renderer,
+            truth=m_true, identify=report_identify,
+        )  # fmt: skip
+        _say(f"wrote {report}/ (open {Path(report) / 'report.html'})")
     return 0
 
 

@@ -375,9 +375,7 @@ class Presenter:
         geometry: CArm = xray.geometry
         biplane = s.biplane
         xray_b = s.xray_b() if biplane else None
-        with s.lock:  # before / after: the pose the last registration started from (the machine-based one)
-            initial = s.run.initial_motion if s.run.result is not None else None
-        initial = np.eye(4) if initial is None else np.asarray(initial, np.float64)
+        initial = np.eye(4)  # the machine-based pose: the roadmap from the C-arm sensors alone (before / after, ghost)
         composite, detector_image, gradient, drr, drr_mask = self._plane_pictures(
             xray, motion, volume_format, live=live, plane="A" if biplane else "", initial=initial
         )

@@ -103,7 +103,7 @@ class ComparePanel(BasePanel):
                 "View from the source", False, hint="The camera at the X-ray source, following the C-arm"
             )
             self.show_initial = gui.add_checkbox(
-                "Machine-based pose (ghost)", False, hint="The vessels where the roadmap was before the registration"
+                "Machine-based pose (ghost)", False, hint="The vessels where the C-arm sensors alone put them"
             )
             gui.add_markdown("**Report**")
             self.report_button = gui.add_button("Write report", icon=viser.Icon.FILE_ANALYTICS)

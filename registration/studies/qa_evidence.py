@@ -268,6 +268,7 @@ def depth_figure(
                    label=f"depth probe tz {float(probe['tz_mm']):+.1f} mm, shift {float(probe['shift_mm']):.2f} mm")  # type: ignore[arg-type]  # fmt: skip
     ax.set_xlabel("tz from the estimate (mm, + toward the source)", fontsize=8)
     ax.set_ylabel("high-passed GD", fontsize=8)
+    ax.ticklabel_format(axis="y", useOffset=False)
     ax.tick_params(labelsize=7)
     ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     ax.set_title("Depth: the measure along the beam", fontsize=9)

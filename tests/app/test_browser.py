@@ -160,3 +160,103 @@ def _wait(predicate, timeout: float) -> bool:
             return True
         time.sleep(0.1)
     return predicate()
+
+
+def _tile(page, size: int) -> np.ndarray:
+    """The fluoro tile of the Roadmap tab's picture as the page shows it (RGB)."""
+    import io
+
+    from PIL import Image
+
+    png = page.locator("img").first.screenshot(timeout=180_000)
+    shown = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+    return shown[:, : shown.shape[1] * size // (2 * size + 4)]  # left of the two tiles (4 px gap)
+
+
+def test_overlay_modes_in_the_page(fresh: RoadmapApp, browser, tmp_path) -> None:
+    """Every overlay mode chosen from the page's Compare tab: each screenshot drawn and distinct."""
+    from PIL import Image
+
+    from app.web.qa_panel import ComparePanel
+    from registration.studies.qa_images import OVERLAY_LABELS, OVERLAY_MODES
+
+    app = fresh
+    panel = next(p for p in app.panels if isinstance(p, ComparePanel))
+    page = browser.new_page(viewport={"width": 1280, "height": 760})
+    try:
+        page.goto(url_of(app.server))
+        page.get_by_role("button", name="Register").wait_for(timeout=90_000)
+        page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
+        app.table_buttons["T4"].value = True  # the shared session: the patient moves (the page shows it)
+        page.get_by_text(re.compile(r"Residual: [3-9]\.\d\d mm in-plane")).wait_for(timeout=120_000)
+        page.get_by_role("tab", name="Compare").click(force=True, timeout=120_000)
+        combo = page.locator(f'[id="{page.locator("label", has_text="Overlay").first.get_attribute("for")}"]')
+        shots = {}
+        for mode in OVERLAY_MODES:
+            combo.click(force=True, timeout=120_000)
+            page.get_by_role("option", name=OVERLAY_LABELS[mode], exact=True).click(force=True, timeout=60_000)
+            assert _wait(lambda mode=mode: panel.settings().mode == mode, 30), mode
+            for _ in range(2):  # the second frame began after the change
+                frames = app.presenter.frames_shown
+                app.presenter.force_refresh()
+                assert _wait(lambda frames=frames: app.presenter.frames_shown > frames, 60)
+            time.sleep(1.5)  # the newest picture reaches the page (updates leave every 1/60 s; a busy machine)
+            shots[mode] = _tile(page, app.session.config.display_px)
+            Image.fromarray(shots[mode]).save(tmp_path / f"overlay_{mode}.png")
+        for mode, tile in shots.items():
+            assert tile.shape[0] > 100 and tile.std() > 10, mode  # drawn, not blank
+        differs = {
+            (a, b): float(np.mean(np.abs(shots[a].astype(int) - shots[b].astype(int)).max(axis=2) > 8))
+            for i, a in enumerate(OVERLAY_MODES)
+            for b in OVERLAY_MODES[i + 1 :]
+        }
+        # the machine-based pose is 5.7 mm / 5.4 deg off: checkerboard and difference change much of the tile
+        assert differs[("outline", "checkerboard")] > 0.10, differs
+        assert differs[("outline", "difference")] > 0.10, differs
+        assert all(v > 0.002 for v in differs.values()), differs  # every pair differs (line-only modes a little)
+    finally:
+        page.close()
+
+
+def test_default_camera_frames_the_vessels(fresh: RoadmapApp, browser) -> None:
+    """The 3-D view's default camera: the vessels' screen box spans >= 1/3 of the canvas height,
+    by the tab's own camera (as it reports it) and in the screenshot (the red vessel pixels)."""
+    import io
+
+    from PIL import Image
+
+    from app.web.scene import screen_extent
+
+    app = fresh
+    page = browser.new_page(viewport={"width": 1280, "height": 760})
+    try:
+        page.goto(url_of(app.server))
+        page.get_by_role("button", name="Register").wait_for(timeout=90_000)
+        page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
+        assert _wait(lambda: len(app.server.get_clients()) > 0, 60)
+        client = list(app.server.get_clients().values())[-1]
+        time.sleep(5)  # the canvas settles and the camera is aimed at its shape
+        camera = client.camera
+        vessels = app.session.data.meshes(app.session.settings.volume_format_cm)["vessels"]
+        points = np.asarray(vessels.vertices) * 1e-3
+        height, width = screen_extent(points, camera.position, camera.look_at, camera.up_direction, camera.fov,
+                                      camera.aspect)  # fmt: skip
+        assert height >= 1 / 3 and width <= 1.0, (height, width, camera.aspect)
+        deadline = time.monotonic() + 90
+        while not canvas_is_drawn(page) and time.monotonic() < deadline:
+            time.sleep(1.0)
+        box = page.evaluate(
+            """() => { let best = null;
+                for (const c of document.querySelectorAll("canvas")) { const r = c.getBoundingClientRect();
+                    if (!best || r.width * r.height > best.width * best.height)
+                        best = {x: r.x, y: r.y, width: r.width, height: r.height}; }
+                return best; }"""
+        )
+        rgb = np.asarray(Image.open(io.BytesIO(page.screenshot(clip=box, timeout=180_000))).convert("RGB")).astype(int)
+        red = (rgb[..., 0] > 120) & (rgb[..., 0] > 2 * rgb[..., 1]) & (rgb[..., 0] > 2 * rgb[..., 2])
+        rows = np.flatnonzero(red.any(axis=1))
+        assert rows.size, "no vessel drawn"
+        # the screenshot's vessel pixels (some hidden behind bone): a quarter of the height at least
+        assert (rows[-1] - rows[0] + 1) / rgb.shape[0] >= 0.25, (rows[0], rows[-1], rgb.shape)
+    finally:
+        page.close()

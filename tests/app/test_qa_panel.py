@@ -75,7 +75,7 @@ def test_zoom_and_the_large_layout(fresh: RoadmapApp, compare: ComparePanel):
     assert large.shape[0] > normal.shape[0] and large.shape[1] == large.shape[0], (large.shape, normal.shape)
 
 
-def test_machine_based_ghost_sits_where_the_registration_started(fresh: RoadmapApp, compare: ComparePanel):
+def test_machine_based_ghost_sits_at_the_sensors_pose(fresh: RoadmapApp, compare: ComparePanel):
     fresh.table_buttons["T4"].value = True
     fresh.register_button.value = True
     assert fresh.session.wait(240)
@@ -83,7 +83,8 @@ def test_machine_based_ghost_sits_where_the_registration_started(fresh: RoadmapA
     _drawn(fresh)
     nodes = fresh.scene.initial
     assert nodes and all(n.visible for n in nodes)
-    np.testing.assert_allclose(nodes[0].position, fresh.session.run.initial_motion[:3, 3] * 1e-3, atol=1e-9)
+    np.testing.assert_allclose(nodes[0].position, np.zeros(3), atol=1e-12)  # the machine-based pose: no correction
+    np.testing.assert_allclose(nodes[0].wxyz, [1.0, 0.0, 0.0, 0.0], atol=1e-12)
     registered = fresh.scene.patient[0].position
     assert np.linalg.norm(np.asarray(registered) - np.asarray(nodes[0].position)) > 1e-3  # apart (T4: ~6 mm)
     compare.show_initial.value = False
