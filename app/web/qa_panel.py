@@ -181,7 +181,7 @@ class ComparePanel(BasePanel):
             self.evidence_text.content = "No evidence: the registration was stopped or not assessed."
             return
         self.evidence_text.content = "Computing the evidence…"
-        views = s.views()
+        views = run.views or s.views()  # type: ignore[attr-defined]
         volume_format = s.settings.volume_format_cm
         initial = run.initial_motion  # type: ignore[attr-defined]
         renderer = s.data.evidence_renderer(volume_format, views, initial)
@@ -228,7 +228,7 @@ class ComparePanel(BasePanel):
         s = self.ctx.session
         try:
             result, assessment = run.result, run.assessment  # type: ignore[attr-defined]
-            views = s.views()
+            views = run.views or s.views()  # type: ignore[attr-defined]
             volume_format = s.settings.volume_format_cm
             initial = run.initial_motion  # type: ignore[attr-defined]
             document = result.to_dict()

@@ -114,6 +114,8 @@ class RunState:
     #: The roadmap's pose when the run started (the correction is measured from it) and the
     #: iso-center it is measured at (mm, world); who started the run ("Register", "Auto-correct").
     initial_motion: Array | None = None
+    #: The views the run registered (plane A first); the Evidence tab and the report use them.
+    views: list[XRayImage] | None = None
     isocenter_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     trigger: str = "Register"
 
@@ -379,6 +381,7 @@ class Session:
         assessment = None
         try:
             views = self.views()  # biplane: plane A first, offsets in its view frame
+            run.views = views
             data = self.data
             result = register(
                 data.volume(volume_format),
