@@ -127,6 +127,7 @@ def register(
     explain: bool = False,
     report: Path | None = None,
     report_identify: bool = False,
+    image_mask: Annotated[list[Path], tyro.conf.UseAppendAction] = [],  # noqa: B006 (tyro: an append flag)
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -167,6 +168,8 @@ def register(
         report: Write a report folder here (new or empty): report.html with the images, overlays, evidence
             plots, numbers and inputs (docs/report.md); assesses the confidence.
         report_identify: Name the patient (name, ID) and the file paths in the report (left out by default).
+        image_mask: Your own field mask for --image: a PNG or TIFF of the image's stored size, nonzero = usable
+            (one per --image, in order); it narrows the field found from the file (docs/field-of-view.md).
     """
     small_pages()
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
@@ -220,6 +223,7 @@ def register(
         explain=explain,
         report=report,
         report_identify=report_identify,
+        image_mask=image_mask,
     )
 
 
@@ -229,18 +233,27 @@ def _one_image(images: list[Path], flag: str) -> Path:
     return images[0]
 
 
-def info(path: Path, /, json: bool = False, sid_mm: float | None = None, sod_mm: float | None = None) -> int:
-    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values, decoder).
+def info(
+    path: Path,
+    /,
+    json: bool = False,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
+    image_mask: Path | None = None,
+) -> int:
+    """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values, decoder; for an
+    X-ray image how its usable field was found and which intensity relationship was assumed).
 
     Args:
         path: DICOM file, DICOM series folder or .npz volume.
         json: Print the report as one JSON object.
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
+        image_mask: Your own field mask for an X-ray image (PNG or TIFF of its stored size, nonzero = usable).
     """
     from app.cli.commands import run_info
 
-    return run_info(path, as_json=json, sid_mm=sid_mm, sod_mm=sod_mm)
+    return run_info(path, as_json=json, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask)
 
 
 def phantom(

@@ -346,6 +346,7 @@ def run_register(
     explain: bool = False,
     report: Path | None = None,
     report_identify: bool = False,
+    image_mask: Sequence[Path] = (),
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
@@ -367,6 +368,8 @@ def run_register(
         parse_isocenter(isocenter)  # a bad value is refused before any file is read
     if geometry and len(geometry) != len(images):
         raise ValueError(f"--geometry: one side file per --image ({len(images)}), got {len(geometry)}")
+    if image_mask and len(image_mask) != len(images):
+        raise ValueError(f"--image-mask: one mask per --image ({len(images)}), got {len(image_mask)}")
     if out_transform is not None and Path(out_transform).suffix.lower() not in ITK_SUFFIXES:
         raise ValueError(f"{out_transform}: --out-transform takes an ITK transform file ({', '.join(ITK_SUFFIXES)})")
     targets = ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM"), (out_transform, "--out-transform", "ITK"))
@@ -380,9 +383,10 @@ def run_register(
         clock.lap("reading the volume")
         iso, iso_from = resolve_isocenter(isocenter, vol)
         sides = list(geometry) or [None] * len(images)
+        masks = list(image_mask) or [None] * len(images)
         views = [
-            dicom.read_xray(p, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm, geometry=g)
-            for p, g in zip(images, sides, strict=True)
+            dicom.read_xray(p, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm, geometry=g, image_mask=m)
+            for p, g, m in zip(images, sides, masks, strict=True)
         ]
         clock.lap("reading the image" + ("s" if len(images) > 1 else ""))
         if len(views) == 2:
@@ -552,9 +556,16 @@ def _print_info(report: dict[str, Any]) -> None:
         _say(f"{'warning':>18}: {message}")
 
 
-def run_info(path: Path, *, as_json: bool = False, sid_mm: float | None = None, sod_mm: float | None = None) -> int:
+def run_info(
+    path: Path,
+    *,
+    as_json: bool = False,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
+    image_mask: Path | None = None,
+) -> int:
     """Print what the project reads from ``path``; exit code 2 when it is not accepted."""
-    report = dicom.inspect(path, sid_mm=sid_mm, sod_mm=sod_mm)
+    report = dicom.inspect(path, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask)
     if as_json:
         _say(json.dumps(report, indent=2))
     else:

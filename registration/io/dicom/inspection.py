@@ -56,12 +56,17 @@ HEADER_TAGS = (
 
 
 def inspect(
-    path: str | os.PathLike[str], *, sid_mm: float | None = None, sod_mm: float | None = None
+    path: str | os.PathLike[str],
+    *,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
+    image_mask: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
     """What the project reads from ``path``: kind, geometry, shape, spacing, value range.
 
     ``sid_mm`` / ``sod_mm`` supply the distances of X-ray images that lack them (as for
-    :func:`registration.io.dicom.read_xray`).
+    :func:`registration.io.dicom.read_xray`); ``image_mask`` is the user's field mask of an
+    X-ray image.
 
     Never raises for bad input: the result says ``accepted: False`` and gives the ``problem``;
     for a DICOM file the ``header`` entry lists the tags the readers look at.
@@ -87,7 +92,7 @@ def inspect(
                 out["decoder"] = pixel_decoder(ds)[1]
                 out["header"] = {k: _text(ds, k) for k in HEADER_TAGS if _text(ds, k)}
                 if _is_xray(ds):
-                    out.update(_inspect_xray(path, ds, sid_mm=sid_mm, sod_mm=sod_mm))
+                    out.update(_inspect_xray(path, ds, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask))
                 else:
                     out.update(_inspect_volume(read_volume(path)))
             out["accepted"] = True
@@ -95,7 +100,7 @@ def inspect(
             out["accepted"] = False
             out["problem"] = str(exc)
             if out.get("header") is not None and "kind" not in out and _xray_header(path):
-                out.update(_inspect_xray_without_geometry(path, str(exc)))
+                out.update(_inspect_xray_without_geometry(path, str(exc), image_mask))
     out["warnings"] = sorted({str(w.message) for w in caught})
     return out
 
@@ -156,10 +161,12 @@ def _field_report(field: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _inspect_xray_without_geometry(path: Path, problem: str) -> dict[str, Any]:
+def _inspect_xray_without_geometry(
+    path: Path, problem: str, image_mask: str | os.PathLike[str] | None = None
+) -> dict[str, Any]:
     """What can be said of an X-ray image whose geometry is missing: its field and intensities."""
     try:
-        mask, field, intensity = xray_field(path)
+        mask, field, intensity = xray_field(path, image_mask=image_mask)
     except (ValueError, OSError):
         return {}
     return {
@@ -172,10 +179,15 @@ def _inspect_xray_without_geometry(path: Path, problem: str) -> dict[str, Any]:
 
 
 def _inspect_xray(
-    path: Path, header: Dataset, *, sid_mm: float | None = None, sod_mm: float | None = None
+    path: Path,
+    header: Dataset,
+    *,
+    sid_mm: float | None = None,
+    sod_mm: float | None = None,
+    image_mask: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
     frames = _frames(path, header)
-    image = read_xray(path, frame=0, sid_mm=sid_mm, sod_mm=sod_mm)
+    image = read_xray(path, frame=0, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask)
     sign = image.meta.get("pixel_intensity_relationship_sign")
     out: dict[str, Any] = {
         "kind": "xray",

@@ -367,3 +367,40 @@ def test_a_missing_sign_is_read_from_the_collimated_outside(tmp_path: Path) -> N
     assert np.corrcoef(image.image[inside], att[inside])[0, 1] > 0.99  # attenuation grows with attenuation
     assert not (image.mask & ~circle).any()
     assert "collimated outside" in dicom.inspect(path)["intensity_assumed"]
+
+
+def test_the_command_line_takes_the_users_mask(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from PIL import Image
+
+    from app import cli
+
+    path = xa_file(tmp_path / "c.dcm", _stored(_anatomy(11), 12.0, 11), shutter=(129, 129, 120))
+    user = np.zeros((SIZE, SIZE), dtype=np.uint8)
+    user[50:200, 50:200] = 1
+    Image.fromarray(user).save(tmp_path / "m.png")
+    Image.fromarray(user[:10]).save(tmp_path / "bad.png")
+
+    def run(argv: list[str]) -> tuple[int, str, str]:
+        with pytest.raises(SystemExit) as info:
+            cli.main(argv)
+        out, err = capsys.readouterr()
+        assert "Traceback" not in err
+        return int(info.value.code or 0), out, err
+
+    code, out, _ = run(["info", str(path), "--image-mask", str(tmp_path / "m.png")])
+    assert code == 0 and "user mask m.png" in out and f"{150 * 150} pixels usable" in out
+    code, _, err = run(["info", str(path), "--image-mask", str(tmp_path / "bad.png")])
+    assert code == 2 and "bad.png" in err and "10x256 pixels; the image is 256x256" in err
+    # register refuses a mask of the wrong size before the registration starts (exit 2)
+    volume = tmp_path / "v.npz"
+    from registration.core.volume import Volume
+
+    dicom.write_npz(Volume(np.zeros((8, 8, 8), np.float32), np.diag([2.0, 2.0, 2.0, 1.0]), label="v"), volume)
+    code, _, err = run(
+        ["register", "--volume", str(volume), "--image", str(path), "--image-mask", str(tmp_path / "bad.png")]
+    )
+    assert code == 2 and "bad.png" in err
+    code, _, err = run(
+        ["register", "--volume", str(volume), "--image", str(path), "--image-mask", "a.png", "--image-mask", "b.png"]
+    )
+    assert code == 2 and "--image-mask: one mask per --image (1), got 2" in err
