@@ -132,14 +132,22 @@ def _remove_tree_contents(folder: Path) -> None:
 
 
 def classify_upload(folder: str | os.PathLike[str]) -> dict[str, Path | None]:
-    """Find the volume (series folder or multi-frame/.npz file) and the XA/RF file in ``folder``."""
+    """Find the volume (series folder, multi-frame, .npz, NIfTI, NRRD or MetaImage file) and the
+    X-ray image (an XA/RF file, or a TIFF/PNG with its geometry side file ``<name>.json``) in ``folder``."""
+    from registration.io.image_files import default_geometry_path, is_image_file
+    from registration.io.volume_files import volume_format
+
     folder = Path(folder)
     xray: Path | None = None
     volume_files: list[Path] = []
     npz: Path | None = None
     for p in _candidate_files(folder):
-        if p.suffix.lower() == ".npz":
+        if p.suffix.lower() == ".npz" or volume_format(p) is not None:
             npz = npz or p
+            continue
+        if is_image_file(p):
+            if default_geometry_path(p).is_file():
+                xray = xray or p
             continue
         try:
             ds = read_dataset(p, stop_before_pixels=True)

@@ -109,3 +109,15 @@ def test_info_reads_image_and_volume_files(tmp_path: Path) -> None:
     write_volume_file(Volume.from_grid(np.zeros((4, 5, 6)), 1.0), tmp_path / "v.nii.gz")
     report = dicom.inspect(tmp_path / "v.nii.gz")
     assert report["accepted"] and report["format"] == "NIfTI" and report["shape_kji"] == [4, 5, 6]
+
+
+def test_an_upload_of_a_nifti_and_a_tiff_is_recognised(tmp_path: Path) -> None:
+    from registration.core.volume import Volume
+    from registration.io.dicom.uploads import classify_upload
+    from registration.io.volume_files import write_volume_file
+
+    write_volume_file(Volume.from_grid(np.zeros((4, 5, 6)), 1.0), tmp_path / "ct.nii.gz")
+    write_image_file(_xray(), tmp_path / "xa.tif")  # with xa.json and xa-mask.png beside it
+    tifffile.imwrite(tmp_path / "other.tif", np.ones((8, 8), dtype=np.float32))  # no side file: not an X-ray
+    found = classify_upload(tmp_path)
+    assert found == {"volume": tmp_path / "ct.nii.gz", "image": tmp_path / "xa.tif"}
