@@ -347,6 +347,44 @@ def listen(
                       sid_mm=sid_mm, sod_mm=sod_mm)  # fmt: skip
 
 
+def audit(last: int = 50, all_lines: bool = False, as_json: bool = False, folder: Path | None = None) -> int:
+    """Print the audit trail: registrations, corrections, Stop, uploads, PACS loads and stores,
+    DICOM associations and sign-ins, one line each (time, client, action, result, UIDs).
+
+    Args:
+        last: Print the last N lines.
+        all_lines: Print every line (the rotated files too).
+        as_json: Print the JSON lines as stored.
+        folder: Audit folder (default: ROADMAP3D_AUDIT_DIR, else the user data dir's roadmap3d/audit).
+    """
+    import json as json_module
+
+    from registration.io.audit import AuditLog
+
+    log = AuditLog(folder)
+    lines = list(log.lines())
+    if not lines:
+        print(f"no audit lines in {log.folder}", file=sys.stderr)
+        return 0
+    for line in lines if all_lines else lines[-max(0, last) :]:
+        if as_json:
+            print(json_module.dumps(line))
+            continue
+        uids = []
+        if "study_uid" in line:
+            uids.append(f"study {line['study_uid']}")
+        if line.get("series_uids"):
+            uids.append("series " + ",".join(line["series_uids"]))
+        if "instance_uid" in line:
+            uids.append(f"instance {line['instance_uid']}")
+        if "ae_title" in line:
+            uids.append(f"AE {line['ae_title']}")
+        extra = f"  [{'; '.join(uids)}]" if uids else ""
+        print(f"{line.get('time', '?')}  {line.get('client') or '-':<15}  {line.get('action', '?'):<24}  "
+              f"{line.get('result', '')}{extra}")  # fmt: skip
+    return 0
+
+
 # --------------------------------------------------------------------------------------
 # the web app
 # --------------------------------------------------------------------------------------
@@ -573,6 +611,7 @@ COMMANDS = {
     "phantom": phantom,
     "mesh": mesh,
     "listen": listen,
+    "audit": audit,
     "track": track,
     "phantom-run": phantom_run,
 }

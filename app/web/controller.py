@@ -10,6 +10,7 @@ Auto-correct: a registration a moment after the patient last moved.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -23,6 +24,7 @@ from app.web.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL, Layout, format_cm,
 from app.web.session import RunState, Session
 from app.web.upload import limit_uploads
 from registration.core.geometry import clinically_relevant
+from registration.io import audit
 
 if TYPE_CHECKING:
     import viser
@@ -103,8 +105,8 @@ class Controller:
         ui.reset_button.on_click(on(lambda _e: self._moved(s.reset, "Reset")))
         for control in ui.carm_controls:
             control.on_update(on(self._on_carm))
-        ui.register_button.on_click(on(lambda _e: self.start_registration()))
-        ui.stop_button.on_click(on(lambda _e: s.stop_registration()))
+        ui.register_button.on_click(on(lambda e: self.start_registration(client=self.address(e))))
+        ui.stop_button.on_click(on(lambda e: self.stop_registration(client=self.address(e))))
         for box in (ui.show_ghost, ui.show_skull, ui.show_gradients):
             box.on_update(on(lambda _e: self.force_refresh()))
         ui.autocorrect.on_update(on(lambda _e: self._on_autocorrect()))
@@ -222,11 +224,36 @@ class Controller:
                 self._sync_depth -= 1
 
     # ----- the user's data ----------------------------------------------------------------
-    def _on_upload(self, _event: Any) -> None:
-        uploaded = self.layout.upload.value
-        self.load_upload(uploaded.name, uploaded.content)
+    def address(self, event: Any) -> str:
+        """The network address of the client behind a GUI event (for the audit log)."""
+        from app.web.signin import client_address
 
-    def load_upload(self, name: str, content: bytes) -> bool:
+        return client_address(self.server, getattr(event, "client", None))
+
+    def _data_uids(self) -> dict[str, Any]:
+        """The study and series UIDs of the data shown (none for the phantom): the audit log's."""
+        data = self.session.data
+        metas = []
+        try:
+            if getattr(data, "fixed_xray", None) is not None:
+                metas.append(data.fixed_xray.meta)
+                metas.append(data.volume(self.session.settings.volume_format_cm).meta)
+        except Exception:  # the audit line never stops the action
+            return {}
+        study = next((m.get("study_uid") for m in metas if m.get("study_uid")), None)
+        return {"study_uid": study, "series_uids": [m.get("series_uid") for m in metas if m.get("series_uid")]}
+
+    def stop_registration(self, *, client: str = "") -> None:
+        running = self.session.running
+        self.session.stop_registration()
+        audit.record("stop", client=client, result="stopped a registration" if running else "nothing running",
+                     **self._data_uids())  # fmt: skip
+
+    def _on_upload(self, event: Any) -> None:
+        uploaded = self.layout.upload.value
+        self.load_upload(uploaded.name, uploaded.content, client=self.address(event))
+
+    def load_upload(self, name: str, content: bytes, *, client: str = "") -> bool:
         """Read an uploaded zip and show it; a refusal becomes a message in the page."""
         from app.web.upload import distance_mm, read_upload
 
@@ -243,8 +270,10 @@ class Controller:
             if "sid_mm" in str(exc) or "sod_mm" in str(exc):
                 hint = " · Enter the distance under Data (SID/SOD) and upload again."
             self.message(f"Upload refused: {exc}{hint}", error=True)
+            audit.record("upload", client=client, result=f"refused: {str(exc)[:200]}")
             return False
         self.use_data(data)
+        audit.record("upload", client=client, result=f"loaded, {len(content)} bytes", **self._data_uids())
         self.message(f"Loaded {name}: {data.label}. Press **Register**.")
         return True
 
@@ -315,10 +344,13 @@ class Controller:
         )
 
     # ----- registration -----------------------------------------------------------------
-    def start_registration(self, *, trigger: str = "Register") -> bool:
+    def start_registration(self, *, trigger: str = "Register", client: str = "") -> bool:
         """Start a registration (``trigger``: "Register" or "Auto-correct", told in the status line)."""
         self.autocorrect_due = None
         started = self.session.start_registration(on_done=self.wake, trigger=trigger)
+        self._registration_client = client
+        audit.record("registration", client=client, result=f"started ({trigger})" if started else "not started",
+                     **self._data_uids())  # fmt: skip
         if started:
             self.set_running_ui(True)
             auto = trigger == "Auto-correct"
@@ -369,6 +401,17 @@ class Controller:
             residual = s.residual() if s.has_truth else None
             text, error = status.run_outcome(run, residual, biplane=s.biplane)
         self.message(text, error=error)
+        assessment = getattr(run, "assessment", None)
+        if run.abandoned or (run.result is not None and getattr(run.result, "stopped", False)):
+            outcome = "stopped"
+        elif run.error is not None or run.result is None:
+            outcome = "failed"
+        elif assessment is not None:
+            outcome = "applied" if assessment["applied"] else "withheld"
+        else:
+            outcome = "applied"  # without an assessment the roadmap takes the estimate
+        audit.record("correction", client=getattr(self, "_registration_client", ""),
+                     result=f"{outcome}: {re.sub(r'[*_`]', '', text)[:200]}", **self._data_uids())  # fmt: skip
 
     def preparing(self, text: str) -> None:
         """A later preparation (another volume format) reports here; once its frame is drawn the

@@ -65,8 +65,8 @@ class PacsPanel(BasePanel):
         self.refresh_button.on_click(ctx.guarded(lambda _e: self._in_background(self.list_studies)))
         self.patient.on_update(ctx.guarded(lambda _e: self._show_studies()))
         self.study.on_update(ctx.guarded(lambda _e: self._in_background(self._list_series)))
-        self.load_button.on_click(ctx.guarded(lambda _e: self._in_background(self.load_selected)))
-        self.store_button.on_click(ctx.guarded(lambda _e: self._in_background(self.store_result)))
+        self.load_button.on_click(ctx.guarded(lambda e: self._in_background(self._audited("pacs-load", e))))
+        self.store_button.on_click(ctx.guarded(lambda e: self._in_background(self._audited("pacs-store", e))))
         self.use_received.on_click(ctx.guarded(lambda _e: self.show_received()))
         self._node: Any = None
         self._node_folder: Path | None = None
@@ -179,6 +179,25 @@ class PacsPanel(BasePanel):
         self.load_button.disabled = not (volumes and images)
 
     # ----- loading -----------------------------------------------------------------------
+    def _audited(self, action: str, event: Any) -> Any:
+        """The work of a PACS button, recorded in the audit log with its outcome and the UIDs."""
+        from app.web.signin import client_address
+        from registration.io import audit
+
+        client = client_address(self.ctx.server, getattr(event, "client", None))
+        work = self.load_selected if action == "pacs-load" else self.store_result
+
+        def run() -> None:
+            self._audit_uids: dict[str, Any] = {}
+            try:
+                work()
+            except BaseException as exc:
+                audit.record(action, client=client, result=f"failed: {str(exc)[:200]}", **self._audit_uids)
+                raise
+            audit.record(action, client=client, result="ok", **self._audit_uids)
+
+        return run
+
     def load_selected(self) -> None:
         """Retrieve the chosen series (WADO-RS) and show them as the app's data."""
         from app.web.data import FileData
@@ -190,6 +209,7 @@ class PacsPanel(BasePanel):
         if vol_s is None or img_s is None:
             raise ValueError("Choose a 3DRA/CT series and an XA/RF series first.")
         pacs = self._client()
+        self._audit_uids = {"study_uid": img_s.study_uid, "series_uids": [vol_s.series_uid, img_s.series_uid]}
         self._say(f"Retrieving {vol_s.label()} and {img_s.label()}…")
         work = Path(tempfile.mkdtemp(prefix="roadmap3d-app-pacs-"))
         try:
@@ -251,6 +271,8 @@ class PacsPanel(BasePanel):
                 description="roadmap3d overlay (registered 3DRA vessels)",
             )
             pacs = self._client()
+            reg_uid = dicom.read_registration(reg).sop_instance_uid
+            self._audit_uids = {"study_uid": loaded["study_uid"], "instance_uid": reg_uid}
             pacs.store([reg, capture])
         finally:
             shutil.rmtree(work, ignore_errors=True)
@@ -259,6 +281,7 @@ class PacsPanel(BasePanel):
     # ----- the DICOM node (images from the C-arm) -----------------------------------------
     def start_node(self, *, allowed: tuple[str, ...], port: int = 11112, ae_title: str = "ROADMAP3D") -> int:
         """Receive images over DICOM (C-STORE) on 127.0.0.1; the port it listens on."""
+        from registration.io import audit
         from registration.io.node import DicomNode
 
         if self._node is not None:
@@ -266,7 +289,7 @@ class PacsPanel(BasePanel):
         folder = Path(tempfile.mkdtemp(prefix="roadmap3d-app-node-"))
         try:
             node = DicomNode(folder / "received", allowed=allowed, ae_title=ae_title, port=port,
-                             on_received=self._on_received).start()  # fmt: skip
+                             on_received=self._on_received, audit=audit.record).start()  # fmt: skip
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
             raise

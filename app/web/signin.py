@@ -289,6 +289,16 @@ def guarded(guard: Guard | None, make: Callable[[], Any]) -> Any:
     return server
 
 
+def client_address(server: Any, client: Any) -> str:
+    """The network address of a connected viser client (its ``ClientHandle`` or id); "" if unknown."""
+    try:
+        client_id = getattr(client, "client_id", client)
+        connection = server._websock_server._live_connections[client_id]
+        return str(connection.remote_address[0])
+    except (AttributeError, KeyError, IndexError, TypeError):
+        return ""
+
+
 def parse_origins(values: Iterable[str]) -> tuple[str, ...]:
     """``--allow-origin`` values: ``scheme://host[:port]`` each."""
     out = []

@@ -12,6 +12,7 @@ from app.web.data import AppConfig
 from app.web.gui import RoadmapApp
 from app.web.main import build_app, make_server
 from app.web.signin import Guard
+from registration.io import audit
 
 #: Small grids so the suite stays fast (registration still has to reach < 1 mm in-plane), a
 #: coarse skull (the browser test draws it with software WebGL on the same 2 cores), the quick
@@ -43,15 +44,16 @@ def wait_until(predicate, timeout: float, step: float = 0.05) -> bool:
 #: The shared app's sign-in token (the browser tests open the page with it, as a user does).
 TEST_TOKEN = "test-token-0123456789abcdef"
 #: Its guard: sign-in and the origin check, as ``roadmap3d app`` serves.
-TEST_GUARD = Guard(TEST_TOKEN)
+TEST_GUARD = Guard(TEST_TOKEN, audit=audit.record)
 
 
-@pytest.fixture(autouse=True)
-def _audit_in_tmp(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The audit log of the app tests in a folder of the test run, not the user's."""
-    from registration.io.audit import ENV_AUDIT_DIR
-
-    monkeypatch.setenv(ENV_AUDIT_DIR, str(tmp_path_factory.getbasetemp() / "audit"))
+@pytest.fixture(scope="session", autouse=True)
+def _audit_in_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The audit log of the app tests in a folder of the test run, not the user's (for the whole
+    session: the shared app's threads write to it between tests too)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(audit.ENV_AUDIT_DIR, str(tmp_path_factory.mktemp("audit")))
+        yield
 
 
 @pytest.fixture(scope="session")

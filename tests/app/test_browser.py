@@ -16,6 +16,7 @@ import pytest
 
 from app.web.gui import RoadmapApp
 from app.web.main import url_of
+from registration.io import audit
 from tests.app.conftest import TEST_GUARD
 
 from .conftest import READOUT, parse_readout
@@ -75,6 +76,8 @@ def readout_of(page) -> str:
 def test_page_renders_and_t4_register_converges(fresh: RoadmapApp, browser) -> None:
     app = fresh
     url = url_of(app.server, TEST_GUARD, with_token=True)
+    log = audit.audit_log()
+    before = len(list(log.lines()))
     # Generous timeouts: Chromium draws WebGL in software here, on the same 2 cores as the app.
     page = browser.new_page(viewport={"width": 1280, "height": 760})
     second = browser.new_page(viewport={"width": 800, "height": 500})
@@ -119,6 +122,20 @@ def test_page_renders_and_t4_register_converges(fresh: RoadmapApp, browser) -> N
         page.close()
         if not second.is_closed():
             second.close()
+    # The audit log: one line per action of this test (three tabs signed in, one registration and
+    # its correction), each from the browser's address; UIDs only, no name of any patient.
+    new = list(log.lines())[before:]
+    actions = [line["action"] for line in new]
+    assert actions.count("sign-in") == 3 and actions.count("registration") == 1, actions
+    assert actions.count("correction") == 1 and set(actions) == {"sign-in", "registration", "correction"}, actions
+    assert all(line["client"] == "127.0.0.1" for line in new), new
+    (correction,) = [line for line in new if line["action"] == "correction"]
+    assert correction["result"].startswith("applied"), correction
+    text = "".join(path.read_text() for path in log.files())
+    assert "^" not in text and "PatientName" not in text and TEST_GUARD.token not in text
+    allowed = {"time", "client", "action", "result", "study_uid", "series_uids", "instance_uid", "sop_class_uid",
+               "ae_title", "count"}  # fmt: skip
+    assert all(set(line) <= allowed for line in log.lines())
 
 
 def test_biplane_mode_in_the_page(fresh: RoadmapApp, browser) -> None:
