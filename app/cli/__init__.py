@@ -128,6 +128,7 @@ def register(
     report: Path | None = None,
     report_identify: bool = False,
     image_mask: Annotated[list[Path], tyro.conf.UseAppendAction] = [],  # noqa: B006 (tyro: an append flag)
+    landmarks: Path | None = None,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -170,6 +171,9 @@ def register(
         report_identify: Name the patient (name, ID) and the file paths in the report (left out by default).
         image_mask: Your own field mask for --image: a PNG or TIFF of the image's stored size, nonzero = usable
             (one per --image, in order); it narrows the field found from the file (docs/field-of-view.md).
+        landmarks: JSON of picked point pairs to start from instead of the machine-based pose, for a patient
+            far from it: {"landmarks": [{"image_px": [col, row], "volume_mm": [x, y, z], "plane": "A"}, ...]},
+            at least 4 on one image (docs/landmarks.md).
     """
     small_pages()
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
@@ -224,6 +228,7 @@ def register(
         report=report,
         report_identify=report_identify,
         image_mask=image_mask,
+        landmarks=landmarks,
     )
 
 

@@ -347,6 +347,7 @@ def run_register(
     report: Path | None = None,
     report_identify: bool = False,
     image_mask: Sequence[Path] = (),
+    landmarks: Path | None = None,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
@@ -355,7 +356,8 @@ def run_register(
     preparation's view-independent part on disk (:class:`registration.io.cache.PreparationCache`)
     and use it. ``explain``: print the registration's plan of stages first. ``report``: write the
     report folder there (:mod:`app.cli.report_commands`; assesses the confidence);
-    ``report_identify``: with the patient's name, ID and the file paths."""
+    ``report_identify``: with the patient's name, ID and the file paths. ``landmarks``: start
+    from the pose picked point pairs give (:mod:`registration.core.landmarks`), not the machine's."""
     from app.cli.report_commands import check_report_folder
 
     clock = _Stopwatch()
@@ -399,6 +401,14 @@ def run_register(
     m_init = None
     if initial_motion is not None:
         m_init, _ = read_motion(initial_motion, what="initial motion", volume_frame_of_reference=volume_for)
+    start = None
+    if landmarks is not None:
+        if m_init is not None:
+            raise ValueError("--landmarks and --initial-motion both give the start: use one")
+        from registration.core.landmarks import landmark_start, read_landmarks
+
+        start = landmark_start([v.geometry for v in views], read_landmarks(landmarks))
+        m_init = start.patient_motion
     m_true = None
     vessel_points = None
     if truth is not None:
@@ -430,6 +440,11 @@ def run_register(
     if len(views) == 2:
         _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
     _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
+    if start is not None:
+        left_out = int((~start.inliers).sum())
+        _say(f"start: {landmarks}'s {len(start.inliers)} landmarks, reprojection error {start.rms_px:.1f} px rms"
+             + (f" ({left_out} left out as disagreeing)" if left_out else "")
+             + f": {_format_offsets(start.patient_motion, g)}")  # fmt: skip
     if compiling:
         _say("compiling the engine's kernels (numba, once after an install or an update: up to a minute on "
              "2 cores; later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
@@ -490,6 +505,8 @@ def run_register(
         document["image"] = described[0]
         if len(views) == 2:
             document["images"] = described
+        if start is not None:
+            document["landmark_start"] = start.to_dict()
         if assessed is not None:
             keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
             document.update({k: assessed[k] for k in keys})

@@ -460,3 +460,32 @@ def test_register_confidence_on_the_real_ct(tmp_path: Path, capsys, monkeypatch)
     assert evidence["depth_shift_mm"] is not None and evidence["depth_scan_tz_mm"] is not None
     # images formed from the CT itself (a best case), registered to 0.1-0.2 mm in-plane: applied
     assert result["applied"] is True, result
+
+
+def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None:
+    """--landmarks: the start from picked pairs, said on the terminal and kept in the JSON."""
+    truth = np.asarray(json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())["patient_motion"])
+    xray = dicom.read_xray(exported / cli_io.PHANTOM_EXPOSURE)
+    points = np.array([[40.0, 30, 20], [-45, 25, -10], [10, -50, 35], [-20, -30, -40], [30, 10, -30]])
+    pixels = xray.geometry.project(points @ truth[:3, :3].T + truth[:3, 3])
+    landmarks = tmp_path / "landmarks.json"
+    entries = [{"image_px": px.tolist(), "volume_mm": p.tolist()} for px, p in zip(pixels, points, strict=True)]
+    landmarks.write_text(json.dumps({"landmarks": entries}))
+    volume = str(exported / cli_io.PHANTOM_VOLUME_DIR)
+    image = str(exported / cli_io.PHANTOM_EXPOSURE)
+    result_path = tmp_path / "result.json"
+    truth_file = str(exported / cli_io.PHANTOM_TRUTH)
+    code, out, _ = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks),
+                        "--truth", truth_file, "--out", str(result_path)], capsys)  # fmt: skip
+    assert code == 0
+    assert "start: " in out and "5 landmarks, reprojection error 0.0 px rms" in out  # exact picks
+    result = json.loads(result_path.read_text())
+    # exact picks give the true motion as the start (to rounding), and the registration keeps it
+    np.testing.assert_allclose(result["landmark_start"]["patient_motion"], truth, atol=1e-6)
+    assert result["success"] is True
+    code, _, err = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks),
+                        "--initial-motion", str(result_path)], capsys)  # fmt: skip
+    assert code == 2 and "--landmarks and --initial-motion" in err
+    landmarks.write_text(json.dumps({"landmarks": entries[:3]}))
+    code, _, err = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks)], capsys)
+    assert code == 2 and "at least 4 landmarks" in err

@@ -1,0 +1,187 @@
+"""A start from picked landmarks: corresponding points on the X-ray image(s) and in the volume.
+
+Four or more pairs (a pixel ``(col, row)`` on a view's image, CONVENTIONS §3, and the same
+anatomy's position in the volume's world frame, mm, §1-2) give the patient motion ``M`` (§4)
+under which the volume's points project onto the picked pixels: a perspective-n-point problem,
+solved per view by OpenCV (``solvePnP``; ``solvePnPRansac`` from six pairs on, so a mistaken
+pick is left out), then refined over every view's pairs together by least squares on the
+reprojection error (biplane: both planes' points constrain all six parameters).
+
+The result is a start for the image-based registration, not a registration: its reprojection
+error says how well the picks agree with one rigid motion.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import rq
+from scipy.optimize import least_squares
+
+from registration.core.geometry import CArm, rigid, rotation_matrix, rotation_vector
+
+Array = NDArray[np.float64]
+
+#: Fewest pairs a view's perspective-n-point solution takes.
+MIN_PAIRS = 4
+#: From this many pairs in a view on, its solution leaves out picks that disagree (RANSAC).
+RANSAC_PAIRS = 6
+#: A pair whose reprojection error exceeds this (pixels) is an outlier for RANSAC.
+RANSAC_THRESHOLD_PX = 12.0
+
+
+@dataclass(frozen=True)
+class Landmark:
+    """One picked pair: ``image_px`` (col, row) on plane ``plane``'s image (0 = A, 1 = B) and
+    ``volume_mm`` (x, y, z) in the volume's world frame."""
+
+    image_px: tuple[float, float]
+    volume_mm: tuple[float, float, float]
+    plane: int = 0
+
+
+@dataclass(frozen=True)
+class LandmarkStart:
+    """The motion the landmarks give, and how well they agree with it.
+
+    ``patient_motion``: 4x4 (CONVENTIONS §4); ``errors_px``: each pair's reprojection error at
+    it, in the order given; ``rms_px``: their root mean square over the pairs kept;
+    ``inliers``: which pairs were kept (False: left out by RANSAC)."""
+
+    patient_motion: Array
+    errors_px: Array
+    rms_px: float
+    inliers: NDArray[np.bool_]
+
+    def to_dict(self) -> dict:
+        return {
+            "patient_motion": self.patient_motion.tolist(),
+            "reprojection_rms_px": self.rms_px,
+            "reprojection_errors_px": [round(float(e), 3) for e in self.errors_px],
+            "inliers": [bool(i) for i in self.inliers],
+        }
+
+
+def camera_of(geometry: CArm) -> tuple[Array, Array]:
+    """The pinhole camera of a view: intrinsics ``K`` (3x3, pixels) and ``camera_from_world``
+    (4x4 rigid, depth positive in front of the source) with ``P = K @ camera_from_world[:3]`` up to
+    a positive scale (the view's projection matrix). The image's rows and columns with the beam
+    form a left-handed frame (CONVENTIONS §3), so ``K[1, 1]`` is negative."""
+    p = geometry.projection_matrix  # w > 0 in front of the source
+    k, r = rq(p[:, :3])
+    signs = np.diag(np.sign(np.diag(k)))
+    k, r = k @ signs, signs @ r  # K with a positive diagonal, w = K[2, 2] * depth
+    if np.linalg.det(r) < 0:  # the image axes (u, v) and the beam are left-handed: rows run negative
+        flip = np.diag([1.0, -1.0, 1.0])
+        k, r = k @ flip, flip @ r
+    t = np.linalg.solve(k, p[:, 3])
+    scale = k[2, 2]
+    return k / scale, rigid(r, t)
+
+
+def read_landmarks(path: str | Path) -> list[Landmark]:
+    """Landmarks from a JSON file: ``{"landmarks": [{"image_px": [col, row], "volume_mm": [x, y,
+    z], "plane": "A"}, ...]}`` (``plane`` optional, ``"A"`` or ``"B"``). Raises ``ValueError``
+    naming the file and the entry that is wrong."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a landmarks JSON file ({exc})") from None
+    entries = data.get("landmarks") if isinstance(data, dict) else None
+    if not isinstance(entries, list):
+        raise ValueError(f'{path}: expected {{"landmarks": [{{"image_px": [col, row], "volume_mm": [x, y, z]}}, ...]}}')
+    out = []
+    for n, entry in enumerate(entries):
+        try:
+            image = [float(v) for v in entry["image_px"]]
+            point = [float(v) for v in entry["volume_mm"]]
+            plane = {"A": 0, "B": 1}[str(entry.get("plane", "A")).strip().upper()]
+        except (KeyError, TypeError, ValueError, AttributeError):
+            raise ValueError(
+                f'{path}: landmark {n}: needs "image_px" [col, row], "volume_mm" [x, y, z] and an optional '
+                '"plane" "A" or "B"'
+            ) from None
+        if len(image) != 2 or len(point) != 3 or not np.all(np.isfinite(image + point)):
+            raise ValueError(f"{path}: landmark {n}: image_px must be 2 and volume_mm 3 finite numbers")
+        out.append(Landmark((image[0], image[1]), (point[0], point[1], point[2]), plane))
+    return out
+
+
+def _reprojection(motion: Array, geometries: Sequence[CArm], landmarks: Sequence[Landmark]) -> Array:
+    errors = np.empty(len(landmarks))
+    for n, lm in enumerate(landmarks):
+        moved = motion[:3, :3] @ np.asarray(lm.volume_mm) + motion[:3, 3]
+        errors[n] = float(np.linalg.norm(geometries[lm.plane].project(moved) - np.asarray(lm.image_px)))
+    return errors
+
+
+def _pnp(geometry: CArm, landmarks: Sequence[Landmark]) -> tuple[Array, NDArray[np.bool_]]:
+    import cv2
+
+    k, camera_from_world = camera_of(geometry)
+    objects = np.asarray([lm.volume_mm for lm in landmarks], dtype=np.float64)
+    pixels = np.asarray([lm.image_px for lm in landmarks], dtype=np.float64)
+    mirror = np.diag([1.0, -1.0, 1.0])  # OpenCV's camera wants positive focal lengths: rows mirrored
+    k, pixels = mirror @ k, pixels * np.array([1.0, -1.0])
+    inliers = np.ones(len(landmarks), dtype=bool)
+    if len(landmarks) >= RANSAC_PAIRS:
+        ok, rvec, tvec, kept = cv2.solvePnPRansac(
+            objects, pixels, k, None, reprojectionError=RANSAC_THRESHOLD_PX, flags=cv2.SOLVEPNP_SQPNP
+        )
+        if ok and kept is not None and len(kept) >= MIN_PAIRS:
+            inliers[:] = False
+            inliers[np.asarray(kept).ravel()] = True
+    else:
+        ok = False
+    if not ok:
+        ok, rvec, tvec = cv2.solvePnP(objects, pixels, k, None, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok:
+        raise ValueError("the landmarks admit no pose (are the picked points collinear or repeated?)")
+    camera_from_volume = rigid(rotation_matrix(np.ravel(rvec)), np.ravel(tvec))
+    return np.linalg.inv(camera_from_world) @ camera_from_volume, inliers
+
+
+def landmark_start(geometries: CArm | Sequence[CArm], landmarks: Sequence[Landmark]) -> LandmarkStart:
+    """The patient motion under which the landmarks' volume points project onto their pixels.
+
+    ``geometries``: the views' C-arms (plane A first); every view with landmarks needs at least
+    :data:`MIN_PAIRS` of them, and some view at least that many. Raises ``ValueError`` when the
+    landmarks cannot give a pose."""
+    geometries = (geometries,) if isinstance(geometries, CArm) else tuple(geometries)
+    landmarks = list(landmarks)
+    counts = [sum(lm.plane == p for lm in landmarks) for p in range(len(geometries))]
+    if any(lm.plane >= len(geometries) for lm in landmarks):
+        raise ValueError("a landmark names plane B but only one view was given")
+    if max(counts, default=0) < MIN_PAIRS:
+        raise ValueError(f"a landmark start needs at least {MIN_PAIRS} landmarks on one view, got {counts}")
+    best = int(np.argmax(counts))
+    picked = [n for n, lm in enumerate(landmarks) if lm.plane == best]
+    motion, kept = _pnp(geometries[best], [landmarks[n] for n in picked])
+    inliers = np.ones(len(landmarks), dtype=bool)
+    inliers[np.asarray(picked)[~kept]] = False
+
+    used = [lm for lm, keep in zip(landmarks, inliers, strict=True) if keep]
+
+    def residual(x: Array) -> Array:
+        m = rigid(rotation_matrix(x[:3]), x[3:])
+        out = []
+        for lm in used:
+            moved = m[:3, :3] @ np.asarray(lm.volume_mm) + m[:3, 3]
+            out.extend(geometries[lm.plane].project(moved) - np.asarray(lm.image_px))
+        return np.asarray(out)
+
+    x0 = np.concatenate([rotation_vector(motion[:3, :3]), motion[:3, 3]])
+    fit = least_squares(residual, x0, method="lm" if 2 * len(used) >= 6 else "trf")
+    motion = rigid(rotation_matrix(fit.x[:3]), fit.x[3:])
+    errors = _reprojection(motion, geometries, landmarks)
+    rms = float(np.sqrt(np.mean(errors[inliers] ** 2)))
+    return LandmarkStart(motion, errors, rms, inliers)
+
+
+__all__ = ["MIN_PAIRS", "Landmark", "LandmarkStart", "camera_of", "landmark_start", "read_landmarks"]
