@@ -296,6 +296,12 @@ class Controller:
             f"<small>Registration volume: {volume.label} ({fmt}{'x'.join(str(n) for n in volume.shape)} voxels of "
             f"{float(np.mean(volume.spacing_mm)):.2f} mm)</small>"
         )
+        field = data.fixed_xray.meta.get("field") if data.fixed_xray is not None else None
+        if field:  # how the X-ray image's usable field was found (docs/field-of-view.md)
+            ui.volume_info.content += (
+                f"  \n<small>Image field: {field.get('found_by', '')}; {field.get('usable_pixels', 0):,} pixels "
+                f"usable ({100.0 * field.get('usable_fraction', 0.0):.0f} % of the image)</small>"
+            )
         ui.phantom_button.visible = data is not self.phantom
         ui.show_ghost.disabled = not self.session.has_truth
         self.show_isocenter()

@@ -444,9 +444,14 @@ def find_graphics(values: NDArray[np.float64], field_mask: NDArray[np.bool_]) ->
         if n == 0:
             continue
         index = np.arange(1, n + 1)
-        width = ndimage.distance_transform_edt(candidates)
-        widest = ndimage.maximum(width, labels, index)
-        sizes = ndimage.sum(candidates, labels, index)
+        rs, cs = np.nonzero(candidates)
+        r0, r1, c0, c1 = max(rs.min() - 1, 0), rs.max() + 2, max(cs.min() - 1, 0), cs.max() + 2
+        width = np.zeros(values.shape)
+        width[r0:r1, c0:c1] = ndimage.distance_transform_edt(candidates[r0:r1, c0:c1])
+        widest = np.zeros(n + 1)
+        np.maximum.at(widest, labels[rs, cs], width[rs, cs])
+        widest = widest[1:]
+        sizes = np.bincount(labels[rs, cs], minlength=n + 1)[1:]
         ring = ndimage.binary_dilation(candidates, iterations=3) & ~ndimage.binary_dilation(candidates) & field_mask
         ring_labels = ndimage.grey_dilation(labels, size=(7, 7)) * ring
         with np.errstate(invalid="ignore", divide="ignore"):

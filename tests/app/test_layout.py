@@ -119,6 +119,7 @@ def test_the_data_tab_supplies_distances_a_file_lacks(fresh: RoadmapApp, tmp_pat
         assert app.load_upload("case.zip", content), app.status.content
         read = app.session.data.fixed_xray.geometry
         assert (read.sid_mm, read.sod_mm) == (geometry.sid_mm, geometry.sod_mm)
+        assert "Image field: shutter tags (circular), constant border; " in app.volume_info.content
     finally:
         app.upload_sid.value = app.upload_sod.value = ""
         app.phantom_button.value = True
