@@ -437,6 +437,7 @@ def run_register(
             f"primary {gv.primary_deg:+.1f} deg, secondary {gv.secondary_deg:+.1f} deg, "
             f"SID {gv.sid_mm:.0f} mm, SOD {gv.sod_mm:.0f} mm"
         )
+    _say("geometry: nominal (the files' positioner angles and distances; no C-arm calibration is applied)")
     if len(views) == 2:
         _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
     _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
@@ -510,6 +511,7 @@ def run_register(
         if assessed is not None:
             keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
             document.update({k: assessed[k] for k in keys})
+        document["geometry_source"] = "nominal"  # the files' positioner tags, no calibration
         document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
     if out is not None:
         dicom.write_text_atomic(out, dicom.json_dumps(document))

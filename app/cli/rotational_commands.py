@@ -136,11 +136,22 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
     if args.cases < 1:
         raise ValueError(f"--cases must be >= 1, got {args.cases}")
     table = None
-    if args.calibration is not None:
+    calibration = args.calibration
+    if calibration is None and args.run and not args.pacs:
+        beside = Path(args.run).parent / PHANTOM_RUN_CALIBRATION
+        if beside.is_file():  # the calibration an export put beside its run
+            calibration = beside
+            _stderr(f"calibration: {beside} (found beside the run; --calibration names another)")
+    if calibration is not None:
         try:
-            table = CalibrationTable.from_dict(json.loads(Path(args.calibration).read_text()))
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{args.calibration}: not a calibration table JSON ({exc})") from None
+            table = CalibrationTable.from_dict(json.loads(Path(calibration).read_text()))
+        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{calibration}: not a calibration table JSON ({exc})") from None
+    else:
+        _stderr(
+            "warning: no C-arm calibration (--calibration): the frames are registered on the run's nominal "
+            "geometry (its positioner tags); a bent, uncalibrated C-arm makes many of them fail"
+        )
     work = None
     try:
         if args.pacs:
@@ -166,7 +177,7 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
                 try:
                     table.geometry(g)
                 except ValueError as exc:
-                    raise ValueError(f"{args.calibration}: frame {n}: {exc}") from None
+                    raise ValueError(f"{calibration}: frame {n}: {exc}") from None
         cases = rotational_tasks(len(run), args.cases, seed=args.seed)
         start = time.perf_counter()
         progress = None if args.json else _stderr
@@ -186,7 +197,8 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
     finally:
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
-    config = {**asdict(args), "frames": len(run), "calibrated": table is not None, "seed": args.seed}
+    config = {**asdict(args), "calibration": calibration, "frames": len(run), "calibrated": table is not None,
+              "seed": args.seed}  # fmt: skip
     config = {k: (str(v) if isinstance(v, Path) else v) for k, v in config.items()}
     for record in records:
         record["contrast"] = args.contrast
@@ -194,7 +206,8 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
     if args.contrast is None:  # neither group: the report's contrast rows stay empty
         empty = clinical_summary([], config={}, wall_seconds=0.0)
         summary["contrast"], summary["no_contrast"] = empty["contrast"], empty["no_contrast"]
-    summary.update({"study": "rotational-run", "run": run_label, "frames": len(run), "calibrated": table is not None})
+    summary.update({"study": "rotational-run", "run": run_label, "frames": len(run), "calibrated": table is not None,
+                    "geometry": "calibrated" if table is not None else "nominal"})  # fmt: skip
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "results.jsonl", "w") as fh:
@@ -207,6 +220,7 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
     else:
         lines = summary_lines(summary)
         print("\n".join([lines[0], lines[1], lines[-1]]))
-        print(f"success (both criteria): {100.0 * (summary['success_rate'] or 0.0):.1f} %")
+        print(f"success (both criteria): {100.0 * (summary['success_rate'] or 0.0):.1f} %"
+              + ("" if table is not None else " (nominal geometry: no C-arm calibration)"))  # fmt: skip
         print(f"\nwritten: {out / 'results.jsonl'}, {out / 'report.md'}, {out / 'report.html'} and the plots")
     return 0

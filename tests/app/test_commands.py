@@ -147,6 +147,7 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     )  # fmt: skip
     assert code == 0
     assert "residual vs truth" in out
+    assert "geometry: nominal" in out  # no calibration: said
     # --verbose: where the time went, on stderr (stdout keeps the summary)
     timing = next(line for line in err.splitlines() if line.startswith("time: "))
     for part in ("reading the volume", "preparing the volume", "registration", "total"):

@@ -10,6 +10,7 @@ docs/validation.md, measured with ``roadmap3d validate rotational-run``).
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -116,3 +117,24 @@ def test_validate_rotational_run_from_a_pacs(export: Path, orthanc, tmp_path: Pa
     summary = json.loads(out)
     assert summary["runs"] == 1 and summary["frames"] == RUN["projections"]
     assert "rotational run of the 3DRA" in summary["run"] and orthanc.dicomweb_url in summary["run"]
+
+
+def test_the_calibration_beside_the_run_is_found_and_nominal_geometry_is_said(
+    export: Path, tmp_path: Path, capsys
+) -> None:
+    base = ["validate", "rotational-run", "--volume", str(export / "volume"), "--cases", "1", "--json"]
+    code, out, err = _run([*base, "--run", str(export / rotational_commands.PHANTOM_RUN), "--out",
+                           str(tmp_path / "found")], capsys)  # fmt: skip
+    assert code == 0, err
+    assert f"calibration: {export / rotational_commands.PHANTOM_RUN_CALIBRATION} (found beside the run" in err
+    summary = json.loads(out)
+    assert summary["calibrated"] is True and summary["geometry"] == "calibrated"
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    shutil.copy(export / rotational_commands.PHANTOM_RUN, alone / rotational_commands.PHANTOM_RUN)
+    code, out, err = _run([*base, "--run", str(alone / rotational_commands.PHANTOM_RUN), "--out",
+                           str(tmp_path / "nominal")], capsys)  # fmt: skip
+    assert code == 0, err
+    assert "warning: no C-arm calibration" in err and "nominal geometry" in err
+    summary = json.loads(out)
+    assert summary["calibrated"] is False and summary["geometry"] == "nominal"
