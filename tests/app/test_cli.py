@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import http.cookiejar
 import os
 import re
 import signal
@@ -59,9 +60,12 @@ def test_serves_and_stops_on_ctrl_c(command: str, exported: Path) -> None:  # no
     files = ["--volume", str(exported / "volume.npz"), "--image", str(exported / "image.dcm")]
     proc = start("demo", "--port", "0") if command == "demo" else start("app", "--port", "0", *files)
     try:
-        url = wait_for_line(proc, r"serving on (http://127\.0\.0\.1:\d+)", 60)[1]
+        # the printed address carries the sign-in token (/?token=...): a user opens exactly it
+        url = wait_for_line(proc, r"serving on (http://127\.0\.0\.1:\d+\S*)", 60)[1]
         wait_for_line(proc, r"ready after", 120)
-        with urllib.request.urlopen(url, timeout=10) as response:
+        # /?token= answers with the sign-in cookie and a redirect to the page, as for a browser
+        opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
+        with opener.open(url, timeout=10) as response:
             assert response.status == 200
         proc.send_signal(signal.SIGINT)
         t0 = time.monotonic()
