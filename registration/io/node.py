@@ -205,27 +205,37 @@ class _GuardedDUL(DULServiceProvider):
         self.peer = ""
 
     # ----- reading ---------------------------------------------------------------------
-    def _recv_exact(self, count: int, deadline: float) -> bytes | None:
+    def _recv_exact(self, count: int, deadline: float) -> bytes | str:
+        """``count`` bytes, or why not: ``late`` (the deadline passed), ``closed`` (the peer
+        ended the connection) or ``stopping``. The socket's own timeout (used by the sends of
+        the same thread) is restored."""
         raw = self.socket.socket if self.socket is not None else None
+        if raw is None:
+            return "closed"
         data = bytearray()
-        while raw is not None and len(data) < count:
-            left = deadline - time.monotonic()
-            if self._node._stopping.is_set():
-                return None
-            try:
-                # past the deadline, bytes already waiting are still taken (a starved thread is no stall)
-                raw.settimeout(min(left, 0.5) if left > 0 else 0.0)
-                chunk = raw.recv(min(count - len(data), 65536))
-            except (TimeoutError, BlockingIOError):
-                if left <= 0:
-                    return None
-                continue
-            except OSError:
-                return None
-            if not chunk:
-                return None
-            data += chunk
-        return bytes(data) if len(data) == count else None
+        saved = raw.gettimeout()
+        try:
+            while len(data) < count:
+                left = deadline - time.monotonic()
+                if self._node._stopping.is_set():
+                    return "stopping"
+                try:
+                    # past the deadline, bytes already waiting are still taken (a starved thread is no stall)
+                    raw.settimeout(min(left, 0.5) if left > 0 else 0.0)
+                    chunk = raw.recv(min(count - len(data), 65536))
+                except (TimeoutError, BlockingIOError):
+                    if left <= 0:
+                        return "late"
+                    continue
+                except OSError:
+                    return "closed"
+                if not chunk:
+                    return "closed"
+                data += chunk
+        finally:
+            with contextlib.suppress(OSError):
+                raw.settimeout(saved)
+        return bytes(data)
 
     def _drop(self, reason: str) -> None:
         log.warning("DICOM node: connection from %s closed: %s", self.peer or "?", reason)
@@ -235,14 +245,17 @@ class _GuardedDUL(DULServiceProvider):
             self.socket.close()  # Evt17: the state machine ends the association
 
     def _read_pdu_data(self) -> None:
-        established = self.assoc.is_established
+        # before the association request (Sta2); the association's own flag lags behind the
+        # A-ASSOCIATE-AC, and a peer may send P-DATA the moment the AC arrives
+        established = self.state_machine.current_state not in ("Sta1", "Sta2")
         now = time.monotonic()
         deadline = now + PDU_TIMEOUT_S if established else self._opened + ASSOCIATION_TIMEOUT_S
         header = self._recv_exact(6, deadline)
-        if header is None:
-            if self.socket is not None and self.socket.socket is not None:
-                what = "a PDU" if established else "the association request"
-                self._drop(f"{what} did not arrive in time")
+        if isinstance(header, str):
+            if header == "late":
+                self._drop(f"{'a PDU' if established else 'the association request'} did not arrive in time")
+            elif self.socket is not None:
+                self.socket.close()  # Evt17: the peer ended the connection (or the node stops)
             return
         pdu_type, _, length = struct.unpack(">BBL", header)
         if pdu_type not in (0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07):
@@ -255,8 +268,11 @@ class _GuardedDUL(DULServiceProvider):
             self._drop(f"a PDU of {length} bytes claimed (at most {MAX_PDU_BYTES})")
             return
         body = self._recv_exact(length, deadline)
-        if body is None:
-            self._drop(f"a PDU of {length} bytes did not arrive whole in time")
+        if isinstance(body, str):
+            if body == "late":
+                self._drop(f"a PDU of {length} bytes did not arrive whole in time")
+            else:
+                self._drop(f"the connection ended inside a PDU of {length} bytes")
             return
         data = header + body
         if pdu_type == 0x04:
