@@ -117,6 +117,7 @@ def register(
     seed: int = 0,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    pixel_mm: float | None = None,
     pacs: str | None = None,
     study: str | None = None,
     ca_bundle: Path | None = None,
@@ -151,6 +152,7 @@ def register(
         seed: Seed of the annealing.
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
+        pixel_mm: Pixel spacing at the detector (mm, square pixels) for images without ImagerPixelSpacing (0018,1164).
         pacs: DICOMweb URL of a PACS to load --volume/--image from (credentials: ROADMAP3D_PACS_USERNAME and
             ROADMAP3D_PACS_PASSWORD, or the config file; never on the command line).
         study: Study Instance UID on the PACS.
@@ -221,6 +223,7 @@ def register(
         seed=seed,
         sid_mm=sid_mm,
         sod_mm=sod_mm,
+        pixel_mm=pixel_mm,
         verbose=verbose,
         confidence=confidence,
         cache=not no_cache,
@@ -244,6 +247,7 @@ def info(
     json: bool = False,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    pixel_mm: float | None = None,
     image_mask: Path | None = None,
 ) -> int:
     """Show what roadmap3d reads from a file or folder (kind, geometry, shape, spacing, values, decoder; for an
@@ -254,11 +258,12 @@ def info(
         json: Print the report as one JSON object.
         sid_mm: Source-detector distance for images without DistanceSourceToDetector (0018,1110).
         sod_mm: Source-iso-center distance for images without DistanceSourceToPatient (0018,1111).
+        pixel_mm: Pixel spacing at the detector (mm, square pixels) for images without ImagerPixelSpacing (0018,1164).
         image_mask: Your own field mask for an X-ray image (PNG or TIFF of its stored size, nonzero = usable).
     """
     from app.cli.commands import run_info
 
-    return run_info(path, as_json=json, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask)
+    return run_info(path, as_json=json, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask, pixel_mm=pixel_mm)
 
 
 def phantom(

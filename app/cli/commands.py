@@ -340,6 +340,7 @@ def run_register(
     seed: int = 0,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    pixel_mm: float | None = None,
     verbose: bool = False,
     confidence: bool = False,
     cache: bool = True,
@@ -387,7 +388,16 @@ def run_register(
         sides = list(geometry) or [None] * len(images)
         masks = list(image_mask) or [None] * len(images)
         views = [
-            dicom.read_xray(p, frame=frame, isocenter_mm=iso, sid_mm=sid_mm, sod_mm=sod_mm, geometry=g, image_mask=m)
+            dicom.read_xray(
+                p,
+                frame=frame,
+                isocenter_mm=iso,
+                sid_mm=sid_mm,
+                sod_mm=sod_mm,
+                pixel_mm=pixel_mm,
+                geometry=g,
+                image_mask=m,
+            )
             for p, g, m in zip(images, sides, masks, strict=True)
         ]
         clock.lap("reading the image" + ("s" if len(images) > 1 else ""))
@@ -581,10 +591,11 @@ def run_info(
     as_json: bool = False,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    pixel_mm: float | None = None,
     image_mask: Path | None = None,
 ) -> int:
     """Print what the project reads from ``path``; exit code 2 when it is not accepted."""
-    report = dicom.inspect(path, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask)
+    report = dicom.inspect(path, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask, pixel_mm=pixel_mm)
     if as_json:
         _say(json.dumps(report, indent=2))
     else:

@@ -61,6 +61,7 @@ def inspect(
     sid_mm: float | None = None,
     sod_mm: float | None = None,
     image_mask: str | os.PathLike[str] | None = None,
+    pixel_mm: float | None = None,
 ) -> dict[str, Any]:
     """What the project reads from ``path``: kind, geometry, shape, spacing, value range.
 
@@ -92,7 +93,9 @@ def inspect(
                 out["decoder"] = pixel_decoder(ds)[1]
                 out["header"] = {k: _text(ds, k) for k in HEADER_TAGS if _text(ds, k)}
                 if _is_xray(ds):
-                    out.update(_inspect_xray(path, ds, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask))
+                    out.update(
+                        _inspect_xray(path, ds, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask, pixel_mm=pixel_mm)
+                    )
                 else:
                     out.update(_inspect_volume(read_volume(path)))
             out["accepted"] = True
@@ -184,10 +187,11 @@ def _inspect_xray(
     *,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    pixel_mm: float | None = None,
     image_mask: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
     frames = _frames(path, header)
-    image = read_xray(path, frame=0, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask)
+    image = read_xray(path, frame=0, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask, pixel_mm=pixel_mm)
     sign = image.meta.get("pixel_intensity_relationship_sign")
     out: dict[str, Any] = {
         "kind": "xray",

@@ -164,6 +164,7 @@ def _geometry(
     *,
     sid_mm: float | None = None,
     sod_mm: float | None = None,
+    pixel_mm: float | None = None,
 ) -> tuple[CArm, dict]:
     primary, secondary, angle_source = _frame_angles(path, ds, frame, frames)
     if abs(primary) > 180 or abs(secondary) > 90:  # legal for the C-arm, outside DICOM's defined range
@@ -178,11 +179,21 @@ def _geometry(
     )
     spacing = _floats(path, ds, "ImagerPixelSpacing", 2, frame, required=False)
     spacing_tag = "ImagerPixelSpacing"
+    if pixel_mm is not None:
+        value = float(pixel_mm)
+        if not math.isfinite(value) or value <= 0:
+            raise ValueError(f"pixel_mm (--pixel-mm) must be a positive number of mm, got {pixel_mm}")
+        if spacing is not None and max(abs(v - value) for v in spacing) > 1e-6 * value:
+            warnings.warn(f"{path}: {tag_name(spacing_tag)} is {spacing}; using the given {value:g} mm instead",
+                          stacklevel=3)  # fmt: skip
+        spacing, spacing_tag = [value, value], "pixel_mm"
     if spacing is None:
         spacing = _floats(path, ds, "PixelSpacing", 2, frame, required=False)
         spacing_tag = "PixelSpacing"
         if spacing is None:
-            raise DicomError(path, f"missing {tag_name('ImagerPixelSpacing')} (and no PixelSpacing)")
+            raise DicomError(
+                path, f"missing {tag_name('ImagerPixelSpacing')} (and no PixelSpacing): supply it with --pixel-mm"
+            )
         warnings.warn(
             f"{path}: no {tag_name('ImagerPixelSpacing')}; using {tag_name('PixelSpacing')} {spacing} as the "
             "spacing at the detector",
@@ -423,6 +434,7 @@ def read_xray(
     sod_mm: float | None = None,
     geometry: str | os.PathLike[str] | dict | None = None,
     image_mask: str | os.PathLike[str] | None = None,
+    pixel_mm: float | None = None,
 ) -> XRayImage:
     """An XA/RF image (one frame) as attenuation line integrals with its field mask and C-arm.
 
@@ -433,7 +445,8 @@ def read_xray(
     ``isocenter_mm`` places the iso-center (default: the world origin, CONVENTIONS §1).
     ``sid_mm`` / ``sod_mm`` supply the source-detector and source-iso-center distances for
     files that lack DistanceSourceToDetector / DistanceSourceToPatient; given for a file that
-    has them, they replace the file's values (with a warning when they differ).
+    has them, they replace the file's values (with a warning when they differ); ``pixel_mm`` does
+    the same for ImagerPixelSpacing (square pixels at the detector).
     ``image_mask``: the user's own field mask, a PNG or TIFF of the image's stored size
     (nonzero = usable), intersected with the field the file and its pixels give.
     A whole run (all frames, their times) is read by :func:`registration.io.dicom.read_xray_run`.
@@ -455,8 +468,9 @@ def read_xray(
     if not 0 <= int(frame) < frames:
         raise DicomError(path, f"frame {frame} out of range: {tag_name('NumberOfFrames')} is {frames}")
     return _xray_frame(
-        path, ds, int(frame), frames, rows, cols, iso, kind=kind, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask
-    )
+        path, ds, int(frame), frames, rows, cols, iso, kind=kind, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask,
+        pixel_mm=pixel_mm,
+    )  # fmt: skip
 
 
 def with_user_mask(image: XRayImage, image_mask: str | os.PathLike[str]) -> XRayImage:
@@ -698,6 +712,7 @@ def _xray_frame(
     sod_mm: float | None = None,
     image_mask: str | os.PathLike[str] | None = None,
     field_cache: dict[str, Any] | None = None,
+    pixel_mm: float | None = None,
 ) -> XRayImage:
     """Frame ``frame`` of an opened XA/RF dataset as an :class:`XRayImage`.
 
@@ -718,7 +733,9 @@ def _xray_frame(
     if rotation_note:
         mask = _undo_field_of_view(mask, *_field_of_view(path, ds, frame))
     rows, cols = stored.shape
-    geometry, geo_info = _geometry(path, ds, frame, frames, rows, cols, iso, sid_mm=sid_mm, sod_mm=sod_mm)
+    geometry, geo_info = _geometry(
+        path, ds, frame, frames, rows, cols, iso, sid_mm=sid_mm, sod_mm=sod_mm, pixel_mm=pixel_mm
+    )
     image, intensity = _intensity_to_attenuation(path, ds, stored, frame, mask, field_info.get("sign_inferred"))
     image = np.where(mask, image, np.float32(0.0)).astype(np.float32)
     meta: dict[str, Any] = {
