@@ -52,8 +52,9 @@ def _real_ct_cases(n: int):  # noqa: ANN202
 
 def _phantom_cases():  # noqa: ANN202
     from registration.core.geometry import CArm, offsets_to_matrix
+    from registration.core.preparation import Preparation
     from registration.sim.xray import simulate_xray
-    from registration.studies.cases import _phantom, case_volume, offset_vector, prepared_renderer, table1_cases
+    from registration.studies.cases import _phantom, case_volume, offset_vector, table1_cases
 
     for case in table1_cases():
         g = CArm.for_format(case.image_format_cm, pixels=case.image_pixels, primary_deg=case.primary_deg,
@@ -62,7 +63,7 @@ def _phantom_cases():  # noqa: ANN202
         volume = case_volume(case)
         xray = simulate_xray(_phantom(case.phantom_seed, False, case.facial), g, motion=truth, kind=case.image_kind,
                              seed=case.seed)  # fmt: skip
-        yield f"{case.offset}-{case.image_kind}", volume, xray, truth, case.seed, prepared_renderer(volume)[0]
+        yield f"{case.offset}-{case.image_kind}", volume, xray, truth, case.seed, Preparation.of(volume, xray).renderer
 
 
 def main() -> None:

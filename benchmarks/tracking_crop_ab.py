@@ -20,7 +20,8 @@ import json
 import numpy as np
 
 import registration.core.tracking as tracking
-from registration.studies.cases import load_volume, prepared_renderer
+from registration.core.drr import DRRRenderer
+from registration.studies.cases import load_volume
 from registration.studies.tracking import TrackingConfig, case_runs
 
 
@@ -32,7 +33,7 @@ def main() -> None:
     case = config.cases[0]
     runs = case_runs(case)
     volume = load_volume(0, True, case.volume_format_cm, case.volume_voxels, case.volume_source)
-    renderer, _ = prepared_renderer(volume)
+    renderer = DRRRenderer(volume, levels=3)
     watch_check, watch_take = tracking._CropWatch.check, tracking._CropWatch.take
 
     def run(watch: bool) -> tuple[float, float, list]:

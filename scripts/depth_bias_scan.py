@@ -23,10 +23,10 @@ import numpy as np
 from scipy import ndimage
 
 from registration.core.depth import high_pass
+from registration.core.drr import DRRRenderer
 from registration.core.images import XRayImage
 from registration.core.problem import LevelProblem
 from registration.core.similarity import GradientDifference
-from registration.studies.cases import prepared_renderer
 from registration.studies.runs import patient_data
 
 PATIENTS = ((1, 22.0, True), (2, 27.0, False))  # the quick study's (phantom seed, format, contrast)
@@ -54,7 +54,7 @@ def main() -> None:
     }
     for patient, (seed, fmt, contrast) in enumerate(PATIENTS):
         data = patient_data(seed, fmt, contrast, 120, 200.0, 256, 128)
-        renderer, _ = prepared_renderer(data.volume)
+        renderer = DRRRenderer(data.volume, levels=3)  # the index pyramid the recorded studies used
         for frame in frames:
             g = data.calibrated_geometries[frame]
             xray = XRayImage(data.images[frame], data.masks[frame], g, "exposure", {})

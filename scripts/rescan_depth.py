@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from registration.core.depth import depth_scan
+from registration.core.drr import DRRRenderer
 from registration.core.geometry import apply
 from registration.core.images import XRayImage
-from registration.studies.cases import prepared_renderer
 from registration.studies.runs import patient_data
 
 
@@ -38,7 +38,7 @@ def main() -> None:
         for r in sorted(records, key=lambda r: (r["phantom_seed"], r["case_id"])):
             data = patient_data(r["phantom_seed"], r["volume_format_cm"], r["contrast"], r["projections"], 200.0,
                                 r["image_pixels"], r["volume_voxels"])  # fmt: skip
-            renderer, _ = prepared_renderer(data.volume)
+            renderer = DRRRenderer(data.volume, levels=3)  # the index pyramid the recorded studies used
             g = data.calibrated_geometries[r["frame"]]
             xray = XRayImage(data.images[r["frame"]], data.masks[r["frame"]], g, "exposure", {})
             m = np.asarray(r["patient_motion"])

@@ -225,11 +225,6 @@ def _format_offsets(motion: np.ndarray, geometry: CArm) -> str:
 # --------------------------------------------------------------------------------------
 # register
 # --------------------------------------------------------------------------------------
-#: The confidence's evidence renders at the level nearest this many voxels across
-#: (``registration_evidence``'s ``volume_voxels``; its rule was calibrated on such DRRs).
-EVIDENCE_VOXELS = 128
-
-
 #: Kernels every registration runs (numba: compiled on the first run, then loaded from the
 #: on-disk cache beside the modules, ``__pycache__``), by module.
 REGISTRATION_KERNELS = (
@@ -288,41 +283,11 @@ def prepare_for_registration(
 
 
 def confidence_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRenderer:
-    """The renderer ``register --confidence`` assesses with: the registration's own prepared
-    levels (cropped to what the fields reach over the search, isotropic in mm, cached), and
-    level 0 where the assessment renders there.
+    """The renderer ``register --confidence`` assesses with
+    (:func:`registration.core.preparation.probe_renderer`)."""
+    from registration.core.preparation import probe_renderer
 
-    The rule was calibrated with the index pyramid of whole 3DRAs (``DRRRenderer(volume,
-    levels=3)``): the evidence at the level nearest ``EVIDENCE_VOXELS`` voxels across, the depth
-    probe at level 1, the depth scan (one plane) at level 0. On a 256^3 3DRA the prepared levels
-    1 and 2 are that pyramid's levels (block averages, cropped); level 0 is the volume's own grid
-    over the prepared box, the body only (as in the prepared levels): needed by one plane's depth
-    scan, and by the evidence of a coarse volume (128^3: level 0 is the one ~128 voxels across).
-    A CT's cropped 2 mm level is ~128 voxels or more across already."""
-    renderer = prepared.renderer
-    if renderer.has_level(0):
-        return renderer
-    finest = next(k for k in range(renderer.n_levels) if renderer.has_level(k))
-    across = max(renderer.level_volume(finest).shape)
-    finer_wanted = abs(math.log(2 * across / EVIDENCE_VOXELS)) < abs(math.log(across / EVIDENCE_VOXELS))
-    if planes > 1 and not finer_wanted:
-        return renderer
-    from registration.core.drr import DRRRenderer
-    from registration.core.prepare import mask_outside_body, probe_blocks
-    from registration.core.volume import Volume
-
-    volume = prepared.volume
-    lo, hi = np.asarray(prepared.box_lo), np.asarray(prepared.box_hi)  # (i, j, k), inclusive
-    affine = volume.index_to_world.copy()
-    affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
-    data = np.ascontiguousarray(volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1])
-    level0 = Volume(data, affine, label=volume.label, meta=volume.meta)
-    if prepared.body:
-        level0 = mask_outside_body(level0, volume, probe_blocks(volume))
-    levels = [level0] + [
-        renderer.level_volume(k) if renderer.has_level(k) else None for k in range(1, renderer.n_levels)
-    ]
-    return DRRRenderer(volume, levels=levels)
+    return probe_renderer(prepared, planes=planes)
 
 
 def run_register(
@@ -487,12 +452,12 @@ def run_register(
         )
     assessed = None
     if confidence and not result.at_bounds:
-        from registration.studies.cases import confidence_fields
+        from registration.core.assess import assess
+        from registration.core.preparation import Preparation
+        from registration.studies.cases import assessment_fields
 
         # the registration's prepared levels (cropped, in mm, cached), not a pyramid of the whole volume
-        assessed = confidence_fields(
-            vol, views if len(views) == 2 else xray, result, confidence_renderer(prepared, planes=len(views))
-        )
+        assessed = assessment_fields(assess(result, views, Preparation(vol, prepared, len(views))))
         clock.lap("confidence")
         decision = "applied" if assessed["applied"] else f"withheld: {assessed['withheld_reason']}"
         _say(f"confidence {assessed['confidence']:.2f} -> {decision}")

@@ -434,15 +434,14 @@ class Session:
         self, views: list[XRayImage], result: RegistrationResult, volume_format: float, initial: Array
     ) -> dict | None:
         """The estimate's confidence and decision, as ``register --confidence`` and the studies
-        assess it (:func:`registration.studies.cases.confidence_fields`); None (the estimate is
+        assess it (:func:`registration.core.assess.assess_on`); None (the estimate is
         applied, as before the rule) when the assessment itself fails, which is logged."""
-        from registration.studies.cases import confidence_fields
+        from registration.core.assess import assess_on
+        from registration.studies.cases import assessment_fields
 
         try:
             renderer = self.data.evidence_renderer(volume_format, views, initial)
-            return confidence_fields(
-                self.data.volume(volume_format), views if len(views) > 1 else views[0], result, renderer
-            )
+            return assessment_fields(assess_on(result, views, self.data.volume(volume_format), renderer))
         except Exception:  # noqa: BLE001 - the registration stands; the page says it was not assessed
             log.exception("confidence assessment failed")
             return None

@@ -30,9 +30,10 @@ from registration.core.volume import Volume
 def veto(result: RegistrationResult) -> str | None:
     """Why ``result`` is no registration at all (None: it is one): an estimate at the search
     bounds (inputs without information drift there) or without a finite measure."""
-    if result.at_bounds:
-        return f"the estimate ended at the search bounds ({', '.join(result.at_bounds)})"
-    if not math.isfinite(result.similarity):
+    at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
+    if at_bounds:
+        return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
+    if not math.isfinite(getattr(result, "similarity", 0.0)):
         return "no usable overlap between the DRR and the image"
     return None
 

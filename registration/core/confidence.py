@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -269,6 +270,12 @@ class Assessment:
     applied: bool
     reason: str
     evidence: Evidence = field(default_factory=Evidence)
+    #: A single registration's probes along the beam (:func:`registration.core.assess.assess`:
+    #: a :class:`~registration.core.depth.DepthProbe` and a depth scan; None elsewhere) and the
+    #: seconds the assessment took.
+    depth_probe: Any = None
+    depth_scan: Any = None
+    seconds: float = 0.0
 
     def to_dict(self) -> dict:
         return {

@@ -27,9 +27,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from registration import __version__
+from registration.core.assess import assess
 from registration.core.geometry import rigid
 from registration.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION_MM
+from registration.core.preparation import Preparation
 from registration.core.register import RegistrationOptions
+from registration.studies.cases import assessment_fields
 
 if TYPE_CHECKING:
     from registration.core.volume import Volume
@@ -217,32 +220,13 @@ def case_views(case: BiplaneCase, volume: Volume, motion: np.ndarray) -> tuple[A
     return shot.views, source
 
 
-def case_renderers(case: BiplaneCase, volume: Volume, views: Any, options: RegistrationOptions) -> tuple[Any, float]:
-    """(biplane, single-plane, evidence) renderers of the case and the seconds preparing them.
-
-    Phantom 3DRAs: one index pyramid prepared once per volume, as the other phantom studies
-    (:func:`registration.studies.cases.prepared_renderer`). A real CT goes through the
-    real-volume path, as ``roadmap3d register`` does: :func:`registration.core.prepare.prepare_volume`
-    crops it to what the planes' fields can reach over the search and builds its levels in mm,
-    once for the pair and once for plane A alone (each case has its own angles); the seconds
-    are the pair's. The confidence's evidence renders from the pair's prepared levels.
-    """
-    if case.ct_path is None:
-        from registration.studies.cases import prepared_renderer
-
-        renderer, seconds = prepared_renderer(volume)
-        return (renderer, renderer, renderer), seconds
-    import time
-
-    from registration.core.drr import DRRRenderer
-    from registration.core.register import prepared_renderer as prepare_for
-
-    start = time.perf_counter()
-    pair = prepare_for(volume, tuple(views), np.eye(4), options)
-    seconds = time.perf_counter() - start
-    single = prepare_for(volume, (views[0],), np.eye(4), options)
-    levels = [pair.level_volume(k) for k in range(pair.n_levels) if pair.has_level(k)]
-    return (pair, single, DRRRenderer(volume, levels=levels)), seconds
+def case_preparations(
+    case: BiplaneCase, volume: Volume, views: Any, options: RegistrationOptions
+) -> tuple[Preparation, Preparation]:
+    """The case's volume prepared as ``roadmap3d register`` prepares it: cropped to what the
+    fields can reach over the search, levels in mm (:class:`registration.core.preparation.Preparation`),
+    once for the pair and once for plane A alone (each case has its own angles)."""
+    return Preparation.of(volume, tuple(views), options=options), Preparation.of(volume, views[0], options=options)
 
 
 def _offset_motion(case: BiplaneCase) -> np.ndarray:
@@ -278,10 +262,9 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
     volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
     motion = _offset_motion(case)
     views, image_source = case_views(case, volume, motion)
-    renderers, prepare_seconds = case_renderers(case, volume, views, options or RegistrationOptions())
-    both = register(volume, list(views), truth=motion, seed=case.seed, options=options, renderer=renderers[0])
-    single = register(volume, views[0], truth=motion, seed=case.seed, options=options, renderer=renderers[1])
-    renderer = renderers[2]
+    pair, alone = case_preparations(case, volume, views, options or RegistrationOptions())
+    both = register(volume, list(views), truth=motion, seed=case.seed, options=options, renderer=pair.renderer)
+    single = register(volume, views[0], truth=motion, seed=case.seed, options=options, renderer=alone.renderer)
     d = views[0].geometry.direction
     t = np.asarray(case.translation_mm)
     record = {
@@ -296,17 +279,15 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
         **_scores("", both),
         **_scores("single_", single),
         "single_success_inplane": bool(single.residual.success),
-        "prepare_seconds": prepare_seconds,
+        "prepare_seconds": pair.seconds,
         "volume_label": volume.label,
         "image_source": image_source,
         "pixels": list(case.pixels),
         "version": __version__,
         "revision": _revision(),
     }
-    from registration.studies.cases import confidence_fields
-
-    record.update(confidence_fields(volume, list(views), both, renderer, single_plane_motion=single.patient_motion))
-    single_conf = confidence_fields(volume, views[0], single, renderer)
+    record.update(assessment_fields(assess(both, list(views), pair, single_plane_motion=single.patient_motion)))
+    single_conf = assessment_fields(assess(single, views[0], alone))
     record.update({f"single_{k}": v for k, v in single_conf.items() if k in ("confidence", "applied")})
     return record
 

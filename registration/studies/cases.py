@@ -7,19 +7,22 @@ offsets on two format pairs with fluoro and exposure images.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from registration import __version__
+from registration.core.assess import assess, assess_on
+from registration.core.confidence import Assessment
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import TABLE_I, CArm, offsets_to_matrix, rigid
-from registration.core.register import RegistrationOptions, register
+from registration.core.images import XRayImage
+from registration.core.preparation import Preparation
+from registration.core.register import RegistrationOptions, RegistrationResult, register
 from registration.sim.threedra import VolumeRecipe
 
 if TYPE_CHECKING:
@@ -108,106 +111,40 @@ def offset_vector(offset: str) -> np.ndarray:
     return values
 
 
-_RENDERERS: dict[int, tuple[Volume, DRRRenderer, float]] = {}
-
-
-def prepared_renderer(volume: Volume) -> tuple[DRRRenderer, float]:
-    """The DRR renderer of ``volume`` and the seconds its preparation took (0 when reused).
-
-    As in the product, a 3DRA is prepared once when it is loaded (attenuation and pyramid),
-    not at every registration; the records report that time apart as ``prepare_seconds``.
-    """
-    hit = _RENDERERS.get(id(volume))
-    if hit is not None and hit[0] is volume:
-        return hit[1], 0.0
-    start = time.perf_counter()
-    renderer = DRRRenderer(volume, levels=3)
-    seconds = time.perf_counter() - start
-    if len(_RENDERERS) >= 4:
-        _RENDERERS.pop(next(iter(_RENDERERS)))
-    _RENDERERS[id(volume)] = (volume, renderer, seconds)
-    return renderer, seconds
-
-
 def case_volume(case: Case) -> Volume:
     """The registration volume of a case: the 3DRA of its phantom and format (cached)."""
     return recipe_volume(volume_recipe(case))
 
 
-def confidence_fields(
-    volume: Volume,
-    xray: object,
-    result: object,
-    renderer: DRRRenderer | None = None,
-    *,
-    single_plane_motion: object = None,
-) -> dict:
-    """``confidence``, ``applied`` (CONVENTIONS §7), why not, and the evidence of one registration.
-
-    ``xray``: the view, or the views of a biplane registration (margins and edges averaged
-    over the planes); ``single_plane_motion``: plane A's own single-view estimate, whose
-    in-plane disagreement with the biplane estimate is the planes' agreement. A single-plane
-    (five-parameter) result is also probed along the beam
-    (:func:`registration.core.depth.depth_probe`); the probe's outcome is the field
-    ``depth_probe`` (its pose is not applied: the studies score it beside the result).
-    """
-    from dataclasses import replace as _replace
-
-    import numpy as _np
-
-    from registration.core.confidence import DEFAULT_RULE
-    from registration.core.geometry import apply
-    from registration.core.tracking import registration_evidence
-
-    start = time.perf_counter()
-    views = list(xray) if isinstance(xray, (list, tuple)) else [xray]
-    motion = result.patient_motion  # type: ignore[attr-defined]
-    probe = scan = None
-    if len(views) == 1 and "tz" not in tuple(getattr(result, "parameters", ()) or ()):
-        from registration.core.depth import depth_probe, depth_scan
-        from registration.core.drr import DRRRenderer as _Renderer
-
-        renderer = renderer if renderer is not None else _Renderer(volume, levels=3)
-        probe = depth_probe(renderer, views[0], _np.asarray(motion))  # type: ignore[arg-type]
-        scan = depth_scan(renderer, views[0], _np.asarray(motion))  # type: ignore[arg-type]
-    per_view = [
-        registration_evidence(
-            volume,
-            v,  # type: ignore[arg-type]
-            motion,
-            renderer=renderer,
-            capture_motions=getattr(result, "capture_motions", None),
-            depth=probe,
-            agreement_in_plane=probe is not None,  # single plane: its captures keep tz
-        )
-        for v in views
-    ]
-    evidence = _replace(
-        per_view[0],
-        margin=float(_np.mean([e.margin for e in per_view])),
-        # calibrated on single-plane registrations only (two views see the out-of-plane
-        # rotations of each other's frame)
-        rotation_margin=per_view[0].rotation_margin if len(per_view) == 1 else None,
-        edges=float(_np.mean([e.edges for e in per_view])),
-        depth_scan_tz_mm=None if scan is None else float(scan.tz_mm),
-        rival_gain=rival_gain(result),
-    )
-    if single_plane_motion is not None:
-        g = views[0].geometry  # type: ignore[attr-defined]
-        iso = _np.asarray(g.isocenter_mm)
-        shift = apply(_np.asarray(motion), iso) - apply(_np.asarray(single_plane_motion), iso)
-        inplane = shift - (shift @ g.direction) * g.direction
-        evidence = _replace(evidence, plane_disagreement_mm=float(_np.linalg.norm(inplane)))
-    assessment = DEFAULT_RULE.assess(evidence)
+def assessment_fields(assessment: Assessment) -> dict:
+    """A record's fields of an assessment (:func:`registration.core.assess.assess`):
+    ``confidence``, ``applied`` (CONVENTIONS §7), ``withheld_reason``, the evidence, the seconds
+    it took and, for one plane, the probes along the beam (``depth_probe``, ``depth_scan``)."""
+    probe, scan = assessment.depth_probe, assessment.depth_scan
     return {
         "confidence": assessment.confidence,
         "applied": assessment.applied,
         "withheld_reason": assessment.reason,
-        "confidence_evidence": evidence.to_dict(),
-        "confidence_seconds": time.perf_counter() - start,
+        "confidence_evidence": assessment.evidence.to_dict(),
+        "confidence_seconds": assessment.seconds,
         **({"depth_probe": probe.to_dict()} if probe is not None else {}),
         **({"depth_scan": scan.to_dict()} if scan is not None else {}),
     }
+
+
+def confidence_fields(
+    volume: Volume,
+    xray: XRayImage | Sequence[XRayImage],
+    result: RegistrationResult,
+    renderer: DRRRenderer | None = None,
+    *,
+    single_plane_motion: ArrayLike | None = None,
+) -> dict:
+    """:func:`assessment_fields` of :func:`registration.core.assess.assess_on` for a caller holding
+    a renderer rather than a :class:`~registration.core.preparation.Preparation` (None: the
+    whole volume's index pyramid, ``DRRRenderer(volume, levels=3)``)."""
+    renderer = renderer if renderer is not None else DRRRenderer(volume, levels=3)
+    return assessment_fields(assess_on(result, xray, volume, renderer, single_plane_motion=single_plane_motion))
 
 
 def depth_correction_fields(result: object) -> dict:
@@ -232,6 +169,25 @@ def rival_gain(result: object) -> float | None:
     return None if check is None or check.rival_gain is None else float(check.rival_gain)
 
 
+def register_prepared(
+    volume: Volume,
+    views: XRayImage | Sequence[XRayImage],
+    *,
+    seed: int,
+    initial_motion: ArrayLike | None = None,
+    truth: ArrayLike | None = None,
+    vessel_points_mm: ArrayLike | None = None,
+    options: RegistrationOptions | None = None,
+) -> tuple[RegistrationResult, Preparation]:
+    """Register as ``roadmap3d register`` does: the volume prepared for the views from the
+    initial pose (:class:`registration.core.preparation.Preparation`: crop, body, mm levels),
+    then :func:`registration.core.register.register` with its renderer. The studies' path."""
+    preparation = Preparation.of(volume, views, initial_motion=initial_motion, options=options)
+    result = register(volume, views, initial_motion=initial_motion, seed=seed, truth=truth,
+                      vessel_points_mm=vessel_points_mm, options=options, renderer=preparation.renderer)  # fmt: skip
+    return result, preparation
+
+
 def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
     """Simulate the X-ray image of the moved phantom and register the 3DRA to it."""
     from registration.sim.xray import simulate_xray
@@ -246,15 +202,8 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
     volume = case_volume(case)
     anatomy = _phantom(case.phantom_seed, False, case.facial)  # no contrast in the fluoro image
     xray = simulate_xray(anatomy, geometry, motion=truth, kind=case.image_kind, seed=case.seed)
-    renderer, prepare_seconds = prepared_renderer(volume)
-    result = register(
-        volume,
-        xray,
-        seed=case.seed,
-        truth=truth,
-        vessel_points_mm=anatomy.vessel_centerline_mm(),
-        options=options,
-        renderer=renderer,
+    result, preparation = register_prepared(
+        volume, xray, seed=case.seed, truth=truth, vessel_points_mm=anatomy.vessel_centerline_mm(), options=options
     )
     res = result.residual
     assert res is not None
@@ -276,13 +225,13 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         "success": bool(res.success),
         "success_total": bool(res.success_total),
         "seconds": result.seconds,
-        "prepare_seconds": prepare_seconds,
+        "prepare_seconds": preparation.seconds,
         "drr_count": result.drr_count,
         "similarity": result.similarity,
         "volume_label": result.volume_label,
         "version": __version__,
         **depth_correction_fields(result),
-        **confidence_fields(volume, xray, result, renderer),
+        **assessment_fields(assess(result, xray, preparation)),
     }
 
 
@@ -318,7 +267,7 @@ def summarize(records: list[dict]) -> dict:
         "rotation_residual_deg_successful": stats("rotation_residual_deg", ok),
         "seconds_median": float(np.median([r["seconds"] for r in records])),
         "drr_count_median": float(np.median([r["drr_count"] for r in records])),
-        # Preparing a 3DRA for rendering happens once per volume (when it is loaded).
+        # The preparation's view-independent part is built once per volume, its levels per view.
         "prepare_seconds_total": float(sum(r.get("prepare_seconds", 0.0) for r in records)),
     }
 

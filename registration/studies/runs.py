@@ -442,7 +442,6 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
     offset by the case's translation and rotation. Truth: the identity in the calibrated
     geometry of that frame (the projection itself was formed with the true, bent geometry)."""
     from registration.core.images import XRayImage
-    from registration.core.register import register
 
     data = _patient_of(case)
     geometry = data.calibrated_geometries[case.frame]
@@ -454,13 +453,12 @@ def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None
         {"frame": case.frame, "source": "rotational run"},
     )
     offset = _translation(case.translation_mm) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg)
-    from registration.studies.cases import confidence_fields, prepared_renderer
+    from registration.core.assess import assess
+    from registration.studies.cases import assessment_fields, register_prepared
 
-    renderer, _ = prepared_renderer(data.volume)
-    result = register(
-        data.volume, xray, initial_motion=offset, truth=np.eye(4), seed=case.seed, options=options, renderer=renderer
-    )
-    confidence = confidence_fields(data.volume, xray, result, renderer)
+    result, preparation = register_prepared(data.volume, xray, initial_motion=offset, truth=np.eye(4),
+                                            seed=case.seed, options=options)  # fmt: skip
+    confidence = assessment_fields(assess(result, xray, preparation))
     return {
         "patient": case.patient,
         "phantom_seed": case.phantom_seed,

@@ -23,9 +23,10 @@ import numpy as np
 from registration import __version__
 from registration.core.geometry import CArm, matrix_to_offsets
 from registration.core.metrics import residuals
+from registration.core.preparation import Preparation
 from registration.core.tracking import TrackingOptions, TrackingRun, track_run
 from registration.sim.fluoro import FluoroRun, RunScript, simulate_biplane_run
-from registration.studies.cases import _phantom, load_volume, prepared_renderer
+from registration.studies.cases import _phantom, load_volume
 
 
 @dataclass(frozen=True)
@@ -182,10 +183,12 @@ def run_tracking_case(
     say(f"{case.name}: simulating the run ({case.script.frames} frames of {case.pixels} px, cached)")
     runs = case_runs(case)
     volume = load_volume(0, True, case.volume_format_cm, case.volume_voxels, case.volume_source)
-    renderer, prepare_s = prepared_renderer(volume)
+    # the volume prepared as `roadmap3d track` prepares it: for the runs' first frames' fields
+    preparation = Preparation.of(volume, [run[0] for run in runs])
     say(f"{case.name}: tracking")
     started = time.perf_counter()
-    result = track_run(volume, runs, runs[0].times_s, options=options, renderer=renderer, seed=seed, realtime=realtime)
+    result = track_run(volume, runs, runs[0].times_s, options=options, renderer=preparation.renderer, seed=seed,
+                       realtime=realtime)  # fmt: skip
     wall = time.perf_counter() - started
     timeline = run_timeline(result, runs)
     return {
@@ -199,7 +202,7 @@ def run_tracking_case(
         "summary": result.summary(),
         "wall_seconds": wall,
         "realtime": realtime,
-        "prepare_seconds": prepare_s,
+        "prepare_seconds": preparation.seconds,
         "volume_label": volume.label,
         "images": "simulated from the analytic phantom (honest image model), not from the 3DRA",
         "version": __version__,

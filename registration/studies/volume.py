@@ -31,7 +31,7 @@ from registration import __version__
 from registration.core.geometry import CArm, rigid
 from registration.core.images import XRayImage
 from registration.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION_MM
-from registration.core.prepare import Reach, prepare_volume
+from registration.core.preparation import Preparation
 from registration.core.register import RegistrationOptions, register
 from registration.core.volume import Volume
 from registration.sim.volume_xray import IMAGES_FROM_VOLUME, VolumeAttenuator, catheter_devices, default_catheter_path
@@ -257,37 +257,6 @@ class ClinicalViews:
         return out, notes
 
 
-def confidence_renderer(prepared, *, planes: int = 1):  # noqa: ANN001, ANN201
-    """The renderer ``roadmap3d register --confidence`` assesses with (the registration's prepared
-    levels, and level 0 on the volume's own grid over the prepared box where one plane's depth
-    scan or a coarse volume's evidence renders there), so that the study's decisions are the
-    command's."""
-    from registration.core.drr import DRRRenderer
-    from registration.core.prepare import mask_outside_body, probe_blocks
-
-    evidence_voxels = 128  # the level nearest this many voxels across: the rule's calibration
-    renderer = prepared.renderer
-    if renderer.has_level(0):
-        return renderer
-    finest = next(k for k in range(renderer.n_levels) if renderer.has_level(k))
-    across = max(renderer.level_volume(finest).shape)
-    finer_wanted = abs(math.log(2 * across / evidence_voxels)) < abs(math.log(across / evidence_voxels))
-    if planes > 1 and not finer_wanted:
-        return renderer
-    volume = prepared.volume
-    lo, hi = np.asarray(prepared.box_lo), np.asarray(prepared.box_hi)
-    affine = volume.index_to_world.copy()
-    affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
-    data = np.ascontiguousarray(volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1])
-    level0 = Volume(data, affine, label=volume.label, meta=volume.meta)
-    if prepared.body:
-        level0 = mask_outside_body(level0, volume, probe_blocks(volume))
-    levels = [level0] + [
-        renderer.level_volume(k) if renderer.has_level(k) else None for k in range(1, renderer.n_levels)
-    ]
-    return DRRRenderer(volume, levels=levels)
-
-
 def run_volume_case(
     volume: Volume,
     imager: VolumeImager,
@@ -312,10 +281,9 @@ def run_volume_case(
     else:
         images = [imager.image(g, truth, kind=config.kind, seed=case.seed + n) for n, g in enumerate(geometries)]
     image_s = time.perf_counter() - t0
-    reach = Reach.of_search(options.bound_mm, options.bound_deg, isocenter_mm=isocenter_mm,
-                            translations=3 if options.optimizes_tz(len(images)) else 2)  # fmt: skip
-    levels = sorted({lv.volume_level for lv in options.levels} | {options.polish_volume_level})
-    prepared = prepare_volume(volume, geometries, reach=reach, levels=levels)
+    # the volume prepared as `roadmap3d register` prepares it (crop, body, mm levels)
+    preparation = Preparation.of(volume, images, options=options)
+    prepared = preparation.prepared
     samples_before = list(prepared.renderer.samples_per_level)
     result = register(volume, images, truth=truth, seed=case.seed, options=options, renderer=prepared.renderer)
     samples = [b - a for a, b in zip(samples_before, prepared.renderer.samples_per_level, strict=True)]
@@ -326,14 +294,12 @@ def run_volume_case(
     t_out = float(t @ g.direction)
     inplane_ok = res.inplane_mm < SUCCESS_TRANSLATION_MM and res.rotation_deg < SUCCESS_ROTATION_DEG
     assessed: dict = {}
-    if confidence and not result.at_bounds:
-        from registration.studies.cases import confidence_fields
+    if confidence:  # as `register --confidence` decides (at the search bounds: withheld)
+        from registration.core.assess import assess
+        from registration.studies.cases import assessment_fields
 
-        renderer = confidence_renderer(prepared, planes=len(images))
-        found = confidence_fields(volume, images if len(images) > 1 else images[0], result, renderer)
-        assessed = {k: found[k] for k in ("confidence", "applied", "withheld_reason") if k in found}
-    elif confidence:  # at the search bounds: register refuses, nothing applied
-        assessed = {"confidence": 0.0, "applied": False, "withheld_reason": "at the search bounds"}
+        found = assessment_fields(assess(result, images, preparation))
+        assessed = {k: found[k] for k in ("confidence", "applied", "withheld_reason")}
     return (
         assessed
         | notes

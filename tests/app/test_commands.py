@@ -194,9 +194,10 @@ def test_register_confidence_renders_from_the_prepared_levels_as_calibrated(expo
     on the quick clinical study's FDK volumes (16 registrations, seed 0) that moved the margins
     by up to 10 % (relative), the depth probe's shift by up to 0.03 mm and the confidence by at
     most 0.0013, with the same 16 decisions."""
+    from registration.core.assess import assess_on
     from registration.core.drr import DRRRenderer
     from registration.core.register import RegistrationOptions, prepared_volume, register
-    from registration.studies.cases import confidence_fields
+    from registration.studies.cases import assessment_fields
 
     volume = dicom.read_volume(exported / cli_io.PHANTOM_VOLUME_DIR)
     xray = dicom.read_xray(exported / cli_io.PHANTOM_EXPOSURE)
@@ -205,8 +206,8 @@ def test_register_confidence_renders_from_the_prepared_levels_as_calibrated(expo
     renderer = cli_io.confidence_renderer(prepared)
     # the evidence's level (nearest 128 voxels across) is prepared: the volume's own 128^3 grid
     assert renderer.has_level(0) and max(renderer.level_volume(0).shape) > 100
-    calibrated = confidence_fields(volume, xray, result, DRRRenderer(volume, levels=3))
-    now = confidence_fields(volume, xray, result, renderer)
+    calibrated = assessment_fields(assess_on(result, xray, volume, DRRRenderer(volume, levels=3)))
+    now = assessment_fields(assess_on(result, xray, volume, renderer))
     assert now["applied"] == calibrated["applied"] and now["withheld_reason"] == calibrated["withheld_reason"]
     assert abs(now["confidence"] - calibrated["confidence"]) < 0.01
     a, b = calibrated["confidence_evidence"], now["confidence_evidence"]

@@ -55,23 +55,7 @@ def plane_captures(run: Run, level: Level, runs: int, margin_mm: float | None) -
     planes = inputs.views[:2]
     spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg)
               for v in planes]  # fmt: skip
-    # plane B's capture compares its image at plane A's pixel size at the iso-center, as the pair does
-    problems = [LevelProblem.prepare(inputs.renderer, planes[:1], image_px=level.image_px,
-                                     volume_level=level.volume_level, motion=inputs.initial_motion,
-                                     margin_mm=margin_mm)]  # fmt: skip
-    pixel_mm = problems[0].views[0].pixel_at_iso_mm
-    problems += [
-        LevelProblem.prepare(
-            inputs.renderer,
-            (v,),
-            image_px=level.image_px,
-            volume_level=level.volume_level,
-            motion=inputs.initial_motion,
-            margin_mm=margin_mm,
-            pixel_at_iso_mm=pixel_mm,
-        )
-        for v in planes[1:]
-    ]
+    problems = _plane_problems(run, level, margin_mm)
     geometries = (planes[0].geometry, planes[1].geometry)
     pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
                                 volume_level=level.volume_level, motion=inputs.initial_motion,
@@ -103,22 +87,39 @@ def plane_captures(run: Run, level: Level, runs: int, margin_mm: float | None) -
         # plane that failed starts near the right rotation.
         # What the other plane cannot see (the displacement along its beam) is spread over the
         # runs: +- CROSS_START_MM along it, the rest of the start from its estimate of lowest cost.
-        starts = []
-        for p in range(2):
-            other = best[1 - p]
-            along = np.asarray(geometries[1 - p].direction, dtype=np.float64)
-            along = along - (along @ geometries[p].direction) * np.asarray(geometries[p].direction)
-            along /= max(float(np.linalg.norm(along)), 1e-12)
-            shifts = np.linspace(-CROSS_START_MM, CROSS_START_MM, runs) if runs > 1 else np.zeros(1)
-            starts.append([
-                np.clip(spaces[p].from_motion(rigid(None, t * along) @ per_plane[1 - p][other]),
-                        spaces[p].bounds[:, 0], spaces[p].bounds[:, 1])
-                for t in shifts
-            ])  # fmt: skip
+        starts = [_cross_starts(spaces[p], geometries[p], geometries[1 - p], per_plane[1 - p][best[1 - p]], runs)
+                  for p in range(2)]  # fmt: skip
     # Still none: the pair's capture runs start from the bests' combination and from each
     # plane's best estimate alone (the other plane's out-of-plane offset at the initial pose).
     alone = [np.clip(space.from_motion(m), space.bounds[:, 0], space.bounds[:, 1]) for m in ends]
     return [x, *alone], cost(x)
+
+
+def _plane_problems(run: Run, level: Level, margin_mm: float | None) -> list[LevelProblem]:
+    """Each plane's capture level alone; plane B's compares its image at plane A's pixel size at
+    the iso-center, as the pair does."""
+    inputs = run.inputs
+    first = LevelProblem.prepare(inputs.renderer, inputs.views[:1], image_px=level.image_px,
+                                 volume_level=level.volume_level, motion=inputs.initial_motion,
+                                 margin_mm=margin_mm)  # fmt: skip
+    pixel_mm = first.views[0].pixel_at_iso_mm
+    return [first] + [
+        LevelProblem.prepare(inputs.renderer, (v,), image_px=level.image_px, volume_level=level.volume_level,
+                             motion=inputs.initial_motion, margin_mm=margin_mm, pixel_at_iso_mm=pixel_mm)
+        for v in inputs.views[1:2]
+    ]  # fmt: skip
+
+
+def _cross_starts(space: SearchSpace, geometry: CArm, other: CArm, other_best: Array, runs: int) -> list[Array]:
+    """A plane's next round's starts: the other plane's best estimate (its rotation and the
+    displacement both see), spread +- :data:`CROSS_START_MM` along the other plane's beam (what
+    it cannot see) over the runs."""
+    along = np.asarray(other.direction, dtype=np.float64)
+    along = along - (along @ geometry.direction) * np.asarray(geometry.direction)
+    along /= max(float(np.linalg.norm(along)), 1e-12)
+    shifts = np.linspace(-CROSS_START_MM, CROSS_START_MM, runs) if runs > 1 else np.zeros(1)
+    return [np.clip(space.from_motion(rigid(None, t * along) @ other_best), space.bounds[:, 0], space.bounds[:, 1])
+            for t in shifts]  # fmt: skip
 
 
 #: Rounds of plane captures (each ``plane_capture_runs`` runs per plane) before the pair's own

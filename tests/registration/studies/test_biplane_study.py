@@ -14,7 +14,7 @@ from registration.studies.biplane import (
     BiplaneConfig,
     _offset_motion,
     biplane_tasks,
-    case_renderers,
+    case_preparations,
     case_views,
     run_biplane_case,
     study_volume,
@@ -32,7 +32,7 @@ def test_real_ct_moment_registers_through_the_prepared_volume() -> None:
     case = biplane_tasks(config)[0].case
     volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
     views, _ = case_views(case, volume, _offset_motion(case))
-    (pair, single, _), _ = case_renderers(case, volume, views, RegistrationOptions())
+    pair, single = (p.renderer for p in case_preparations(case, volume, views, RegistrationOptions()))
     # core.prepare's levels in mm (1 and 2: capture and polish), cropped to what the fields reach:
     # not the index pyramid of the whole CT (which holds neck, shoulders and couch)
     for renderer in (pair, single):
