@@ -9,7 +9,6 @@ files and renamed, so a failed command leaves no partial output.
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import tempfile

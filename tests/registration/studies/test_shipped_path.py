@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from app import cli
-from app import commands as cli_io
+from app.cli import commands as cli_io
 from registration.core.assess import assess
 from registration.io import dicom
 from registration.studies.cases import assessment_fields, register_prepared
