@@ -130,6 +130,8 @@ def register(
     report_identify: bool = False,
     image_mask: Annotated[list[Path], tyro.conf.UseAppendAction] = [],  # noqa: B006 (tyro: an append flag)
     landmarks: Path | None = None,
+    roi: Literal["none", "cranium"] = "none",
+    roi_mask: Path | None = None,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -176,6 +178,10 @@ def register(
         landmarks: JSON of picked point pairs to start from instead of the machine-based pose, for a patient
             far from it: {"landmarks": [{"image_px": [col, row], "volume_mm": [x, y, z], "plane": "A"}, ...]},
             at least 4 on one image (docs/landmarks.md).
+        roi: The part of the volume the registration follows: "cranium" leaves out the cervical spine below the
+            skull base (found in the volume), which follows a head's motion only partly; "none" the whole volume.
+        roi_mask: A label mask on the volume's grid (.npz with an array "mask", or NIfTI): the registration follows
+            the labelled voxels only (outside them, bone is rendered as soft tissue).
     """
     small_pages()
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
@@ -232,6 +238,8 @@ def register(
         report_identify=report_identify,
         image_mask=image_mask,
         landmarks=landmarks,
+        roi=roi,
+        roi_mask=roi_mask,
     )
 
 

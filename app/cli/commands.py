@@ -289,6 +289,21 @@ def confidence_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRend
     return probe_renderer(prepared, planes=planes)
 
 
+def _region_of_interest(vol, roi: str, roi_mask: Path | None):  # noqa: ANN001, ANN202
+    """The region the registration follows (None: the whole volume)."""
+    if roi_mask is not None:
+        from registration.io.roi_masks import read_roi_mask
+
+        return read_roi_mask(roi_mask, vol)
+    if roi == "cranium":
+        from registration.core.roi import cranium_region
+
+        return cranium_region(vol)
+    if roi != "none":
+        raise ValueError(f"--roi must be 'none' or 'cranium', got {roi!r}")
+    return None
+
+
 def run_register(
     *,
     volume: Path,
@@ -313,6 +328,8 @@ def run_register(
     report_identify: bool = False,
     image_mask: Sequence[Path] = (),
     landmarks: Path | None = None,
+    roi: str = "none",
+    roi_mask: Path | None = None,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
@@ -348,6 +365,7 @@ def run_register(
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)
         clock.lap("reading the volume")
+        region = _region_of_interest(vol, roi, roi_mask)
         iso, iso_from = resolve_isocenter(isocenter, vol)
         sides = list(geometry) or [None] * len(images)
         masks = list(image_mask) or [None] * len(images)
@@ -420,6 +438,13 @@ def run_register(
         _say(f"start: {landmarks}'s {len(start.inliers)} landmarks, reprojection error {start.rms_px:.1f} px rms"
              + (f" ({left_out} left out as disagreeing)" if left_out else "")
              + f": {_format_offsets(start.patient_motion, g)}")  # fmt: skip
+    if region is not None:
+        from registration.core.roi import roi_volume
+
+        vol = roi_volume(vol, region)
+        base = region.skull_base_z_mm
+        _say(f"region: {region.source}" + (f", the spine below z {base:.0f} mm left out ({region.left_out_ml:.0f} ml)"
+                                           if base is not None else " (the whole volume: no spine found)"))  # fmt: skip
     if compiling:
         _say("compiling the engine's kernels (numba, once after an install or an update: up to a minute on "
              "2 cores; later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
@@ -439,6 +464,9 @@ def run_register(
     clock.lap("registration")
     _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
+    for assumed in result.intensity:
+        if assumed is not None:
+            _say(assumed["note"])
     if result.residual is not None:
         r = result.residual
         verdict = "success" if r.success else "FAILURE"

@@ -23,6 +23,7 @@ from registration.core.prepare.params import (
     TISSUE_HU,
 )
 from registration.core.prepare.reach import Reach, _axes_and_spacing, _reach_mask
+from registration.core.protrusions import with_protrusions
 from registration.core.volume import Volume
 
 Array = NDArray[np.float64]
@@ -102,7 +103,7 @@ def probe_blocks(volume: Volume, *, tissue_hu: float = TISSUE_HU, body: bool = T
     parts = sizes_of >= BODY_PART_SHARE * sizes_of.max()
     if sizes_of[parts].sum() < BODY_MIN_SHARE * seed.sum():
         return ProbeBlocks(step, tissue.astype(bool), None)
-    core = _fill_holes(parts[labels])
+    core, _ = with_protrusions(_fill_holes(parts[labels]), seed, block_mm)
     keep = tuple(2 * math.ceil(BODY_KEEP_MM / b) + 1 for b in block_mm)
     grown = ndimage.maximum_filter(core, size=keep, mode="constant", cval=False)
     return ProbeBlocks(step, tissue.astype(bool), grown)

@@ -35,7 +35,7 @@ BODY_KEEP_MM = 12.0
 #: -1000 HU): set to -1000 with the outside of the body, so that rays leap over them.
 AIR_HU = -900.0
 #: Bump when what a preparation computes changes (it is part of the keys of stored bases).
-PREPARE_VERSION = 1
+PREPARE_VERSION = 2
 #: Parts of the opened body at least this share of the largest one are body (a head and, cut
 #: from it by the scan's edge or the opening, shoulders); smaller ones (pieces of a couch or a
 #: mask the opening left) are not.

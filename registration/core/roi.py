@@ -1,0 +1,140 @@
+"""The part of the volume a registration should follow: the cranium, not the neck.
+
+The roadmap's target is the head's vessels. The skull moves as a rigid body; the cervical spine
+follows it only partly (flexion, rotation at C1/C2), and its edges are among the strongest in a
+frontal or lateral image: a rigid fit pulled by the spine is wrong where it matters.
+
+A :class:`RegionOfInterest` marks the voxels that drive the registration. Outside it,
+:func:`roi_volume` turns everything denser than soft tissue into soft tissue: the DRR keeps the
+neck's outline and air spaces but shows no spine, so the spine's edges in the X-ray image find
+nothing to pull on (gradient difference bounds what one unmatched edge can cost).
+
+:func:`cranium_region`: found automatically, the cervical spine below the skull base (the bone
+column tracked slice by slice from the bottom of the scan up to where it joins the wide bone of
+the skull base) left out, everything else in. :func:`read_roi_mask`: a label mask the user gives
+(:func:`registration.io.roi_masks.read_roi_mask`: NumPy ``.npz`` or NIfTI on the volume's grid).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from registration.core.volume import Volume
+
+#: Voxels above this HU are bone for the spine's tracking.
+BONE_HU = 250.0
+#: Outside the region, voxels above this HU are set to it (soft tissue: muscle ~40 HU).
+SOFT_TISSUE_HU = 40.0
+#: The spine is tracked within this distance (mm, across a slice) of its centre in the slice below.
+TRACK_RADIUS_MM = 30.0
+#: What is left out around the tracked centre (mm across): the vertebra with its processes.
+COLUMN_RADIUS_MM = 40.0
+#: The skull base: the first slice (going up) where the bone the spine joins is wider than this (mm).
+SKULL_BASE_WIDTH_MM = 100.0
+#: At least this much bone (mm^2) in a slice's tracking disc to count as the spine there.
+MIN_SPINE_AREA_MM2 = 40.0
+
+
+@dataclass(frozen=True)
+class RegionOfInterest:
+    """Voxels (``mask[k, j, i]``, the volume's grid) that drive the registration; ``source``:
+    "cranium" (found automatically) or the mask's file; ``skull_base_z_mm``: the world z of the
+    skull base the automatic region found (None for a user's mask); ``left_out_ml``: the volume
+    of dense tissue (above ``SOFT_TISSUE_HU``) left out."""
+
+    mask: NDArray[np.bool_]
+    source: str
+    skull_base_z_mm: float | None = None
+    left_out_ml: float = 0.0
+
+    def summary(self) -> dict:
+        return {
+            "source": self.source,
+            "skull_base_z_mm": self.skull_base_z_mm,
+            "left_out_ml": round(self.left_out_ml, 1),
+            "voxels": int(self.mask.sum()),
+        }
+
+
+def _axial(volume: Volume) -> tuple[NDArray[np.float64], float, float]:
+    """Slice z (world mm, per k), the in-slice pixel sizes (mm); refuses oblique grids."""
+    a = volume.index_to_world
+    if abs(a[2, 0]) > 1e-6 or abs(a[2, 1]) > 1e-6 or abs(a[0, 2]) > 1e-6 or abs(a[1, 2]) > 1e-6:
+        raise ValueError("the automatic cranium needs axial slices (the volume's k axis along the patient's z)")
+    z = a[2, 2] * np.arange(volume.shape[0]) + a[2, 3]
+    return z, float(np.hypot(a[0, 0], a[1, 0])), float(np.hypot(a[0, 1], a[1, 1]))
+
+
+def cranium_region(volume: Volume) -> RegionOfInterest:
+    """The volume without its cervical spine below the skull base (see the module). When no
+    spine is found (a cranium-only 3DRA) the whole volume."""
+    z, di, dj = _axial(volume)
+    order = np.argsort(z)  # from the feet up
+    data = volume.data
+    nk, nj, ni = data.shape
+    jj, ii = np.mgrid[0:nj, 0:ni]
+    keep = np.ones(data.shape, dtype=bool)
+    center: tuple[float, float] | None = None
+    column: list[tuple[int, float, float]] = []
+    base_z: float | None = None
+    for k in order:
+        bone = data[k] > BONE_HU
+        if center is None:
+            tissue = data[k] > -300.0
+            if not tissue.any() or not bone.any():
+                continue
+            # the spine at the bottom: the bone component nearest the tissue's centre line
+            labels, n = ndimage.label(bone)
+            sizes = np.bincount(labels.ravel())[1:] * di * dj
+            mid_i = float(ii[tissue].mean())
+            mid_j = float(jj[tissue].mean())
+            best, dist = 0, np.inf
+            for lab in range(1, n + 1):
+                if sizes[lab - 1] < MIN_SPINE_AREA_MM2:
+                    continue
+                ci, cj = ii[labels == lab].mean(), jj[labels == lab].mean()
+                d = abs(ci - mid_i) * di + 0.25 * abs(cj - mid_j) * dj
+                if d < dist:
+                    best, dist = lab, d
+            if best == 0:
+                continue
+            center = (float(ii[labels == best].mean()), float(jj[labels == best].mean()))
+        disc = ((ii - center[0]) * di) ** 2 + ((jj - center[1]) * dj) ** 2 <= TRACK_RADIUS_MM**2
+        inside = bone & disc
+        if inside.sum() * di * dj < MIN_SPINE_AREA_MM2:
+            if column:
+                column.append((int(k), center[0], center[1]))
+            continue
+        # the bone this part of the column belongs to in the slice: wide at the skull base
+        labels, _ = ndimage.label(bone)
+        joined = np.isin(labels, np.unique(labels[inside]))
+        cols = np.nonzero(joined.any(axis=0))[0]
+        if column and (cols.max() - cols.min() + 1) * di > SKULL_BASE_WIDTH_MM:
+            base_z = float(z[k])
+            break
+        center = (float(ii[inside].mean()), float(jj[inside].mean()))
+        column.append((int(k), center[0], center[1]))
+    if base_z is None or len(column) < 3:
+        return RegionOfInterest(keep, "cranium", None, 0.0)
+    voxel_ml = di * dj * abs(volume.index_to_world[2, 2]) / 1000.0
+    left = 0
+    for k, ci, cj in column:
+        out = ((ii - ci) * di) ** 2 + ((jj - cj) * dj) ** 2 <= COLUMN_RADIUS_MM**2
+        keep[k] &= ~out
+        left += int((out & (data[k] > SOFT_TISSUE_HU)).sum())
+    return RegionOfInterest(keep, "cranium", base_z, left * voxel_ml)
+
+
+def roi_volume(volume: Volume, roi: RegionOfInterest) -> Volume:
+    """``volume`` with what lies outside ``roi`` and is denser than soft tissue set to
+    ``SOFT_TISSUE_HU`` (a new volume; labelled so)."""
+    if roi.mask.shape != volume.shape:
+        raise ValueError(f"the region's mask {roi.mask.shape} does not match the volume {volume.shape}")
+    data = np.where(~roi.mask & (volume.data > SOFT_TISSUE_HU), np.float32(SOFT_TISSUE_HU), volume.data)
+    meta = dict(volume.meta) | {"roi": roi.summary()}
+    return Volume(data.astype(np.float32), volume.index_to_world, label=f"{volume.label} (region: {roi.source})",
+                  meta=meta)  # fmt: skip

@@ -1,0 +1,35 @@
+"""``register --roi cranium`` and ``--roi-mask FILE``: the region the registration follows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from registration.io import dicom
+from tests.app.test_commands import run
+
+
+def test_register_with_a_users_mask_and_a_bad_one(small_export: Path, tmp_path: Path, capsys) -> None:
+    volume = dicom.read_volume(small_export / "volume")
+    np.savez(tmp_path / "roi.npz", mask=np.ones(volume.shape, dtype=np.uint8))
+    args = ["register", "--volume", str(small_export / "volume"), "--image", str(small_export / "xa_fluoro.dcm"),
+            "--truth", str(small_export / "truth.json")]  # fmt: skip
+    code, out, err = run([*args, "--roi-mask", str(tmp_path / "roi.npz")], capsys)
+    assert code == 0, err
+    assert "region: roi.npz" in out  # (the 48^3 export registers too coarsely for success here)
+    np.savez(tmp_path / "short.npz", mask=np.ones(volume.shape[1:], dtype=np.uint8))
+    code, out, err = run([*args, "--roi-mask", str(tmp_path / "short.npz")], capsys)
+    assert code == 2 and "short.npz: mask shape" in err
+    code, out, err = run([*args, "--roi", "neck"], capsys)
+    assert code == 2
+
+
+@pytest.mark.parametrize("roi", ["cranium"])
+def test_register_cranium_on_a_volume_without_spine(small_export: Path, capsys, roi: str) -> None:
+    """The phantom's small export holds no cervical spine column to track: the whole volume, said so."""
+    code, out, err = run(["register", "--volume", str(small_export / "volume"), "--image",
+                          str(small_export / "xa_fluoro.dcm"), "--roi", roi], capsys)  # fmt: skip
+    assert code == 0, err
+    assert "region: cranium" in out

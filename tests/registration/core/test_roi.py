@@ -1,0 +1,101 @@
+"""The registration's region of interest: the cranium without the cervical spine
+(registration.core.roi), and a user's mask (registration.io.roi_masks)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from registration.core.geometry import CArm, rigid
+from registration.core.register import RegistrationOptions, register
+from registration.core.roi import RegionOfInterest, cranium_region, roi_volume
+from registration.core.volume import Volume
+from registration.io.roi_masks import read_roi_mask
+from registration.studies.runs import axis_angle_matrix
+from registration.studies.volume import find_real_ct, head_isocenter_mm
+
+
+@pytest.fixture(scope="module")
+def real_ct():
+    path = find_real_ct()
+    if path is None:
+        pytest.skip("the shared real CT (../shared/data/real-ct/head-neck-ct or ROADMAP3D_REAL_CT) is not here")
+    from registration.io import dicom
+
+    return dicom.read_volume(path)
+
+
+def _small_volume() -> Volume:
+    data = np.full((8, 10, 12), -1000.0, dtype=np.float32)
+    data[2:6, 3:7, 3:9] = 500.0
+    return Volume(data, np.diag([1.0, 1.0, 2.0, 1.0]), label="box")
+
+
+def test_outside_the_region_bone_becomes_soft_tissue() -> None:
+    volume = _small_volume()
+    mask = np.ones(volume.shape, dtype=bool)
+    mask[:4] = False
+    out = roi_volume(volume, RegionOfInterest(mask, "test"))
+    assert (out.data[:4][volume.data[:4] > 40] == 40).all() and (out.data[4:] == volume.data[4:]).all()
+    assert (out.data[volume.data < 40] == volume.data[volume.data < 40]).all()  # air stays air
+    assert out.meta["roi"]["source"] == "test"
+
+
+def test_a_users_npz_mask(tmp_path) -> None:
+    volume = _small_volume()
+    mask = np.zeros(volume.shape, dtype=np.uint8)
+    mask[4:] = 3
+    np.savez(tmp_path / "roi.npz", mask=mask)
+    roi = read_roi_mask(tmp_path / "roi.npz", volume)
+    assert roi.mask.sum() == mask.astype(bool).sum()
+    np.savez(tmp_path / "bad.npz", mask=mask[1:])
+    with pytest.raises(ValueError, match="bad.npz: mask shape"):
+        read_roi_mask(tmp_path / "bad.npz", volume)
+    np.savez(tmp_path / "other.npz", labels=mask)
+    with pytest.raises(ValueError, match="no array named 'mask'"):
+        read_roi_mask(tmp_path / "other.npz", volume)
+    with pytest.raises(ValueError, match="must be .npz or NIfTI"):
+        read_roi_mask(tmp_path / "roi.png", volume)
+
+
+@pytest.mark.slow
+def test_the_cranium_leaves_out_the_cervical_spine_only(real_ct) -> None:
+    roi = cranium_region(real_ct)
+    z = real_ct.index_to_world[2, 2] * np.arange(real_ct.shape[0]) + real_ct.index_to_world[2, 3]
+    # the skull base of this CT lies 125-140 mm below the top of the scan (read off its sagittal
+    # slices: the dens at about z -135 mm)
+    assert roi.skull_base_z_mm is not None and -145.0 < roi.skull_base_z_mm < -120.0
+    left = ~roi.mask
+    assert not left[z >= roi.skull_base_z_mm].any()  # nothing of the cranium
+    bone_left = left & (real_ct.data > 250)
+    # the column: at least 80 ml of bone left out, all within 45 mm of the scan's midline
+    assert bone_left.sum() * 3e-3 > 80.0
+    ii = np.nonzero(bone_left)[2]
+    assert np.abs(ii - real_ct.shape[2] / 2).max() < 90
+
+
+@pytest.mark.slow
+def test_a_bent_neck_leaves_the_heads_estimate(real_ct) -> None:
+    """The image: the CT moved by a clinical offset with its neck bent by 5 deg (flexion at
+    C1/C2, the spine following 0.4 of the motion: registration.sim.clinical, volume_xray's
+    integrator, not the scoring DRR); registered to the cranium the head's estimate is within
+    1 mm in-plane."""
+    from registration.sim.clinical import ClinicalEffects, ClinicalImager, Neck
+
+    iso = head_isocenter_mm(real_ct)
+    c = np.asarray(iso)
+    truth = (
+        rigid(None, np.array([6.0, -4.0, 5.0]))
+        @ rigid(None, c)
+        @ axis_angle_matrix((0.3, 0.9, 0.3), 4.0)
+        @ rigid(None, -c)
+    )
+    carm = replace(CArm.for_format(27.0, pixels=384, primary_deg=20.0, secondary_deg=10.0), isocenter_mm=iso)
+    imager = ClinicalImager(real_ct, iso, ClinicalEffects(neck=Neck(flexion_deg=5.0, rotation_deg=0.0)), catheter=False)
+    image = imager.image(carm, truth, seed=7).clean_xray()
+    head = roi_volume(real_ct, cranium_region(real_ct))
+    result = register(head, image, truth=truth, seed=7, options=RegistrationOptions())
+    # the head's motion is the truth: the skull moved rigidly with it
+    assert result.residual.inplane_mm < 1.0 and result.residual.rotation_deg < 3.0, result.residual
