@@ -29,6 +29,14 @@ def test_no_import_cycle() -> None:
     assert layers.cycles(layers.graph()) == []
 
 
+def test_adapters_share_code_only_through_the_engine() -> None:
+    # The command line imports nothing of the web app but its entry point; the web app nothing of the command line.
+    layers = _layers()
+    assert layers.adapter_crossings(layers.graph()) == []
+    g = {"app.cli.x": {"app.web.panels": 4, "app.web.main": 5}, "app.web.y": {"app.cli": 2}}
+    assert len(layers.adapter_crossings(g)) == 2  # the check can fail: the panel and the CLI edge, not main
+
+
 def test_engine_never_imports_the_app() -> None:
     layers = _layers()
     g = layers.graph()

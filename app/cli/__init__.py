@@ -8,6 +8,7 @@ set ``ROADMAP3D_DEBUG=1`` to see the traceback instead.
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 from pathlib import Path
@@ -49,39 +50,23 @@ Study = (
 )
 
 
+#: Each study's runner, ``(module, function)``, imported when the study runs (``--help`` stays light).
+STUDY_RUNNERS: dict[type, tuple[str, str]] = {
+    Table1: ("app.cli.study_commands", "run_table1"),
+    PhantomStudy: ("app.cli.study_commands", "run_phantom_study"),
+    ClinicalStudy: ("app.cli.study_commands", "run_clinical_study"),
+    CalibrationStudy: ("app.cli.study_commands", "run_calibration_study"),
+    TrackingStudy: ("app.cli.study_commands", "run_tracking_study"),
+    RotationalRunStudy: ("app.cli.rotational_commands", "run_rotational_validation"),
+    BiplaneStudy: ("app.cli.study_commands", "run_biplane_study"),
+    VolumeStudy: ("app.cli.study_commands", "run_volume_validation"),
+}
+
+
 def validate(study: Study) -> int:
     """Run one of the paper's validation studies."""
-    if isinstance(study, Table1):
-        from app.cli.study_commands import run_table1
-
-        return run_table1(study)
-    if isinstance(study, PhantomStudy):
-        from app.cli.study_commands import run_phantom_study
-
-        return run_phantom_study(study)
-    if isinstance(study, ClinicalStudy):
-        from app.cli.study_commands import run_clinical_study
-
-        return run_clinical_study(study)
-    if isinstance(study, TrackingStudy):
-        from app.cli.study_commands import run_tracking_study
-
-        return run_tracking_study(study)
-    if isinstance(study, VolumeStudy):
-        from app.cli.study_commands import run_volume_validation
-
-        return run_volume_validation(study)
-    if isinstance(study, RotationalRunStudy):
-        from app.cli.rotational_commands import run_rotational_validation
-
-        return run_rotational_validation(study)
-    if isinstance(study, BiplaneStudy):
-        from app.cli.study_commands import run_biplane_study
-
-        return run_biplane_study(study)
-    from app.cli.study_commands import run_calibration_study
-
-    return run_calibration_study(study)
+    module, function = STUDY_RUNNERS[type(study)]
+    return getattr(importlib.import_module(module), function)(study)
 
 
 # --------------------------------------------------------------------------------------
@@ -482,14 +467,13 @@ def app(
         allow_origin: Other web origins (scheme://host:port) whose pages may connect, e.g. behind a proxy.
     """
     if listen_port is not None:
-        from app.web.pacs_panel import ENV_NODE_ALLOW, ENV_NODE_PORT
-        from registration.io.node import check_ae_title
+        from registration.io.node import ENV_APP_NODE_ALLOW, ENV_APP_NODE_PORT, check_ae_title
 
         if not allow:
             raise UserError("--listen-port needs --allow AE (the C-arm's AE title)")
         titles = [check_ae_title(a, "--allow") for a in allow]
-        os.environ[ENV_NODE_PORT] = str(listen_port)
-        os.environ[ENV_NODE_ALLOW] = "\\".join(titles)
+        os.environ[ENV_APP_NODE_PORT] = str(listen_port)
+        os.environ[ENV_APP_NODE_ALLOW] = "\\".join(titles)
     elif allow:
         raise UserError("--allow needs --listen-port")
     from app.web.main import run_app
@@ -498,7 +482,7 @@ def app(
         from registration.io.pacs import ENV_URL, PacsSettings
 
         PacsSettings.resolve(pacs)  # a bad URL or config is an error now, not in the page
-        os.environ[ENV_URL] = pacs  # the PACS tab (app/pacs_panel.py) reads it
+        os.environ[ENV_URL] = pacs  # the PACS tab (app/web/pacs_panel.py) reads it
     return run_app(
         host=host,
         port=port,

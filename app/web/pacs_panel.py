@@ -367,17 +367,14 @@ class PacsPanel(BasePanel):
             self._node_folder = None
 
 
-#: Environment set by ``roadmap3d app --listen-port P --allow AE ...`` for the panel's DICOM node.
-ENV_NODE_PORT = "ROADMAP3D_APP_NODE_PORT"
-ENV_NODE_ALLOW = "ROADMAP3D_APP_NODE_ALLOW"
-ENV_NODE_AE = "ROADMAP3D_APP_NODE_AE"
-
-
 def node_settings_from_env() -> dict[str, Any] | None:
+    """The DICOM node ``roadmap3d app --listen-port P --allow AE ...`` asked for, or None."""
     import os
 
-    port = os.environ.get(ENV_NODE_PORT)
+    from registration.io.node import ENV_APP_NODE_AE, ENV_APP_NODE_ALLOW, ENV_APP_NODE_PORT
+
+    port = os.environ.get(ENV_APP_NODE_PORT)
     if not port:
         return None
-    allowed = tuple(a for a in os.environ.get(ENV_NODE_ALLOW, "").split("\\") if a)
-    return {"port": int(port), "allowed": allowed, "ae_title": os.environ.get(ENV_NODE_AE) or "ROADMAP3D"}
+    allowed = tuple(a for a in os.environ.get(ENV_APP_NODE_ALLOW, "").split("\\") if a)
+    return {"port": int(port), "allowed": allowed, "ae_title": os.environ.get(ENV_APP_NODE_AE) or "ROADMAP3D"}

@@ -755,3 +755,10 @@ def _place(tmp: Path, target: Path) -> str:
     except FileExistsError:
         return "same" if filecmp.cmp(tmp, target, shallow=False) else "conflict"
     return "new"
+
+
+#: Environment set by ``roadmap3d app --listen-port P --allow AE ...`` for the app's DICOM node
+#: (the command line sets it, the web app's PACS panel reads it).
+ENV_APP_NODE_PORT = "ROADMAP3D_APP_NODE_PORT"
+ENV_APP_NODE_ALLOW = "ROADMAP3D_APP_NODE_ALLOW"
+ENV_APP_NODE_AE = "ROADMAP3D_APP_NODE_AE"

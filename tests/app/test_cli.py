@@ -89,3 +89,21 @@ def test_app_refuses_bad_paths_with_a_message(args: list[str]) -> None:
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 2, out
     assert "error:" in out and "Traceback" not in out
+
+
+@pytest.mark.parametrize("args", [["--help"], ["register", "--help"], ["validate", "table1", "--help"]])
+def test_help_loads_neither_numba_nor_viser(args: list[str]) -> None:
+    # The declarations import their runners lazily: --help prints without the engine's compiler or the web server.
+    code = (
+        "import sys\n"
+        "from app.cli import main\n"
+        "try:\n"
+        f"    main({args!r})\n"
+        "except SystemExit as exc:\n"
+        "    assert exc.code == 0, exc.code\n"
+        "heavy = sorted(m for m in ('numba', 'viser') if m in sys.modules)\n"
+        "assert not heavy, heavy\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "usage: roadmap3d" in done.stdout
