@@ -201,7 +201,7 @@ def test_overlay_modes_in_the_page(fresh: RoadmapApp, browser, tmp_path) -> None
     panel = next(p for p in app.panels if isinstance(p, ComparePanel))
     page = browser.new_page(viewport={"width": 1280, "height": 760})
     try:
-        page.goto(url_of(app.server))
+        page.goto(url_of(app.server, TEST_GUARD, with_token=True))
         page.get_by_role("button", name="Register").wait_for(timeout=90_000)
         page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
         app.table_buttons["T4"].value = True  # the shared session: the patient moves (the page shows it)
@@ -247,7 +247,7 @@ def test_default_camera_frames_the_vessels(fresh: RoadmapApp, browser) -> None:
     app = fresh
     page = browser.new_page(viewport={"width": 1280, "height": 760})
     try:
-        page.goto(url_of(app.server))
+        page.goto(url_of(app.server, TEST_GUARD, with_token=True))
         page.get_by_role("button", name="Register").wait_for(timeout=90_000)
         page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
         assert _wait(lambda: len(app.server.get_clients()) > 0, 60)
