@@ -320,10 +320,12 @@ class ClinicalEffects:
 
     @classmethod
     def of(cls, names: tuple[str, ...] | list[str], strength: float = 1.0) -> ClinicalEffects:
-        """The named effects (``EFFECT_NAMES``) at ``strength``."""
+        """The named effects (``EFFECT_NAMES``) at ``strength`` (0: none of them, a clean image)."""
         unknown = [n for n in names if n not in EFFECT_TYPES]
         if unknown:
             raise ValueError(f"unknown effect {unknown[0]!r}; known: {', '.join(EFFECT_NAMES)}")
+        if _strength(strength) == 0:
+            return cls()
         return cls(**{n: EFFECT_TYPES[n]().at_strength(strength) for n in names})
 
     @property

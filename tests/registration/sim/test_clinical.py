@@ -216,6 +216,7 @@ def test_effects_scale_with_strength_and_realism_parses() -> None:
     assert Scatter().at_strength(1.25).spr == pytest.approx(0.5)
     assert Neck().at_strength(0).follow == 1.0 and Neck().at_strength(0).flexion_deg == 0.0
     assert Display().at_strength(0).jpeg_quality is None
+    assert ClinicalEffects.of(["overlay", "text"], 0.0).is_clean  # strength 0: no effect at all
     arms = parse_realism("clean,blades,text+display,clinical")
     assert [a for a, _ in arms] == ["clean", "blades", "display+text", "clinical"]
     assert arms[3][1] == tuple(ClinicalEffects.all().names)
