@@ -11,7 +11,7 @@ from app import cli
 
 #: ``../shared/data/real-xa`` beside the project, or ``$ROADMAP3D_SHARED_DATA/real-xa``.
 REAL_XA = (
-    Path(os.environ.get("ROADMAP3D_SHARED_DATA") or Path(__file__).resolve().parents[3].parent / "shared" / "data")
+    Path(os.environ.get("ROADMAP3D_SHARED_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data")
     / "real-xa"
     / "coronary-xa-96-frames.dcm"
 )
