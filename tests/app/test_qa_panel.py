@@ -135,7 +135,8 @@ def test_report_button_writes_the_last_registration(fresh: RoadmapApp, compare: 
     # this run's evidence (an earlier test's plots may still be shown until it is drawn)
     assert wait_until(lambda: compare.evidence_text.content.startswith("Confidence"), 180)
     assert compare.profiles_image.image.shape[0] > 100
-    assert "applied" in compare.evidence_text.content
+    # the decision is stated (in the full suite's order this T4 has also been withheld: the button must work either way)
+    assert "applied" in compare.evidence_text.content or "withheld" in compare.evidence_text.content
     compare.report_button.value = True
     assert wait_until(lambda: compare.last_report is not None, 180)
     out = compare.last_report
