@@ -20,6 +20,7 @@ from app.cli._perf import exit_code, exit_without_teardown, small_pages
 from app.cli.options import (
     BiplaneStudy,
     CalibrationStudy,
+    CaptureStudy,
     ClinicalStudy,
     PhantomStudy,
     RotationalRunStudy,
@@ -47,6 +48,7 @@ Study = (
     | Annotated[RotationalRunStudy, tyro.conf.subcommand("rotational-run")]
     | Annotated[BiplaneStudy, tyro.conf.subcommand("biplane")]
     | Annotated[VolumeStudy, tyro.conf.subcommand("volume")]
+    | Annotated[CaptureStudy, tyro.conf.subcommand("capture")]
 )
 
 
@@ -60,6 +62,7 @@ STUDY_RUNNERS: dict[type, tuple[str, str]] = {
     RotationalRunStudy: ("app.cli.rotational_commands", "run_rotational_validation"),
     BiplaneStudy: ("app.cli.study_commands", "run_biplane_study"),
     VolumeStudy: ("app.cli.study_commands", "run_volume_validation"),
+    CaptureStudy: ("app.cli.capture_commands", "run_capture_study"),
 }
 
 

@@ -74,6 +74,29 @@ class BiplaneStudy:
 
 
 @dataclass
+class CaptureStudy:
+    """Capture range: success against the initial offset (translation 0-80 mm, rotation 0-40 deg)."""
+
+    out: Path = Path("validation-capture")
+    """Output folder (results.jsonl, capture_curves.png, report.md/html); a rerun resumes."""
+    quick: bool = False
+    """Five levels per sweep, three moments each, smaller images and volume: minutes."""
+    json: bool = False
+    """Print the summary as one JSON object {"single_plane": {...}, "biplane": {...}, ...}."""
+    seed: int = 0
+    jobs: int | None = None
+    """Parallel processes (default: all cores)."""
+    scheduler: str | None = None
+    """Run on a Dask cluster, e.g. tcp://HOST:PORT."""
+    ct: Path | None = None
+    """A DICOM CT folder to register instead of the phantom's 3DRA (images formed from the CT itself)."""
+    registrations: int | None = None
+    """Moments per offset level (default: 10, quick 3)."""
+    sweep: tuple[Literal["translation", "rotation", "combined"], ...] = ("translation", "rotation", "combined")
+    """Which sweeps to run: the translation alone, the rotation alone, or both growing together."""
+
+
+@dataclass
 class CalibrationStudy:
     """Machine-based registration error at random angles against the true (bent) geometry."""
 

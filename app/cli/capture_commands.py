@@ -1,0 +1,61 @@
+"""The printing runner of ``roadmap3d validate capture`` (the study is
+:mod:`registration.studies.capture`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from app.cli.options import CaptureStudy
+from registration.studies import capture, runs
+
+
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def capture_config(args: CaptureStudy) -> capture.CaptureConfig:
+    """The study's frozen configuration from the command line's options (ValueError on bad ones)."""
+    ct = None if args.ct is None else str(Path(args.ct).resolve())
+    if ct is not None and not Path(ct).is_dir():
+        raise ValueError(f"--ct {args.ct}: not a folder of DICOM CT slices")
+    if args.jobs is not None and args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1, got {args.jobs}")
+    config = (
+        capture.CaptureConfig.quick_config(args.seed, ct)
+        if args.quick
+        else capture.CaptureConfig(seed=args.seed, ct_path=ct)
+    )
+    if args.registrations is not None:
+        if args.registrations < 1:
+            raise ValueError(f"--registrations must be >= 1, got {args.registrations}")
+        config = replace(config, registrations_per_level=args.registrations)
+    if not args.sweep:
+        raise ValueError("--sweep needs at least one of translation, rotation, combined")
+    return replace(config, sweeps=tuple(dict.fromkeys(args.sweep)))
+
+
+def run_capture_study(args: CaptureStudy) -> int:
+    """``roadmap3d validate capture``: the capture range, written to ``args.out``."""
+    config = capture_config(args)
+    tasks = capture.capture_tasks(config)
+    log = None if args.json else _stderr
+    records, wall = runs.run_study(tasks, args.out, n_jobs=args.jobs, scheduler=args.scheduler, log=log)
+    summary = capture.capture_summary(records, config=asdict(config), wall_seconds=wall)
+    capture.write_capture_report(records, summary, Path(args.out))
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    for plane, name in (("biplane", "biplane"), ("single_plane", "single plane A")):
+        s = summary[plane]
+        radius = lambda x, unit: "none" if x is None else f"{x:g} {unit}"  # noqa: E731
+        precision = "-" if s["applied_precision"] is None else f"{100 * s['applied_precision']:.1f} %"
+        print(
+            f"{name:<15} capture radius (95 %): translation {radius(s['capture_radius_mm_95'], 'mm')}, rotation "
+            f"{radius(s['capture_radius_deg_95'], 'deg')}; applied precision {precision} ({s['applied']} applied "
+            f"of {s['runs']})"
+        )
+    print(f"\nwritten: {Path(args.out) / 'results.jsonl'}, {Path(args.out) / 'report.md'} and capture_curves.png")
+    return 0

@@ -1,0 +1,310 @@
+"""``roadmap3d validate capture``: how success falls with the initial offset.
+
+The paper's Fig. 6 stops at its clinical offsets (25 mm, 10 degrees). This study sweeps the
+patient's offset from the machine-based pose further: translation alone (0-80 mm in a random
+3-D direction), rotation alone (0-40 degrees about a random axis) and both together, each moment
+seen by two planes (plane A near frontal, plane B near lateral) and registered biplane and, on
+plane A alone, single plane, exactly as :mod:`registration.studies.biplane` does.
+
+The capture radius of a sweep is the largest offset below which at least 95 % of the
+registrations at every level succeed (biplane: the 3-D criterion; single plane: the paper's
+in-plane criterion). Beyond it the engine must withhold or refuse, never apply: the applied
+precision says whether it does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from registration import __version__
+from registration.core.register import RegistrationOptions
+from registration.studies.biplane import (
+    PLANE_A_PRIMARY_DEG,
+    PLANE_B_PRIMARY_DEG,
+    SECONDARY_DEG,
+    BiplaneCase,
+)
+from registration.studies.runs import StudyTask, _stable_seed, random_unit_vector
+
+#: The sweeps: which offset grows along each (the other stays zero, or both grow together).
+SWEEPS = ("translation", "rotation", "combined")
+#: Share of successes a level needs to count as captured.
+CAPTURE_SHARE = 0.95
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """What the capture-range study registers."""
+
+    #: Offset levels of the translation sweep (mm); the combined sweep pairs them with the rotations.
+    translations_mm: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0)
+    #: Offset levels of the rotation sweep (degrees), as many as the translations.
+    rotations_deg: tuple[float, ...] = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0)
+    sweeps: tuple[str, ...] = SWEEPS
+    registrations_per_level: int = 10
+    phantom_seed: int = 0
+    volume_format_cm: float = 27.0
+    plane_a_pixels: int = 512
+    plane_b_pixels: int = 384
+    volume_voxels: int = 256
+    kind: str = "fluoro"
+    #: A DICOM CT folder instead of the phantom's 3DRA (images formed from the CT itself).
+    ct_path: str | None = None
+    seed: int = 0
+    quick: bool = False
+
+    def __post_init__(self) -> None:
+        if len(self.translations_mm) != len(self.rotations_deg):
+            raise ValueError("the translation and rotation sweeps need the same number of levels")
+        unknown = set(self.sweeps) - set(SWEEPS)
+        if unknown:
+            raise ValueError(f"unknown sweep(s) {sorted(unknown)}; choose from {', '.join(SWEEPS)}")
+        if self.registrations_per_level < 1:
+            raise ValueError(f"registrations per level must be >= 1, got {self.registrations_per_level}")
+
+    @classmethod
+    def quick_config(cls, seed: int = 0, ct_path: str | None = None) -> CaptureConfig:
+        """Minutes on 2 cores: five levels per sweep, three moments each, 256/192 px, 128^3."""
+        return cls(
+            translations_mm=(0.0, 20.0, 40.0, 60.0, 80.0),
+            rotations_deg=(0.0, 10.0, 20.0, 30.0, 40.0),
+            registrations_per_level=3,
+            plane_a_pixels=256,
+            plane_b_pixels=192,
+            volume_voxels=128,
+            ct_path=ct_path,
+            seed=seed,
+            quick=True,
+        )
+
+    def level_offset(self, sweep: str, level: int) -> tuple[float, float]:
+        """(translation mm, rotation deg) of one level of one sweep."""
+        t, r = self.translations_mm[level], self.rotations_deg[level]
+        return {"translation": (t, 0.0), "rotation": (0.0, r), "combined": (t, r)}[sweep]
+
+
+def capture_tasks(config: CaptureConfig, options: RegistrationOptions | None = None) -> list[StudyTask]:
+    """Every registration of the study; each draw depends only on the seed, sweep, level and number."""
+    source = "ct" if config.ct_path else "fdk"
+    tag = f"a{config.plane_a_pixels}-b{config.plane_b_pixels}-v{config.volume_voxels}-{source}-{config.kind}"
+    tasks = []
+    for sweep in config.sweeps:
+        for level in range(len(config.translations_mm)):
+            t_mm, r_deg = config.level_offset(sweep, level)
+            for number in range(config.registrations_per_level):
+                rng = np.random.default_rng([config.seed, 0xCA, SWEEPS.index(sweep), level, number])
+                angles = (
+                    (float(rng.uniform(*PLANE_A_PRIMARY_DEG)), float(rng.uniform(*SECONDARY_DEG))),
+                    (float(rng.uniform(*PLANE_B_PRIMARY_DEG)), float(rng.uniform(*SECONDARY_DEG))),
+                )
+                translation = t_mm * random_unit_vector(rng)
+                axis = random_unit_vector(rng)
+                ident = f"capture/{source}/{sweep}/{t_mm:g}mm-{r_deg:g}deg/r{number}"
+                case = BiplaneCase(
+                    phantom_seed=config.phantom_seed,
+                    volume_format_cm=config.volume_format_cm,
+                    volume_voxels=config.volume_voxels,
+                    angles_deg=angles,
+                    translation_mm=(float(translation[0]), float(translation[1]), float(translation[2])),
+                    rotation_axis=(float(axis[0]), float(axis[1]), float(axis[2])),
+                    rotation_deg=r_deg,
+                    pixels=(config.plane_a_pixels, config.plane_b_pixels),
+                    kind=config.kind,
+                    seed=_stable_seed(config.seed, ident),
+                    ct_path=config.ct_path,
+                )
+                extra = {
+                    "study_seed": config.seed,
+                    "sweep": sweep,
+                    "level": level,
+                    "level_translation_mm": t_mm,
+                    "level_rotation_deg": r_deg,
+                    "registration": number,
+                }
+                tasks.append(StudyTask(f"{ident}/{tag}/s{config.seed}", case, extra, options))
+    return tasks
+
+
+# --------------------------------------------------------------------------------------
+# Summary
+# --------------------------------------------------------------------------------------
+def _plane_keys(plane: str) -> tuple[str, str]:
+    """(success key, applied key) of a record for ``plane`` ("biplane" or "single_plane")."""
+    return ("success", "applied") if plane == "biplane" else ("single_success_inplane", "single_applied")
+
+
+def level_rates(records: list[dict], sweep: str, plane: str) -> list[dict]:
+    """Per level of one sweep: offset, runs, success rate, applied and wrongly applied counts."""
+    success, applied = _plane_keys(plane)
+    rows = []
+    for level in sorted({r["level"] for r in records if r["sweep"] == sweep}):
+        at = [r for r in records if r["sweep"] == sweep and r["level"] == level]
+        rows.append(
+            {
+                "translation_mm": at[0]["level_translation_mm"],
+                "rotation_deg": at[0]["level_rotation_deg"],
+                "runs": len(at),
+                "success_rate": sum(bool(r[success]) for r in at) / len(at),
+                "applied": sum(bool(r.get(applied)) for r in at),
+                "applied_wrong": sum(bool(r.get(applied)) and not r[success] for r in at),
+            }
+        )
+    return rows
+
+
+def capture_radius(rows: list[dict], key: str) -> float | None:
+    """The largest offset (``key`` of the rows) up to which every level succeeds >= 95 %;
+    None when even the smallest level does not."""
+    radius = None
+    for row in sorted(rows, key=lambda r: r[key]):
+        if row["success_rate"] < CAPTURE_SHARE:
+            break
+        radius = float(row[key])
+    return radius
+
+
+def _plane_summary(records: list[dict], plane: str) -> dict:
+    success, applied = _plane_keys(plane)
+    present = [sweep for sweep in SWEEPS if any(r["sweep"] == sweep for r in records)]
+    sweeps = {sweep: level_rates(records, sweep, plane) for sweep in present}
+    radius = lambda sweep, key: capture_radius(sweeps[sweep], key) if sweep in sweeps else None  # noqa: E731
+    combined = None
+    if radius("combined", "translation_mm") is not None:
+        combined = {
+            "translation_mm": radius("combined", "translation_mm"),
+            "rotation_deg": radius("combined", "rotation_deg"),
+        }
+    taken = [r for r in records if r.get(applied)]
+    right = [r for r in taken if r[success]]
+    return {
+        "capture_radius_mm_95": radius("translation", "translation_mm"),
+        "capture_radius_deg_95": radius("rotation", "rotation_deg"),
+        "capture_radius_combined_95": combined,
+        "applied_precision": len(right) / len(taken) if taken else None,
+        "applied": len(taken),
+        "applied_wrong": [r["case_id"] for r in taken if not r[success]],
+        "success_rate": sum(bool(r[success]) for r in records) / len(records) if records else None,
+        "runs": len(records),
+        "sweeps": sweeps,
+    }
+
+
+def capture_summary(records: list[dict], *, config: dict, wall_seconds: float) -> dict:
+    """The study's numbers (the ``--json`` object): one block per plane count."""
+    return {
+        "study": "capture",
+        "single_plane": {**_plane_summary(records, "single_plane"), "criterion": "in-plane < 1 mm and < 3 deg"},
+        "biplane": {**_plane_summary(records, "biplane"), "criterion": "3-D < 1 mm and < 3 deg"},
+        "capture_share": CAPTURE_SHARE,
+        "image_source": records[0]["image_source"] if records else "",
+        "volume_labels": sorted({r["volume_label"] for r in records}),
+        "wall_seconds": wall_seconds,
+        "config": config,
+        "version": __version__,
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Figure and report
+# --------------------------------------------------------------------------------------
+_SWEEP_AXES = {
+    "translation": ("translation_mm", "initial translation offset (mm), no rotation"),
+    "rotation": ("rotation_deg", "initial rotation offset (deg), no translation"),
+    "combined": ("translation_mm", "initial offset: translation (mm), rotation = half of it (deg)"),
+}
+
+
+def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
+    """Success and wrongly applied share against the offset, one panel per sweep."""
+    from registration.studies.report import _plt, _stamp
+
+    plt = _plt()
+    sweeps = [s for s in SWEEPS if s in summary["biplane"]["sweeps"]]
+    fig, axes = plt.subplots(1, len(sweeps), figsize=(4.6 * len(sweeps), 4.0), squeeze=False)
+    for ax, sweep in zip(axes[0], sweeps, strict=True):
+        key, label = _SWEEP_AXES[sweep]
+        for plane, colour, name in (("biplane", "#4a7ab5", "biplane"), ("single_plane", "#f0ad4e", "single plane A")):
+            rows = summary[plane]["sweeps"][sweep]
+            x = [r[key] for r in rows]
+            ax.plot(x, [100 * r["success_rate"] for r in rows], "o-", color=colour, label=f"{name}: success")
+            wrong = [100 * r["applied_wrong"] / r["runs"] for r in rows]
+            ax.plot(x, wrong, "x--", color=colour, alpha=0.8, label=f"{name}: applied and wrong")
+        ax.axhline(100 * CAPTURE_SHARE, color="#d9534f", ls=":", lw=1)
+        ax.set_ylim(-3, 103)
+        ax.set_xlabel(label, fontsize=8)
+        ax.set_ylabel("% of registrations", fontsize=8)
+        ax.set_title(f"{sweep} sweep (n = {rows[0]['runs']} per level)", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, loc="center left")
+    fig.suptitle("Capture range: success against the initial offset (dotted: 95 %)", fontsize=10)
+    fig.tight_layout()
+    _stamp(fig, records)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def _radius(x: float | None, unit: str) -> str:
+    return "below the smallest level" if x is None else f"{x:g} {unit}"
+
+
+def capture_report_md(summary: dict, image: str) -> str:
+    pct = lambda x: "-" if x is None else f"{100 * x:.1f} %"  # noqa: E731
+    lines = [
+        "# Capture range",
+        "",
+        "Each moment is seen by plane A (near frontal) and plane B (near lateral) and registered biplane and, on "
+        "plane A alone, single plane, from the machine-based pose while the patient is offset by the level's "
+        "translation (random 3-D direction) and rotation (random axis). The capture radius is the largest offset "
+        f"up to which every level succeeds in at least {100 * CAPTURE_SHARE:g} % of the registrations.",
+        "",
+        f"Volumes: {', '.join(summary['volume_labels'])}. Images: {summary['image_source']}.",
+        "",
+        "| | biplane (3-D criterion) | single plane A (in-plane criterion) |",
+        "| --- | --- | --- |",
+    ]
+    bi, sp = summary["biplane"], summary["single_plane"]
+    comb = lambda c: "-" if c is None else f"{c['translation_mm']:g} mm with {c['rotation_deg']:g} deg"  # noqa: E731
+    lines += [
+        f"| capture radius, translation | {_radius(bi['capture_radius_mm_95'], 'mm')} | "
+        f"{_radius(sp['capture_radius_mm_95'], 'mm')} |",
+        f"| capture radius, rotation | {_radius(bi['capture_radius_deg_95'], 'deg')} | "
+        f"{_radius(sp['capture_radius_deg_95'], 'deg')} |",
+        f"| capture radius, both together | {comb(bi['capture_radius_combined_95'])} | "
+        f"{comb(sp['capture_radius_combined_95'])} |",
+        f"| applied precision | {pct(bi['applied_precision'])} ({bi['applied']} applied) | "
+        f"{pct(sp['applied_precision'])} ({sp['applied']} applied) |",
+        f"| registrations | {bi['runs']} | {sp['runs']} |",
+        "",
+        f"![capture curves]({image})",
+        "",
+    ]
+    for plane, name in (("biplane", "Biplane"), ("single_plane", "Single plane A")):
+        lines += [f"## {name} per level", "", "| sweep | translation (mm) | rotation (deg) | runs | success | "
+                  "applied | applied and wrong |", "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+        for sweep, rows in summary[plane]["sweeps"].items():
+            for r in rows:
+                lines.append(
+                    f"| {sweep} | {r['translation_mm']:g} | {r['rotation_deg']:g} | {r['runs']} | "
+                    f"{pct(r['success_rate'])} | {r['applied']} | {r['applied_wrong']} |"
+                )
+        wrong = summary[plane]["applied_wrong"]
+        lines += ["", "Applied and wrong: " + (", ".join(wrong) if wrong else "none") + ".", ""]
+    cfg = summary["config"]
+    lines.append(f"roadmap3d {summary['version']}, seed {cfg.get('seed')}, wall {summary['wall_seconds']:.0f} s.")
+    return "\n".join(lines) + "\n"
+
+
+def write_capture_report(records: list[dict], summary: dict, out: Path) -> dict[str, str]:
+    """``capture_curves.png``, ``report.md`` and ``report.html`` in ``out``."""
+    from registration.studies.report import markdown_to_html
+
+    out = Path(out)
+    png = capture_curves(records, summary, out / "capture_curves.png")
+    md = capture_report_md(summary, png.name)
+    (out / "report.md").write_text(md)
+    (out / "report.html").write_text(markdown_to_html(md, "Capture range"))
+    return {"curves": str(png), "report": str(out / "report.md")}
