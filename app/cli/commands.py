@@ -477,6 +477,11 @@ def run_register(
             f"{r.outofplane_mm:.2f} mm out-of-plane of plane A), {r.rotation_deg:.2f} deg{mtre} -> {verdict} "
             f"({criterion} criterion)"
         )
+    if result.walk_hops:
+        _say(
+            f"the search walked {result.walk_hops} time{'s' if result.walk_hops > 1 else ''} beyond its box around the "
+            "machine-based pose: the patient is far from it; check the estimate by eye"
+        )
     assessed = None
     if confidence and not result.at_bounds:
         from registration.core.assess import assess

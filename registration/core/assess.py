@@ -28,13 +28,18 @@ from registration.core.volume import Volume
 
 
 def veto(result: RegistrationResult) -> str | None:
-    """Why ``result`` is no registration at all (None: it is one): an estimate at the search
-    bounds (inputs without information drift there) or without a finite measure."""
+    """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
+    the search bounds (inputs without information drift there), without a finite measure, or
+    reached by walking beyond the search box (:mod:`registration.core.register.walk`)."""
     at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
     if at_bounds:
         return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
     if not math.isfinite(getattr(result, "similarity", 0.0)):
         return "no usable overlap between the DRR and the image"
+    hops = getattr(result, "walk_hops", 0)
+    if hops:
+        return (f"the estimate lies beyond the search box around the machine-based pose (the search walked "
+                f"{hops} time{'s' if hops > 1 else ''} from the bounds): check it by eye before applying it")
     return None
 
 

@@ -76,8 +76,9 @@ def light_capture(options: RegistrationOptions | None = None) -> RegistrationOpt
     if options is None:
         o = replace(o, polish_reach=None, polish_evaluations=60, polish_xtol=POLISH_XTOL)
     # no depth correction: the tracker refines the capture's estimate at its own level, five
-    # parameters (validate tracking was measured without it)
-    return replace(o, levels=o.levels[:1], support_margin_mm=margins, depth_correction=False)
+    # parameters (validate tracking was measured without it); no walk beyond the search box (a
+    # frame at the bounds is withheld, the next frame tries again)
+    return replace(o, levels=o.levels[:1], support_margin_mm=margins, depth_correction=False, start=False)
 
 
 @dataclass(frozen=True)

@@ -53,10 +53,12 @@ from registration.core.register.options import (
     PolishOptions,
     RegistrationOptions,
     RotationCheckOptions,
+    StartOptions,
 )
 from registration.core.register.plan import Plan, Run, State
 from registration.core.register.result import Progress, RegistrationResult, RotationCheck
 from registration.core.register.rotation_check import RIVAL_DISTINCT_DEG, rotation_check
+from registration.core.register.walk import walk_from_bounds
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
 
@@ -73,6 +75,7 @@ __all__ = [
     "RIVAL_DISTINCT_DEG",
     "ROTATION_ACROSS_WEIGHT",
     "SIX_PARAMETERS",
+    "StartOptions",
     "BiplaneOptions",
     "DepthOptions",
     "Inputs",
@@ -128,12 +131,16 @@ def register(
         check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
     start = time.perf_counter()
     inputs, intensity = _matched_intensities(inputs, options)
-    space = SearchSpace.for_views(inputs.views[0].geometry, inputs.initial_motion,
-                                  optimize_tz=options.optimizes_tz(len(inputs.views)),
-                                  bound_mm=options.bound_mm, bound_deg=options.bound_deg)  # fmt: skip
-    run = Run(inputs, options, space, np.random.default_rng(seed), Monitor(space, callback, start))
-    state = build_plan(inputs, options).run(State(run, space.start(), space))
-    result = _result(state, vessel_points_mm, time.perf_counter() - start)
+
+    def once(inputs: Inputs) -> RegistrationResult:
+        space = SearchSpace.for_views(inputs.views[0].geometry, inputs.initial_motion,
+                                      optimize_tz=options.optimizes_tz(len(inputs.views)),
+                                      bound_mm=options.bound_mm, bound_deg=options.bound_deg)  # fmt: skip
+        run = Run(inputs, options, space, np.random.default_rng(seed), Monitor(space, callback, start))
+        state = build_plan(inputs, options).run(State(run, space.start(), space))
+        return _result(state, vessel_points_mm, time.perf_counter() - start)
+
+    result = walk_from_bounds(once, inputs, options) if options.start.enabled else once(inputs)
     result.intensity = intensity
     return result
 

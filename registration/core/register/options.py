@@ -200,6 +200,20 @@ class RotationCheckOptions:
         _at_least("RotationCheckOptions", 1, evaluations=self.evaluations, rounds=self.rounds)
 
 
+@dataclass(frozen=True)
+class StartOptions:
+    """Where the search starts: the machine-based pose, and from there a search box that walks
+    when the estimate ends on its bounds (:mod:`registration.core.register.walk`)."""
+
+    #: Whether the box walks (default True; it runs only when an estimate ends at the bounds).
+    enabled: bool = True
+    #: Restarts at most, each from the last estimate with the box centred there (default 3, >= 1).
+    walk_hops: int = 3
+
+    def __post_init__(self) -> None:
+        _at_least("StartOptions", 1, walk_hops=self.walk_hops)
+
+
 def _check_level(level: Level) -> None:
     if level.image_px < 16:
         raise ValueError(f"image_px must be >= 16, got {level.image_px}")
@@ -246,7 +260,7 @@ FLAT_NAMES: dict[str, tuple[str, str | tuple[str, str]]] = {
     "rotation_check_rounds": ("rotation_check", "rounds"),
 }
 _GROUPS = {"polish": PolishOptions, "biplane": BiplaneOptions, "depth": DepthOptions,
-           "rotation_check": RotationCheckOptions}  # fmt: skip
+           "rotation_check": RotationCheckOptions, "start": StartOptions}  # fmt: skip
 
 
 @dataclass(frozen=True, init=False)
@@ -275,6 +289,7 @@ class RegistrationOptions:
     biplane: BiplaneOptions = field(default_factory=BiplaneOptions)
     depth: DepthOptions = field(default_factory=DepthOptions)
     rotation_check: RotationCheckOptions = field(default_factory=RotationCheckOptions)
+    start: StartOptions = field(default_factory=StartOptions)
     #: The image's intensities (:mod:`registration.core.intensity`; default "auto": matched to
     #: the DRR's when the reader could not know them to be line integrals, display-processed
     #: pixels or a missing relationship tag; "match": always; "as-read": never).

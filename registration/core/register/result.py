@@ -73,6 +73,9 @@ class RegistrationResult:
     #: polarity, its margin, the stored levels, a note), None for a view used as read; () when
     #: every view was used as read.
     intensity: tuple[dict | None, ...] = ()
+    #: Restarts of the whole search from an estimate that ended at the search bounds, each with
+    #: the box centred there (:mod:`registration.core.register.walk`); 0: none was needed.
+    walk_hops: int = 0
 
     @property
     def success(self) -> bool | None:
@@ -104,6 +107,8 @@ class RegistrationResult:
             out["rotation_check"] = self.rotation_check.to_dict()
         if self.intensity:
             out["intensity"] = list(self.intensity)
+        if self.walk_hops:
+            out["walk_hops"] = self.walk_hops
         return out
 
 
