@@ -120,6 +120,7 @@ def register(
     landmarks: Path | None = None,
     roi: Literal["none", "cranium"] = "none",
     roi_mask: Path | None = None,
+    estimate_geometry: bool = False,
 ) -> int:
     """Register a 3DRA/CT volume to an XA/RF image and print a summary.
 
@@ -170,6 +171,8 @@ def register(
             skull base (found in the volume), which follows a head's motion only partly; "none" the whole volume.
         roi_mask: A label mask on the volume's grid (.npz with an array "mask", or NIfTI): the registration follows
             the labelled voxels only (outside them, bone is rendered as soft tissue).
+        estimate_geometry: With two planes, estimate each plane's source-image distance together with the pose,
+            for a C-arm nobody calibrated or a file whose distances are nominal (docs/landmarks.md).
     """
     small_pages()
     if pacs is not None or os.environ.get("ROADMAP3D_PACS_URL") and (study or store):
@@ -228,6 +231,7 @@ def register(
         landmarks=landmarks,
         roi=roi,
         roi_mask=roi_mask,
+        estimate_geometry=estimate_geometry,
     )
 
 

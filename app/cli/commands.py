@@ -330,6 +330,7 @@ def run_register(
     landmarks: Path | None = None,
     roi: str = "none",
     roi_mask: Path | None = None,
+    estimate_geometry: bool = False,
 ) -> int:
     """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
     print a summary, optionally write the JSON and the DICOM Spatial Registration object.
@@ -339,7 +340,9 @@ def run_register(
     and use it. ``explain``: print the registration's plan of stages first. ``report``: write the
     report folder there (:mod:`app.cli.report_commands`; assesses the confidence);
     ``report_identify``: with the patient's name, ID and the file paths. ``landmarks``: start
-    from the pose picked point pairs give (:mod:`registration.core.landmarks`), not the machine's."""
+    from the pose picked point pairs give (:mod:`registration.core.landmarks`), not the machine's.
+    ``estimate_geometry``: with two planes, estimate each plane's source-image distance with the
+    pose (:mod:`registration.core.intrinsics`)."""
     from app.cli.report_commands import check_report_folder
 
     clock = _Stopwatch()
@@ -348,6 +351,11 @@ def run_register(
     images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
     if len(images) not in (1, 2):
         raise ValueError(f"one X-ray image, or two (plane A and plane B of one moment), got {len(images)}")
+    if estimate_geometry and len(images) != 2:
+        raise ValueError(
+            "--estimate-geometry needs two planes: one view cannot tell its source-image distance from the depth "
+            "(give --sid-mm when it is known)"
+        )
     if isocenter is not None and isocenter.strip().lower() != VOLUME_CENTER:
         parse_isocenter(isocenter)  # a bad value is refused before any file is read
     if geometry and len(geometry) != len(images):
@@ -462,6 +470,10 @@ def run_register(
     if store is not None:
         store.flush()
     clock.lap("registration")
+    estimated = None
+    if estimate_geometry and not result.at_bounds:
+        views, estimated = _estimate_geometry(result, views, renderer, m_true, vessel_points)
+        clock.lap("estimating the geometry")
     _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
     for assumed in result.intensity:
@@ -519,6 +531,9 @@ def run_register(
             keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
             document.update({k: assessed[k] for k in keys})
         document["geometry_source"] = "nominal"  # the files' positioner tags, no calibration
+        if estimated is not None:
+            document["geometry_source"] = "estimated (source-image distance per plane, with the pose)"
+            document["geometry_estimated"] = estimated.to_dict()
         document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
     if out is not None:
         dicom.write_text_atomic(out, dicom.json_dumps(document))
@@ -800,3 +815,23 @@ def run_mesh(
         _say(f"note: {NO_VESSELS_NOTE}")
     _say(f"wrote {out} ({parts})")
     return 0
+
+
+def _estimate_geometry(
+    result: Any, views: list, renderer: Any, truth: np.ndarray | None, vessel_points: np.ndarray | None
+) -> tuple[list, Any]:
+    """Each plane's source-image distance estimated with the pose (the result updated in place,
+    its residual too); the views with the estimated geometry, and the estimate."""
+    from registration.core.intrinsics import refine_geometry
+    from registration.core.metrics import residuals
+
+    estimated = refine_geometry(renderer, views, result.patient_motion, estimate=("sid",))
+    result.patient_motion = estimated.patient_motion
+    result.similarity = estimated.similarity
+    if truth is not None:
+        g = views[0].geometry
+        result.residual = residuals(estimated.patient_motion, truth, g, vessel_points, optimizes_tz=True)
+    for view, found in zip(("PLANE A", "PLANE B"), estimated.intrinsics, strict=True):
+        _say(f"geometry estimated ({view}): SID {found.sid_mm:.1f} mm ({100 * found.sid_change:+.2f} % of the file's)")
+    _say(f"patient motion with the estimated geometry: {_format_offsets(estimated.patient_motion, views[0].geometry)}")
+    return list(estimated.views), estimated

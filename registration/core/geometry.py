@@ -320,7 +320,7 @@ class CArm:
             cached = self._cache["view_from_world"] = invert_rigid(self.world_from_view)
         return cached.copy()
 
-    def _detector_axes(self) -> tuple[Array, Array, Array]:
+    def detector_axes(self) -> tuple[Array, Array, Array]:
         """True (u, v, n) of the detector, n = unit normal pointing away from the source."""
         tilt = rotation_z(self.detector_tilt_deg[2]) @ rotation_y(self.detector_tilt_deg[1])
         tilt = tilt @ rotation_x(self.detector_tilt_deg[0])
@@ -344,7 +344,7 @@ class CArm:
         Order: (row 0, col 0), (row 0, col last), (row last, col last), (row last, col 0),
         taken at the pixel edges (half a pixel beyond the pixel centers).
         """
-        u, v, _ = self._detector_axes()
+        u, v, _ = self.detector_axes()
         hw = self.cols * self.pixel_mm[1] / 2.0
         hh = self.rows * self.pixel_mm[0] / 2.0
         c = self.detector_center_mm
@@ -370,7 +370,7 @@ class CArm:
         cached = self._cache.get("P")
         if cached is not None:
             return cached.copy()
-        u, v, n = self._detector_axes()
+        u, v, n = self.detector_axes()
         s = self.source_mm
         focal = float(n @ (self.detector_center_mm - s))  # source to detector plane
         a = float(u @ (s - self.detector_center_mm))
@@ -397,7 +397,7 @@ class CArm:
 
     def pixel_to_world(self, cols: ArrayLike, rows: ArrayLike) -> Array:
         """World position of detector pixel centers (on the detector plane), shape (..., 3)."""
-        u, v, _ = self._detector_axes()
+        u, v, _ = self.detector_axes()
         c = np.asarray(cols, dtype=np.float64)[..., None]
         r = np.asarray(rows, dtype=np.float64)[..., None]
         cx, cy = (self.cols - 1) / 2.0, (self.rows - 1) / 2.0

@@ -491,3 +491,10 @@ def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None
     landmarks.write_text(json.dumps({"landmarks": entries[:3]}))
     code, _, err = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks)], capsys)
     assert code == 2 and "at least 4 landmarks" in err
+
+
+def test_estimating_the_geometry_needs_two_planes(exported: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = run(["register", "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
+                        "--image", str(exported / cli_io.PHANTOM_FLUORO), "--estimate-geometry"], capsys)  # fmt: skip
+    assert code == 2
+    assert "--estimate-geometry needs two planes" in err and "--sid-mm" in err

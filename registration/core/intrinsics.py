@@ -1,0 +1,175 @@
+"""The C-arm's own geometry estimated with the pose, for systems nobody calibrated.
+
+A file may lack the source-image distance or give a nominal one, and the principal point (where
+the central ray meets the detector) moves with the C-arm's sag. :func:`refine_geometry` polishes
+the pose and, per view, the source-image distance (a scale of the nominal, within
+``max_sid_change``) and the principal point (a shift in detector pixels, within
+``max_shift_px``) on the gradient difference, from a registration's estimate.
+
+What one view can tell: a longer source-image distance magnifies the anatomy as moving it
+toward the source does, and a shifted principal point moves its projection as an in-plane
+translation does; one view cannot tell them apart (the registration's depth and in-plane
+translation absorb them), so :func:`refine_geometry` refuses a single view. A second plane sees
+the first plane's depth and one in-plane direction across its own image: with two planes both
+are estimated. A pixel scale error is the source-image distance's (the projection depends on
+their ratio only): give ``--pixel-mm`` when it is known, the refinement estimates the ratio.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize
+
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import CArm, check_rigid
+from registration.core.images import XRayImage
+from registration.core.problem import LevelProblem
+from registration.core.search import SearchSpace
+
+Array = NDArray[np.float64]
+
+#: What can be estimated.
+INTRINSICS = ("sid", "principal_point")
+
+
+@dataclass(frozen=True)
+class ViewIntrinsics:
+    """One view's estimated geometry: its source-image distance (mm; ``sid_change``: relative to
+    the nominal) and its principal point's shift from the nominal (detector pixels: column, row)."""
+
+    sid_mm: float
+    sid_change: float
+    principal_point_shift_px: tuple[float, float]
+
+    def to_dict(self) -> dict:
+        return {"sid_mm": self.sid_mm, "sid_change": self.sid_change,
+                "principal_point_shift_px": list(self.principal_point_shift_px)}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class GeometryRefinement:
+    """The pose and the views' geometry estimated together (:func:`refine_geometry`)."""
+
+    patient_motion: Array
+    views: tuple[XRayImage, ...]
+    intrinsics: tuple[ViewIntrinsics, ...]
+    estimated: tuple[str, ...]
+    similarity: float
+    similarity_before: float
+    evaluations: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return {
+            "patient_motion": np.asarray(self.patient_motion).tolist(),
+            "estimated": list(self.estimated),
+            "views": [i.to_dict() for i in self.intrinsics],
+            "similarity": self.similarity,
+            "similarity_before": self.similarity_before,
+            "evaluations": self.evaluations,
+            "seconds": self.seconds,
+        }
+
+
+def with_intrinsics(geometry: CArm, sid_scale: float, shift_px: ArrayLike) -> CArm:
+    """``geometry`` with its source-image distance scaled and its detector shifted in its own
+    plane by ``shift_px`` (columns, rows) of ``geometry``'s pixels (the principal point moves
+    the other way)."""
+    u, v, _ = geometry.detector_axes()
+    cols, rows = np.asarray(shift_px, dtype=np.float64)
+    shift = np.asarray(geometry.detector_shift_mm) + u * cols * geometry.pixel_mm[1] + v * rows * geometry.pixel_mm[0]
+    moved = tuple(float(s) for s in shift)
+    return replace(geometry, sid_mm=geometry.sid_mm * float(sid_scale), detector_shift_mm=moved)
+
+
+def refine_geometry(
+    volume_renderer: DRRRenderer,
+    views: Sequence[XRayImage],
+    motion: ArrayLike,
+    *,
+    estimate: Sequence[str] = INTRINSICS,
+    image_px: int = 128,
+    volume_level: int = 1,
+    reach_mm: float = 4.0,
+    reach_deg: float = 3.0,
+    max_sid_change: float = 0.10,
+    max_shift_px: float = 20.0,
+    evaluations: int = 1500,
+) -> GeometryRefinement:
+    """Polish the pose (six parameters, +- ``reach_mm`` / ``reach_deg`` around ``motion``) and each
+    view's ``estimate``\\ d intrinsics on the gradient difference of ``image_px`` DRRs.
+
+    ``volume_renderer``: the registration's renderer; ``views``: two or more views of one moment
+    with their nominal geometry; ``motion``: the registration's estimate (4x4). ValueError for one
+    view (see the module) or an unknown name in ``estimate``."""
+    began = time.perf_counter()
+    views = tuple(views)
+    unknown = set(estimate) - set(INTRINSICS)
+    if unknown:
+        raise ValueError(f"cannot estimate {sorted(unknown)}: choose from {', '.join(INTRINSICS)}")
+    if len(views) < 2:
+        raise ValueError(
+            "one view cannot tell its source-image distance from the depth, nor its principal point from an "
+            "in-plane translation: estimating the geometry needs two planes (or give --sid-mm / --pixel-mm)"
+        )
+    start = check_rigid(motion, name="motion")
+    problem = LevelProblem.prepare(volume_renderer, views, image_px=image_px, volume_level=volume_level,
+                                   motion=start, margin_mm=None)  # fmt: skip
+    space = SearchSpace.for_views(views[0].geometry, start, optimize_tz=True, bound_mm=reach_mm, bound_deg=reach_deg)
+    sid_on, shift_on = "sid" in estimate, "principal_point" in estimate
+    # per view: the level's pixels per full-resolution pixel (the shift is in the file's pixels)
+    ratio = [pv.geometry.pixel_mm[1] / v.geometry.pixel_mm[1] for pv, v in zip(problem.views, views, strict=True)]
+
+    def unpack(x: Array) -> tuple[Array, list[tuple[float, Array]]]:
+        pose, rest, per_view = x[:6], x[6:], []
+        for _ in views:
+            sid = 1.0 + (rest[0] / 100.0 if sid_on else 0.0)  # in per cent
+            rest = rest[1:] if sid_on else rest
+            shift = rest[:2] if shift_on else np.zeros(2)
+            rest = rest[2:] if shift_on else rest
+            per_view.append((sid, np.asarray(shift, dtype=np.float64)))
+        return pose, per_view
+
+    buffers = [np.empty((pv.geometry.rows, pv.geometry.cols), np.float32) for pv in problem.views]
+    count = [0]
+
+    def cost(x: Array) -> float:
+        pose, per_view = unpack(np.asarray(x, dtype=np.float64))
+        m = space.motion(pose)
+        total = 0.0
+        for pv, buf, r, (sid, shift) in zip(problem.views, buffers, ratio, per_view, strict=True):
+            g = with_intrinsics(pv.geometry, sid, shift / r)
+            drr = volume_renderer.render(g, m, level=problem.volume_level, mask=pv.mask, out=buf)
+            total += pv.measure(drr)
+        count[0] += 1
+        return -total / len(views)
+
+    n_intr = (1 if sid_on else 0) + (2 if shift_on else 0)
+    x0 = np.zeros(6 + n_intr * len(views))
+    per = ([(-100 * max_sid_change, 100 * max_sid_change)] if sid_on else []) + (
+        [(-max_shift_px, max_shift_px)] * 2 if shift_on else []
+    )
+    bounds = [(-reach_mm, reach_mm)] * 3 + [(-reach_deg, reach_deg)] * 3 + per * len(views)
+    before = -cost(x0)
+    found = minimize(cost, x0, method="Powell", bounds=bounds, options={"maxfev": evaluations, "xtol": 1e-3})
+    pose, per_view = unpack(np.asarray(found.x, dtype=np.float64))
+    refined_views, intrinsics = [], []
+    for view, (sid, shift) in zip(views, per_view, strict=True):
+        g = with_intrinsics(view.geometry, sid, shift)
+        refined_views.append(replace(view, geometry=g))
+        intrinsics.append(ViewIntrinsics(g.sid_mm, sid - 1.0, (float(-shift[0]), float(-shift[1]))))
+    return GeometryRefinement(
+        patient_motion=space.motion(pose),
+        views=tuple(refined_views),
+        intrinsics=tuple(intrinsics),
+        estimated=tuple(e for e in INTRINSICS if e in estimate),
+        similarity=-float(found.fun),
+        similarity_before=before,
+        evaluations=count[0],
+        seconds=time.perf_counter() - began,
+    )
