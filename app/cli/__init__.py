@@ -407,6 +407,7 @@ def demo(
     certfile: Path | None = None,
     keyfile: Path | None = None,
     allow_origin: tuple[str, ...] = (),
+    password_file: Path | None = None,
 ) -> int:
     """Start the web app on the built-in phantom.
 
@@ -419,12 +420,13 @@ def demo(
         certfile: TLS certificate (PEM, with its chain): serve https:// and wss://.
         keyfile: TLS private key (PEM) of --certfile (when not inside it).
         allow_origin: Other web origins (scheme://host:port) whose pages may connect, e.g. behind a proxy.
+        password_file: Sign in by a password instead of a token: the file `roadmap3d password FILE` made.
     """
     from app.web.main import run_app
 
     return run_app(host=host, port=port, volume=None, image=None, open_browser=open_browser,
                    token=token, no_sign_in=no_sign_in, certfile=certfile, keyfile=keyfile,
-                   allow_origin=allow_origin)  # fmt: skip
+                   allow_origin=allow_origin, password_file=password_file)  # fmt: skip
 
 
 def app(
@@ -447,6 +449,7 @@ def app(
     certfile: Path | None = None,
     keyfile: Path | None = None,
     allow_origin: tuple[str, ...] = (),
+    password_file: Path | None = None,
 ) -> int:
     """Start the web app, optionally on your own DICOM data.
 
@@ -472,6 +475,7 @@ def app(
         certfile: TLS certificate (PEM, with its chain): serve https:// and wss://.
         keyfile: TLS private key (PEM) of --certfile (when not inside it).
         allow_origin: Other web origins (scheme://host:port) whose pages may connect, e.g. behind a proxy.
+        password_file: Sign in by a password instead of a token: the file `roadmap3d password FILE` made.
     """
     if listen_port is not None:
         from registration.io.node import ENV_APP_NODE_ALLOW, ENV_APP_NODE_PORT, check_ae_title
@@ -507,7 +511,41 @@ def app(
         certfile=certfile,
         keyfile=keyfile,
         allow_origin=allow_origin,
+        password_file=password_file,
     )
+
+
+def password(file: tyro.conf.Positional[Path], force: bool = False) -> int:
+    """Make a password file for `roadmap3d app/demo --password-file FILE`: asks for the password
+    twice (or reads one line from standard input when it is not a terminal) and writes only its
+    salted scrypt hash, readable by you alone.
+
+    Args:
+        file: The password file to write.
+        force: Replace an existing file.
+    """
+    import getpass
+
+    from app.web.signin import PasswordHash
+    from registration.io.dicom import write_text_atomic
+
+    if file.is_dir():
+        raise UserError(f"{file}: is a folder; give the password file's name")
+    if file.exists() and not force:
+        raise UserError(f"{file}: exists; give --force to replace it")
+    if sys.stdin.isatty():
+        first = getpass.getpass("Password: ")
+        if getpass.getpass("Again: ") != first:
+            raise UserError("the two passwords differ; nothing written")
+    else:
+        first = sys.stdin.readline().rstrip("\r\n")
+    try:
+        line = PasswordHash.of(first).text()
+    except ValueError as exc:
+        raise UserError(f"{exc}; nothing written") from None
+    write_text_atomic(file, line + "\n", mode=0o600)  # readable by you alone, from its first byte
+    print(f"wrote {file} (the password's hash; start the app with --password-file {file})")
+    return 0
 
 
 # --------------------------------------------------------------------------------------
@@ -621,6 +659,7 @@ COMMANDS = {
     "mesh": mesh,
     "listen": listen,
     "audit": audit,
+    "password": password,
     "track": track,
     "phantom-run": phantom_run,
 }

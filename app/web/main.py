@@ -18,7 +18,16 @@ from app.web.data import AppConfig, FileData, PhantomData
 from app.web.gui import RoadmapApp
 from app.web.session import Session
 from app.web.share import refuse_share_requests
-from app.web.signin import ENV_TOKEN, Guard, check_token, guarded, new_token, parse_origins, tls_context
+from app.web.signin import (
+    ENV_TOKEN,
+    Guard,
+    PasswordHash,
+    check_token,
+    guarded,
+    new_token,
+    parse_origins,
+    tls_context,
+)
 from app.web.upload import shutdown_readers
 from registration.io import audit
 
@@ -69,9 +78,16 @@ def make_guard(
     certfile: Path | None = None,
     keyfile: Path | None = None,
     allow_origin: tuple[str, ...] = (),
+    password_file: Path | None = None,
 ) -> Guard:
-    """The app's guard from its flags: the token given, else ROADMAP3D_TOKEN, else a new random
-    one; serving beyond this machine without sign-in is refused."""
+    """The app's guard from its flags: the password file's hash, else the token given, else
+    ROADMAP3D_TOKEN, else a new random one; serving beyond this machine without sign-in is refused."""
+    password = None
+    if password_file is not None:
+        if token is not None or no_sign_in:
+            raise ValueError("--password-file and " + ("--token" if token is not None else "--no-sign-in")
+                             + " contradict each other")  # fmt: skip
+        password = PasswordHash.read(password_file)
     if no_sign_in:
         if token is not None:
             raise ValueError("--token and --no-sign-in contradict each other")
@@ -81,12 +97,14 @@ def make_guard(
                 "Drop --no-sign-in (a token is printed), or serve on 127.0.0.1"
             )
         chosen = None
+    elif password is not None:
+        chosen = None
     else:
         chosen = check_token(token or os.environ.get(ENV_TOKEN) or new_token())
     if keyfile is not None and certfile is None:
         raise ValueError("--keyfile needs --certfile")
     context = tls_context(certfile, keyfile) if certfile is not None else None
-    return Guard(chosen, context, parse_origins(allow_origin), audit=audit.record)
+    return Guard(chosen, context, parse_origins(allow_origin), audit=audit.record, password=password)
 
 
 def network_warning(host: str, port: int) -> str | None:
@@ -197,6 +215,7 @@ def run_app(
     certfile: Path | None = None,
     keyfile: Path | None = None,
     allow_origin: tuple[str, ...] = (),
+    password_file: Path | None = None,
 ) -> int:
     """Serve the app until Ctrl-C (or SIGTERM); returns the exit code. Sign-in, origins and TLS
     as :func:`make_guard`. ``sid_mm`` / ``sod_mm``
@@ -215,7 +234,7 @@ def run_app(
     if image is None and isocenter is not None:
         raise ValueError("--isocenter applies to --volume/--image only")
     guard = make_guard(host, token=token, no_sign_in=no_sign_in, certfile=certfile, keyfile=keyfile,
-                       allow_origin=allow_origin)  # fmt: skip
+                       allow_origin=allow_origin, password_file=password_file)  # fmt: skip
     data = None
     if volume is not None and image is not None:
         # Read (and reject with a message naming the file and tag) before serving anything.
@@ -227,7 +246,8 @@ def run_app(
     url = url_of(server, guard)
     signed = url_of(server, guard, with_token=True)
     # the only place the token is shown
-    print(f"roadmap3d: serving on {signed}  (Ctrl-C to stop)", flush=True)
+    by_password = f"; sign in with the password of {password_file}" if guard.password is not None else ""
+    print(f"roadmap3d: serving on {signed}  (Ctrl-C to stop{by_password})", flush=True)
     warning = network_warning(server.get_host(), server.get_port())
     if warning:
         print(warning, file=sys.stderr, flush=True)

@@ -11,6 +11,8 @@ What a guard enforces, for the page, its files and the websocket alike:
 * a secret token: ``?token=TOKEN`` once (the answer sets a cookie and sends the browser on to
   the address without the token), then the cookie (HttpOnly, SameSite=Strict, Secure over
   TLS; its value derived from the token, not the token itself); compared in constant time;
+  or a password whose salted scrypt hash a password file holds (:class:`PasswordHash`; the
+  refusal page asks for it, the cookie follows as with a token);
 * wrong tokens or cookies from one address are limited (:data:`MAX_FAILURES` per
   :data:`FAILURE_WINDOW_S`; then 429 until the window passes);
 * a websocket upgrade whose ``Origin`` is neither the page's own nor an allowed one is refused,
@@ -21,6 +23,7 @@ What a guard enforces, for the page, its files and the websocket alike:
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import hmac
 import http
@@ -52,11 +55,80 @@ REFUSED_PAGE = (
     "<h2>Sign-in needed</h2><p>Open the address that <code>roadmap3d</code> printed when it started "
     "(it ends in <code>?token=...</code>), or ask whoever started it.</p></body>"
 )
+PASSWORD_PAGE = (
+    "<!doctype html><meta charset=utf-8><title>roadmap3d: sign in</title>"
+    "<body style='font-family:sans-serif;background:#1a1b1e;color:#ddd;padding:2em'>"
+    "<h2>Sign in to roadmap3d</h2><form method=get action=/><label>Password "
+    "<input type=password name=password autofocus autocomplete=current-password style='padding:.4em;width:18em'>"
+    "</label> <button type=submit style='padding:.4em 1em'>Sign in</button></form>"
+    "<p style='color:#999'>The password was set with <code>roadmap3d password FILE</code> by whoever started the "
+    "app.</p></body>"
+)
+#: A password file's first field, and scrypt's cost (16 MiB, ~50 ms per check).
+PASSWORD_SCHEME = "scrypt"
+SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**14, 8, 1
+#: Shortest password accepted when a password file is made (characters).
+MIN_PASSWORD_CHARS = 12
 
 
 def new_token() -> str:
     """A fresh random token (32 URL-safe characters, 192 bits)."""
     return secrets.token_urlsafe(24)
+
+
+@dataclass(frozen=True)
+class PasswordHash:
+    """A salted scrypt hash of the app's password, as a password file holds it: one line
+    ``scrypt$N$r$p$SALT$HASH`` (salt and hash in base64). The password itself is kept nowhere."""
+
+    n: int
+    r: int
+    p: int
+    salt: bytes
+    digest: bytes
+
+    @classmethod
+    def of(cls, password: str) -> PasswordHash:
+        """A new hash of ``password`` (ValueError if shorter than MIN_PASSWORD_CHARS)."""
+        if len(password) < MIN_PASSWORD_CHARS:
+            raise ValueError(f"the password must be at least {MIN_PASSWORD_CHARS} characters")
+        salt = secrets.token_bytes(16)
+        digest = hashlib.scrypt(password.encode(), salt=salt, n=SCRYPT_N, r=SCRYPT_R, p=SCRYPT_P, dklen=32)
+        return cls(SCRYPT_N, SCRYPT_R, SCRYPT_P, salt, digest)
+
+    @classmethod
+    def read(cls, path: str | os.PathLike[str]) -> PasswordHash:
+        """The hash in a password file (ValueError naming the file and the problem)."""
+        try:
+            text = Path(path).read_text(encoding="ascii").strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"--password-file {path}: cannot read it ({exc})") from None
+        fields = text.split("$")
+        try:
+            if len(fields) != 6 or fields[0] != PASSWORD_SCHEME:
+                raise ValueError
+            n, r, p = (int(f) for f in fields[1:4])
+            salt, digest = base64.b64decode(fields[4], validate=True), base64.b64decode(fields[5], validate=True)
+            if n < 2**10 or n & (n - 1) or not (1 <= r <= 64 and 1 <= p <= 16) or len(salt) < 8 or len(digest) < 16:
+                raise ValueError
+        except ValueError:
+            raise ValueError(
+                f"--password-file {path}: not a roadmap3d password file (make one with `roadmap3d password FILE`)"
+            ) from None
+        return cls(n, r, p, salt, digest)
+
+    def text(self) -> str:
+        """The password file's line."""
+        b64 = lambda b: base64.b64encode(b).decode()  # noqa: E731
+        return f"{PASSWORD_SCHEME}${self.n}${self.r}${self.p}${b64(self.salt)}${b64(self.digest)}"
+
+    def verify(self, password: str) -> bool:
+        """Whether ``password`` is the one hashed (constant time in the hash's comparison)."""
+        if len(password) > 1024:
+            return False
+        found = hashlib.scrypt(password.encode(), salt=self.salt, n=self.n, r=self.r, p=self.p,
+                               maxmem=256 * self.n * self.r + 2**20, dklen=len(self.digest))  # fmt: skip
+        return hmac.compare_digest(found, self.digest)
 
 
 def check_token(token: str) -> str:
@@ -93,6 +165,8 @@ class Guard:
     allowed_origins: tuple[str, ...] = ()
     #: ``audit(action, client=, result=)`` for sign-ins and refusals.
     audit: Callable[..., Any] | None = None
+    #: Sign in by this password (its hash) instead of a token.
+    password: PasswordHash | None = None
     _failures: dict[str, deque[float]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -101,14 +175,29 @@ class Guard:
         return "https" if self.ssl_context is not None else "http"
 
     @property
-    def cookie_name(self) -> str:
-        """Per token: two apps on one host (other ports) keep their own cookies."""
+    def signs_in(self) -> bool:
+        return self.token is not None or self.password is not None
+
+    def _secret(self) -> bytes:
+        """What the cookie derives from: the token, or the password's hash (never the password)."""
+        if self.password is not None:
+            return self.password.digest
         assert self.token is not None
-        return "roadmap3d_" + hmac.new(self.token.encode(), b"roadmap3d-cookie-name", hashlib.sha256).hexdigest()[:12]
+        return self.token.encode()
+
+    @property
+    def cookie_name(self) -> str:
+        """Per secret: two apps on one host (other ports) keep their own cookies."""
+        return "roadmap3d_" + hmac.new(self._secret(), b"roadmap3d-cookie-name", hashlib.sha256).hexdigest()[:12]
 
     def _cookie_value(self) -> str:
+        return hmac.new(self._secret(), b"roadmap3d-cookie-v1", hashlib.sha256).hexdigest()
+
+    def _accepts(self, presented: str) -> bool:
+        if self.password is not None:
+            return self.password.verify(presented)
         assert self.token is not None
-        return hmac.new(self.token.encode(), b"roadmap3d-cookie-v1", hashlib.sha256).hexdigest()
+        return hmac.compare_digest(presented.encode(), self.token.encode())
 
     # ----- the checks ------------------------------------------------------------------
     def _limited(self, client: str) -> bool:
@@ -132,7 +221,7 @@ class Guard:
                 name, _, value = part.strip().partition("=")
                 if name == self.cookie_name:
                     cookie = value
-        return query.get("token"), cookie
+        return query.get("password") if self.password is not None else query.get("token"), cookie
 
     def _origin_ok(self, request: Any) -> bool:
         origin = request.headers.get("Origin")
@@ -152,20 +241,20 @@ class Guard:
         if upgrade and not self._origin_ok(request):
             self._record("websocket-refused", client, "foreign origin")
             return _plain(http.HTTPStatus.FORBIDDEN, "Forbidden: foreign origin")
-        if self.token is None:
+        if not self.signs_in:
             return None
         if self._limited(client):
             return _plain(http.HTTPStatus.TOO_MANY_REQUESTS, "Too many failed sign-ins; try again in a minute")
         token, cookie = self._presented(request)
         if cookie is not None and hmac.compare_digest(cookie.encode(), self._cookie_value().encode()):
             return None
-        if token is not None and hmac.compare_digest(token.encode(), self.token.encode()):
+        if token is not None and self._accepts(token):
             self._record("sign-in", client, "ok")
             if upgrade:
                 return None
             # the cookie from now on; the address bar loses the token
             parts = urlsplit(request.path)
-            rest = urlencode([(k, v) for k, v in parse_qsl(parts.query) if k != "token"])
+            rest = urlencode([(k, v) for k, v in parse_qsl(parts.query) if k not in ("token", "password")])
             secure = "; Secure" if self.ssl_context is not None else ""
             headers = Headers()
             headers["Location"] = (parts.path or "/") + (f"?{rest}" if rest else "")
@@ -177,11 +266,13 @@ class Guard:
             return Response(http.HTTPStatus.SEE_OTHER.value, "See Other", headers, b"")
         if token is not None or cookie is not None:
             self._failed(client)
-            self._record("sign-in", client, "refused: wrong token" if token is not None else "refused: wrong cookie")
+            what = "password" if self.password is not None else "token"
+            self._record("sign-in", client, f"refused: wrong {what}" if token is not None else "refused: wrong cookie")
         elif upgrade:
             self._record("websocket-refused", client, "no sign-in")
         status = http.HTTPStatus.UNAUTHORIZED
-        return _plain(status, REFUSED_PAGE, html=True) if not upgrade else _plain(status, "Unauthorized")
+        page = PASSWORD_PAGE if self.password is not None else REFUSED_PAGE
+        return _plain(status, page, html=True) if not upgrade else _plain(status, "Unauthorized")
 
     def _record(self, action: str, client: str, result: str) -> None:
         log.info("%s from %s: %s", action, client, result)

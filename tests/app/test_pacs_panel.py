@@ -63,6 +63,15 @@ def test_app_lists_loads_registers_and_stores(
         reg = dicom.read_registration(next(folder.iterdir()))
         # DS strings of 16 characters: ~1e-10 relative
         assert np.allclose(reg.patient_motion, estimate, atol=1e-6)
+        # the audit trail: the load and the store, each with its outcome and the study's UIDs, no name
+        from registration.io.audit import audit_log
+
+        lines = [line for line in audit_log().lines() if line["action"] in ("pacs-load", "pacs-store")][-2:]
+        assert [(line["action"], line["result"]) for line in lines] == [("pacs-load", "ok"), ("pacs-store", "ok")]
+        assert all(line["study_uid"] == study.study_uid for line in lines)
+        assert lines[1]["instance_uid"] == reg.sop_instance_uid  # the REG object stored
+        name = str(dicom.read_xray(small_export / "xa_fluoro.dcm").meta.get("patient_name", "ROADMAP3D"))
+        assert all(name not in str(line) for line in lines)
     finally:
         app.phantom_button.value = True  # back to the phantom for the other app tests
         panel._settings, panel._pacs = None, None

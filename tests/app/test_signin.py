@@ -202,3 +202,104 @@ def test_tls_serves_https_and_wss_to_the_browser(certificate: tuple[Path, Path])
             browser.close()
     finally:
         server.stop()
+
+
+PASSWORD = "correct horse battery staple"
+
+
+def test_a_password_file_holds_only_a_salted_hash(tmp_path: Path) -> None:
+    made = signin.PasswordHash.of(PASSWORD)
+    path = tmp_path / "password"
+    path.write_text(made.text() + "\n")
+    read = signin.PasswordHash.read(path)
+    assert read == made and PASSWORD not in path.read_text()
+    assert read.verify(PASSWORD) and not read.verify(PASSWORD + "!") and not read.verify("")
+    assert signin.PasswordHash.of(PASSWORD).salt != made.salt  # salted: the same password, another hash
+    path.write_text("scrypt$16384$8$1$not-base64$x\n")
+    with pytest.raises(ValueError, match="not a roadmap3d password file"):
+        signin.PasswordHash.read(path)
+    with pytest.raises(ValueError, match="cannot read it"):
+        signin.PasswordHash.read(tmp_path / "missing")
+    with pytest.raises(ValueError, match="at least 12 characters"):
+        signin.PasswordHash.of("short")
+
+
+def test_signing_in_by_password(tmp_path: Path) -> None:
+    audit: list = []
+    guard = Guard(None, password=signin.PasswordHash.of(PASSWORD), audit=lambda action, **f: audit.append((action, f)))
+    server = make_server("127.0.0.1", 0, guard=guard)
+    try:
+        port = server.get_port()
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        conn.request("GET", "/")
+        page = conn.getresponse()
+        assert page.status == 401 and b"type=password" in page.read()  # the page asks for it
+        conn.close()
+        assert get(port, "/?password=wrong-password-1").status == 401
+        assert get(port, f"/?token={PASSWORD.replace(' ', '+')}").status == 401  # a password is not a token
+        right = get(port, "/?password=" + PASSWORD.replace(" ", "+"))
+        assert right.status == 303 and right.getheader("Location") == "/"
+        cookie = right.getheader("Set-Cookie").split(";", 1)[0]
+        assert get(port, "/", {"Cookie": cookie}).status == 200
+        with websocket(port, Cookie=cookie, Origin=f"http://127.0.0.1:{port}") as ws:
+            assert ws.subprotocol == SUBPROTOCOL
+    finally:
+        server.stop()
+    results = [(a, f["result"]) for a, f in audit]
+    assert ("sign-in", "refused: wrong password") in results and ("sign-in", "ok") in results
+    assert all(PASSWORD not in str(f) for _, f in audit)
+
+
+def test_the_password_command_and_flag(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    import io
+
+    from app import cli
+
+    path = tmp_path / "app-password"
+    monkeypatch.setattr("sys.stdin", io.StringIO(PASSWORD + "\n"))
+    with pytest.raises(SystemExit) as info:
+        cli.main(["password", str(path)])
+    assert info.value.code == 0
+    assert path.stat().st_mode & 0o077 == 0 and PASSWORD not in path.read_text()
+    assert signin.PasswordHash.read(path).verify(PASSWORD)
+    monkeypatch.setattr("sys.stdin", io.StringIO(PASSWORD + "\n"))
+    with pytest.raises(SystemExit) as info:
+        cli.main(["password", str(path)])
+    assert info.value.code == 2 and "exists; give --force" in capsys.readouterr().err
+    monkeypatch.setattr("sys.stdin", io.StringIO("short\n"))
+    with pytest.raises(SystemExit) as info:
+        cli.main(["password", str(tmp_path / "other")])
+    assert info.value.code == 2 and not (tmp_path / "other").exists()
+    guard = make_guard("0.0.0.0", password_file=path)  # a password signs in: serving beyond loopback is allowed
+    assert guard.password is not None and guard.token is None and "token" not in guard.url("0.0.0.0", 8080)
+    with pytest.raises(ValueError, match="--password-file and --token contradict"):
+        make_guard("127.0.0.1", token=TOKEN, password_file=path)
+
+
+def test_the_browser_signs_in_by_password(tmp_path: Path) -> None:
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
+    executable = CHROMIUM if CHROMIUM.exists() else shutil.which("chromium")
+    if executable is None:
+        pytest.skip("chromium is not installed (apt-get install chromium)")
+    path = tmp_path / "password"
+    path.write_text(signin.PasswordHash.of(PASSWORD).text())
+    guard = make_guard("127.0.0.1", password_file=path)
+    server = make_server("127.0.0.1", 0, guard=guard)
+    server.gui.add_markdown("Signed in by password")
+    try:
+        url = url_of(server, guard, with_token=True)
+        assert "token" not in url and "password" not in url  # nothing secret to print
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(executable), args=["--no-sandbox", "--disable-gpu"])
+            page = browser.new_page()
+            page.goto(url)
+            page.get_by_label("Password").fill("not the password")
+            page.get_by_role("button", name="Sign in").click()
+            page.get_by_label("Password").wait_for(timeout=10_000)  # refused: asked again
+            page.get_by_label("Password").fill(PASSWORD)
+            page.get_by_role("button", name="Sign in").click()
+            page.get_by_text("Signed in by password").wait_for(timeout=60_000)  # the app, over its websocket
+            assert "password" not in page.url  # the password left the address bar
+            browser.close()
+    finally:
+        server.stop()

@@ -29,13 +29,14 @@ def _umask() -> int:
 
 
 @contextmanager
-def _atomic_path(path: Path) -> Iterator[Path]:
-    """A temporary sibling of ``path`` renamed onto it when the block succeeds."""
+def _atomic_path(path: Path, mode: int | None = None) -> Iterator[Path]:
+    """A temporary sibling of ``path`` renamed onto it when the block succeeds (``mode``: the
+    file's permissions; default the usual ones under the umask)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp_name)
-    tmp.chmod(0o666 & ~_umask())  # mkstemp makes it private; the result gets the usual mode
+    tmp.chmod(0o666 & ~_umask() if mode is None else mode)  # mkstemp makes it private
     try:
         yield tmp
         os.replace(tmp, path)
@@ -66,9 +67,10 @@ def atomic_folder(folder: str | os.PathLike[str]) -> Iterator[Path]:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
-    """Write a text file through a temporary file, never leaving a partial one."""
-    with _atomic_path(Path(path)) as tmp:
+def write_text_atomic(path: str | os.PathLike[str], text: str, *, mode: int | None = None) -> None:
+    """Write a text file through a temporary file, never leaving a partial one (``mode``: its
+    permissions, e.g. 0o600; default the usual ones)."""
+    with _atomic_path(Path(path), mode) as tmp:
         tmp.write_text(text)
 
 
