@@ -124,6 +124,10 @@ class PlaybackPanel(BasePanel):
                     hint="A multi-frame XA/RF run with frame times, tracked against the current volume (no truth)",
                 )
                 self.phantom_run_button = gui.add_button("Back to the phantom's run", visible=False)
+                self.report_button = gui.add_button(
+                    "Write run report", icon=viser.Icon.FILE_ANALYTICS, disabled=True,
+                    hint="The last played run as a report folder: strip charts, per-frame decisions, the last frame",
+                )  # fmt: skip
             self.stats = gui.add_markdown("")
             self.chart = gui.add_uplot(
                 data=(np.zeros(1), *(np.full(1, np.nan) for _ in range(5))),
@@ -157,6 +161,12 @@ class PlaybackPanel(BasePanel):
         self.run_upload.on_upload(ctx.guarded(lambda _e: self.load_run(self.run_upload.value.name,
                                                                         self.run_upload.value.content)))  # fmt: skip
         self.phantom_run_button.on_click(ctx.guarded(lambda _e: self.use_phantom_run()))
+        self.report_button.on_click(ctx.guarded(lambda _e: self.write_report()))
+        #: What the last played run's report needs (runs, volume, renderer, vessels, skipped frames).
+        self._played: dict[str, Any] | None = None
+        #: The last run report written (tests, the status line).
+        self.last_report: Any = None
+        self._report_thread: threading.Thread | None = None
         #: An uploaded run (frames decoded, times, label) played instead of the phantom's.
         self.user_run: UploadedRun | None = None
         self._lock = threading.Lock()
@@ -227,11 +237,56 @@ class PlaybackPanel(BasePanel):
         self.stop()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        if self._report_thread is not None:
+            self._report_thread.join(timeout=30.0)
+
+    # ----- the run's report -------------------------------------------------------------
+    def write_report(self) -> None:
+        """Write the last played run's report on a thread; the status line says where."""
+        if self.playing:
+            raise ValueError("Stop the run first: the report is of a finished run")
+        if self._played is None or not self._played["estimates"]:
+            raise ValueError("Play a run first: the report is of the last played run")
+        if self._report_thread is not None and self._report_thread.is_alive():
+            raise ValueError("A report is being written")
+        self.ctx.message("Writing the run's report…")
+        self._report_thread = threading.Thread(target=self._write_report, args=(self._played,), name="run-report",
+                                               daemon=True)  # fmt: skip
+        self._report_thread.start()
+
+    def _write_report(self, played: dict[str, Any]) -> None:
+        from datetime import UTC, datetime
+
+        from app.web.qa_panel import reports_folder
+        from registration.core.tracking import TrackingRun
+        from registration.studies import qa_report, qa_track
+
+        try:
+            runs, estimates = played["runs"], played["estimates"]
+            last = estimates[-1].frame
+            tracked = TrackingRun(list(estimates), list(played["skipped"]), len(runs[0]), played["volume"].label,
+                                  len(runs))  # fmt: skip
+            document = tracked.to_dict()
+            truth = getattr(runs[0], "truth", None)
+            anatomy = qa_report.Anatomy(played["vertices"], played["spacing"]) if len(played["vertices"]) else None
+            out = reports_folder() / f"run-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S-%f')}"
+            qa_track.write_track_report(
+                out, document=document, volume=played["volume"], last_views=[r[last] for r in runs],
+                renderer=played["renderer"], truth=None if truth is None else np.asarray(truth), anatomy=anatomy,
+                command="roadmap3d demo: Play run, Write run report",
+            )  # fmt: skip
+        except Exception as exc:  # noqa: BLE001 - said in the page
+            log.exception("run report failed")
+            self.ctx.message(f"The run's report could not be written: {exc}", error=True)
+            return
+        self.last_report = out
+        self.ctx.message(f"Run report written: {out / qa_report.REPORT_HTML}")
 
     def _buttons(self, *, playing: bool) -> None:
         self.play_button.disabled = playing
         self.pause_button.disabled = not playing
         self.stop_button.disabled = not playing
+        self.report_button.disabled = playing or self._played is None
         if not playing:
             self.pause_button.label = "Pause"
 
@@ -354,6 +409,8 @@ class PlaybackPanel(BasePanel):
         times = run.times_s
         n = len(run)
         self.frames_shown, self.skipped, self.estimates = 0, 0, []
+        skipped: list[int] = []
+        self._played = None
         self.last_told = ""
         self._followed = None
         self.planes = len(runs)
@@ -378,6 +435,7 @@ class PlaybackPanel(BasePanel):
                 newest = int(np.searchsorted(times - times[0], run_time, side="right")) - 1
                 if newest > i:  # frames that arrived while busy: skipped, never queued
                     self.skipped += newest - i
+                    skipped.extend(range(i, newest))
                     i = newest
                 est = tracker.process(views_of(i), frame=i, t_s=float(times[i] - times[0]))
                 self.estimates.append(est)
@@ -396,6 +454,8 @@ class PlaybackPanel(BasePanel):
                     last_chart = now
                 i += 1
         self.chart.data = tuple(np.asarray(chart[k]) for k in chart)
+        self._played = {"runs": runs, "volume": volume, "renderer": renderer, "vertices": np.asarray(vertices),
+                        "spacing": float(spacing), "skipped": skipped, "estimates": list(self.estimates)}  # fmt: skip
         applied = sum(e.status == "applied" for e in self.estimates)
         withheld = sum(e.status == "withheld" for e in self.estimates)
         self.stats.content = (

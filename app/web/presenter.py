@@ -266,6 +266,7 @@ class Presenter:
                          show_ghost=bool(self.layout.show_ghost.value) and not hidden)  # fmt: skip
         for handle in self.scene.patient:
             handle.visible = not hidden and ("vessel" in handle.name or bool(self.layout.show_skull.value))
+        self._camera(g, followed.patient_motion, self.settings())  # "view from the source" follows the run's C-arm
         self._shown_followed = followed
         self.followed_frames.append((followed.frame, followed.patient_motion))
 

@@ -76,6 +76,8 @@ class ComparePanel(BasePanel):
         with ctx.layout.view_tab("Evidence", viser.Icon.CHART_LINE):
             self.evidence_text = gui.add_markdown("Register to see the evidence the confidence reads.")
             self.profiles_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label=None, format="png")
+            self.profiles_b_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label=None, format="png",
+                                                  visible=False)  # fmt: skip
             self.depth_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label=None, format="png")
         with ctx.layout.control_tab("Compare", viser.Icon.LAYERS_INTERSECT):
             self.overlay = gui.add_dropdown(
@@ -120,6 +122,8 @@ class ComparePanel(BasePanel):
         self._shown_run: object = None
         #: The last report folder written (tests, the status line).
         self.last_report: Path | None = None
+        #: Whether the last evidence shown has plane B's pictures (tests read it).
+        self.plane_b_shown = False
         self._report_thread: threading.Thread | None = None
         self._watcher = threading.Thread(target=self._watch, name="evidence", daemon=True)
         self._watcher.start()
@@ -194,6 +198,12 @@ class ComparePanel(BasePanel):
         depth = qa_evidence.depth_figure(assessment.get("depth_scan"), assessment.get("depth_probe"),
                                          reason=reason, term=term)  # fmt: skip
         self.profiles_image.image = _png_to_rgb(png)
+        if len(views) > 1:  # biplane: plane B's measure around the same estimate
+            profiles_b = qa_evidence.parameter_profiles(volume, views[1], result.patient_motion, renderer=renderer)
+            png_b = qa_evidence.profiles_figure(profiles_b, evidence=evidence, reason=reason, columns=3)
+            self.profiles_b_image.image = _png_to_rgb(png_b)
+        self.profiles_b_image.visible = len(views) > 1
+        self.plane_b_shown = len(views) > 1
         self.depth_image.image = _png_to_rgb(depth) if depth is not None else np.full((8, 8, 3), 255, np.uint8)
         verdict = (
             f"Confidence {assessment['confidence']:.2f}: **applied**."
@@ -201,7 +211,7 @@ class ComparePanel(BasePanel):
             else f"Confidence {assessment['confidence']:.2f}: **withheld**: {reason}. "
             f"Read it in {qa_evidence.TERM_PICTURES.get(term or '', 'the evidence')} (framed in red)."
         )
-        plane = " (plane A)" if len(views) > 1 else ""
+        plane = " (plane A, then plane B)" if len(views) > 1 else ""
         self.evidence_text.content = (
             f"{verdict}  \n<small>The measure along each parameter around the estimate{plane}, relative to its "
             "value there (orange dots: the confidence's margin probes; dashed: the margin it asks for), and along "

@@ -278,3 +278,45 @@ def test_an_uploaded_run_is_read_about_the_datas_isocenter(fresh, tmp_path, monk
     finally:
         panel.use_phantom_run()
         fresh.phantom_button.value = True  # back to the phantom for the other tests
+
+
+def test_the_run_report_and_the_source_view_follow_the_played_run(fresh, tmp_path, monkeypatch) -> None:
+    """The camera "from the source" rides on the run's C-arm while it plays; afterwards Write run
+    report writes the played run's report (the same as ``roadmap3d track --report``)."""
+    import json
+
+    from app.web.qa_panel import ComparePanel
+    from registration.studies import qa_report
+
+    monkeypatch.setenv("ROADMAP3D_REPORTS", str(tmp_path))
+    panel, presenter = fresh.playback, fresh.presenter
+    compare = next(p for p in fresh.panels if isinstance(p, ComparePanel))
+    panel.case = SHORT
+    fresh.primary.value = 30.0  # the session's C-arm elsewhere than the run's
+    try:
+        compare.view_from_source.value = True
+        assert wait_until(lambda: presenter.followed is None, 10.0)
+        panel.play_button.value = True
+        assert wait_until(lambda: panel.playing, 5.0)
+        assert panel.report_button.disabled  # nothing to report while it plays
+        assert wait_until(lambda: panel.finished.is_set() and not panel.playing, 240.0)
+        assert wait_until(lambda: presenter.followed_frames[-1][0] == panel.estimates[-1].frame, 5.0)
+        run_geometry = presenter.followed.geometry
+        assert run_geometry.primary_deg != 30.0
+        camera = fresh.server.initial_camera
+        np.testing.assert_allclose(camera.position, run_geometry.source_mm * 1e-3, atol=1e-9)
+        np.testing.assert_allclose(camera.look_at, np.asarray(run_geometry.isocenter_mm) * 1e-3, atol=1e-9)
+        assert not panel.report_button.disabled
+        panel.report_button.value = True
+        assert wait_until(lambda: panel.last_report is not None, 120.0)
+        out = panel.last_report
+        assert out.parent == tmp_path
+        saved = json.loads((out / qa_report.REPORT_JSON).read_text())
+        # every processed frame with the decision it got in the app
+        assert [f["frame"] for f in saved["frames"]] == [e.frame for e in panel.estimates]
+        assert [f["status"] for f in saved["frames"]] == [e.status for e in panel.estimates]
+        assert saved["summary"]["skipped"] == panel.skipped and saved["frame_count"] == SHORT.script.frames
+        assert (out / "strip_charts.png").stat().st_size > 10_000 and (out / qa_report.REPORT_HTML).exists()
+    finally:
+        compare.view_from_source.value = False
+        fresh.primary.value = 0.0

@@ -149,3 +149,25 @@ def test_report_button_writes_the_last_registration(fresh: RoadmapApp, compare: 
     assert float(numbers["confidence"]) == pytest.approx(fresh.session.run.assessment["confidence"], abs=5e-4)
     assert (out / "overlay_outline.png").exists() and (out / "evidence_profiles.png").exists()
     assert str(out) in fresh.status.content
+
+
+def test_biplane_evidence_shows_both_planes(fresh: RoadmapApp, compare: ComparePanel):
+    try:
+        fresh.biplane.value = True
+        fresh.table_buttons["T4"].value = True
+        fresh.register_button.value = True
+        assert fresh.session.wait(240)
+        assert len(fresh.session.run.views) == 2
+        assert wait_until(lambda: compare.evidence_text.content.startswith("Confidence"), 180)
+        # plane A's and plane B's measure around the same estimate, each its own picture
+        assert compare.plane_b_shown and compare.profiles_b_image.visible
+        a, b = np.asarray(compare.profiles_image.image), np.asarray(compare.profiles_b_image.image)
+        assert a.shape[0] > 100 and b.shape == a.shape and not np.array_equal(a, b)
+        assert "plane B" in compare.evidence_text.content
+    finally:
+        fresh.biplane.value = False
+    fresh.table_buttons["T4"].value = True
+    fresh.register_button.value = True
+    assert fresh.session.wait(240)
+    assert wait_until(lambda: compare.evidence_text.content.startswith("Confidence") and not compare.plane_b_shown, 180)
+    assert not compare.profiles_b_image.visible  # one plane again: plane B's picture leaves
