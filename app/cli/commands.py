@@ -507,6 +507,9 @@ def run_register(
         _say(f"confidence {assessed['confidence']:.2f} -> {decision}")
     if verbose:
         _say(clock.report(), stream=sys.stderr)
+        _say("the registration's stages (DRRs, DRR pixels, seconds):", stream=sys.stderr)
+        for cost in result.stages:
+            _say(f"  {cost.drrs:6d} {cost.rays:11,d} {cost.seconds:6.2f} s  {cost.stage}", stream=sys.stderr)
     if result.at_bounds:  # inputs without information drift to the search bounds: not a registration
         print(
             f"error: cannot register: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "

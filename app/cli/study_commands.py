@@ -206,6 +206,14 @@ def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
         f"registration            {reg['seconds_median']:.2f} s median over T1-T4, "
         f"{100 * reg['success_rate']:.0f} % successful"
     )
+    ratio = reg["checks_ratio"]
+    print(
+        f"  without the checks    {reg['checks_off_seconds_median']:.2f} s median, "
+        f"{100 * reg['checks_off_success_rate']:.0f} % successful; with / without: {ratio['median']:.2f}x median "
+        f"({ratio['min']:.2f}x min) of the same cases, interleaved"
+    )
+    for stage in reg["stages"]:
+        print(f"  {stage['drrs_median']:6.0f} DRRs {stage['seconds_median']:6.2f} s  {stage['stage'][:80]}")
     bi = out["biplane"]
     print(
         f"biplane registration    {bi['seconds_median']:.2f} s median over {len(bi['runs'])} moments, "

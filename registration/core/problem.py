@@ -230,6 +230,11 @@ class Evaluator:
     def drrs_per_evaluation(self) -> int:
         return len(self._measures)
 
+    @property
+    def rays_per_evaluation(self) -> int:
+        """DRR pixels one evaluation renders (the compared pixels of every view)."""
+        return int(sum(int(v.mask.sum()) for v in self.problem.views))
+
     def _score(self, n: int, motion: Array, parallel: bool | None) -> float:
         p, view = self.problem, self.problem.views[n]
         drr = p.renderer.render(view.geometry, motion, level=p.volume_level, mask=view.mask, parallel=parallel,

@@ -21,31 +21,83 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def bench_registration(*, seed: int = 0, repeats: int = 1) -> dict:
-    """Registration time over T1-T4 on 27/27 cm fluoro images (phantom and volume cached first)."""
+#: The checks the registration's cost is compared without (same cases, same process, interleaved).
+CHECKS_OFF = {"depth_correction": False, "rotation_check": False}
+
+
+def _spread(values: list[float]) -> dict:
+    return {"min": float(np.min(values)), "median": float(np.median(values))}
+
+
+def stage_costs(runs: list[dict]) -> list[dict]:
+    """Per stage of the plan (in the order they ran), the median DRRs, rays and seconds over
+    ``runs`` (records with ``stages``) and how many runs ran it."""
+    order: list[str] = []
+    by_stage: dict[str, list[dict]] = {}
+    for run in runs:
+        for cost in run.get("stages", ()):
+            if cost["stage"] not in by_stage:
+                order.append(cost["stage"])
+            by_stage.setdefault(cost["stage"], []).append(cost)
+    return [
+        {
+            "stage": name,
+            "runs": len(by_stage[name]),
+            "drrs_median": float(np.median([c["drrs"] for c in by_stage[name]])),
+            "rays_median": float(np.median([c["rays"] for c in by_stage[name]])),
+            "seconds_median": float(np.median([c["seconds"] for c in by_stage[name]])),
+        }
+        for name in order
+    ]
+
+
+def bench_registration(*, seed: int = 0, rounds: int = 3) -> dict:
+    """Registration time over T1-T4 on 27/27 cm fluoro images (phantom and volume cached first),
+    each case registered with every check and, right after it in the same process, without the
+    depth correction and the rotation check (the checks' price as a ratio both runs share the
+    machine's load for); ``rounds`` repetitions of the four cases."""
     from registration.core.geometry import TABLE_I
+    from registration.core.register import RegistrationOptions
     from registration.studies.cases import Case, run_case
 
     cases = [
         Case(offset=o, image_kind="fluoro", volume_format_cm=27.0, image_format_cm=27.0, seed=seed + r)
-        for r in range(repeats)
+        for r in range(rounds)
         for o in TABLE_I
     ]
+    off = RegistrationOptions(**CHECKS_OFF)
     run_case(cases[0])  # warm-up: compiles, builds the cached phantom and volume
-    runs = [run_case(c) for c in cases]
+    run_case(cases[0], options=off)
+    runs, bare = [], []
+    for case in cases:  # interleaved: each pair sees the same moment's load
+        runs.append(run_case(case))
+        bare.append(run_case(case, options=off))
+    seconds = [r["seconds"] for r in runs]
+    off_seconds = [r["seconds"] for r in bare]
+    ratios = [a / b for a, b in zip(seconds, off_seconds, strict=True) if b > 0]
     return {
-        "seconds_median": float(np.median([r["seconds"] for r in runs])),
+        "seconds_median": float(np.median(seconds)),
+        "seconds_min": float(np.min(seconds)),
+        "checks_off_seconds_median": float(np.median(off_seconds)),
+        "checks_off_seconds_min": float(np.min(off_seconds)),
+        "checks_ratio": {**_spread(ratios), "of_medians": float(np.median(seconds) / np.median(off_seconds))},
+        "drr_count_median": float(np.median([r["drr_count"] for r in runs])),
+        "checks_off_drr_count_median": float(np.median([r["drr_count"] for r in bare])),
         "success_rate": float(np.mean([r["success"] for r in runs])),
+        "checks_off_success_rate": float(np.mean([r["success"] for r in bare])),
+        "rounds": rounds,
+        "stages": stage_costs(runs),
         "runs": [
             {
                 "offset": r["offset"],
                 "seconds": r["seconds"],
+                "checks_off_seconds": b["seconds"],
                 "drr_count": r["drr_count"],
                 "inplane_residual_mm": r["inplane_residual_mm"],
                 "rotation_residual_deg": r["rotation_residual_deg"],
                 "success": r["success"],
             }
-            for r in runs
+            for r, b in zip(runs, bare, strict=True)
         ],
     }
 
@@ -86,7 +138,7 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
     say("gradient difference ...")
     gd_ms = bench_gradient_difference()
     say("registration over T1-T4 (27/27 cm, fluoro) ...")
-    reg = bench_registration(seed=seed)
+    reg = bench_registration(seed=seed, rounds=1 if quick else 3)
     say("biplane registration (27 cm 3DRA, two planes, clinical offsets) ...")
     biplane = bench_biplane(seed=seed, repeats=2 if quick else 4)
     from registration.studies.tracking import bench_tracking

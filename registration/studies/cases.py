@@ -227,6 +227,7 @@ def run_case(case: Case, *, options: RegistrationOptions | None = None) -> dict:
         "seconds": result.seconds,
         "prepare_seconds": preparation.seconds,
         "drr_count": result.drr_count,
+        "stages": [c.to_dict() for c in result.stages],
         "similarity": result.similarity,
         "volume_label": result.volume_label,
         "version": __version__,

@@ -56,7 +56,7 @@ from registration.core.register.options import (
     StartOptions,
 )
 from registration.core.register.plan import Plan, Run, State
-from registration.core.register.result import Progress, RegistrationResult, RotationCheck
+from registration.core.register.result import Progress, RegistrationResult, RotationCheck, StageCost
 from registration.core.register.rotation_check import RIVAL_DISTINCT_DEG, rotation_check
 from registration.core.register.walk import walk_from_bounds
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
@@ -75,6 +75,7 @@ __all__ = [
     "RIVAL_DISTINCT_DEG",
     "ROTATION_ACROSS_WEIGHT",
     "SIX_PARAMETERS",
+    "StageCost",
     "StartOptions",
     "BiplaneOptions",
     "DepthOptions",
@@ -185,6 +186,7 @@ def _result(state: State, vessel_points_mm: ArrayLike | None, seconds: float) ->
         similarity=-state.f,
         similarity_trace=run.monitor.trace,
         drr_count=run.monitor.drr_count,
+        stages=tuple(run.monitor.stages),
         seconds=seconds,
         stopped=run.monitor.stopped,
         offsets=x,

@@ -80,8 +80,7 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
             break
         scan = depth_scan(renderer, view, space.holding_tz(tz).motion(x), offsets_mm=offsets, image_px=d.image_px,
                           volume_level=level, margin_mm=stage.margin_mm, pixel_at_iso_mm=pixel_mm)  # fmt: skip
-        with r.monitor.lock:
-            r.monitor.drr_count += scan.drr_count
+        r.monitor.charge(scan.drr_count, scan.drr_count * d.image_px * d.image_px)  # the scan's square images
         move = float(np.clip(tz + scan.tz_mm, -bound, bound)) - tz
         moves.append(move)
         if abs(move) < d.move_mm and not (n == 0 and d.first_polish):

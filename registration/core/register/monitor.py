@@ -29,6 +29,8 @@ class Monitor:
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.drr_count = 0
+        #: DRR pixels (rays) rendered, all stages together.
+        self.ray_count = 0
         self.iteration = 0
         self.trace: list[float] = []
         self._level = -1
@@ -36,17 +38,21 @@ class Monitor:
         self._temperatures: dict[int, float] = {}
         #: Where the first level's capture runs ended (motions): the confidence's agreement.
         self.captures: list[Array] = []
+        #: The cost of each stage that ran (:class:`registration.core.register.result.StageCost`).
+        self.stages: list = []
 
     @property
     def stopped(self) -> bool:
         return self.stop.is_set()
 
-    def charge(self, drrs: int) -> bool:
-        """Count ``drrs`` DRRs about to be rendered; False (render nothing) once stopped."""
+    def charge(self, drrs: int, rays: int = 0) -> bool:
+        """Count ``drrs`` DRRs (``rays`` pixels) about to be rendered; False (render nothing) once
+        stopped."""
         with self.lock:
             if self.stop.is_set():
                 return False
             self.drr_count += drrs
+            self.ray_count += rays
             return True
 
     def report(
@@ -87,9 +93,10 @@ class Monitor:
 def cost_function(problem: LevelProblem, space: SearchSpace, monitor: Monitor, parallel: bool | None) -> Callable:
     """cost(x) = -similarity of the DRRs at the motion of x (inf once stopped)."""
     evaluator = problem.evaluator(parallel=parallel)
+    drrs, rays = evaluator.drrs_per_evaluation, evaluator.rays_per_evaluation
 
     def cost(x: Array) -> float:
-        if not monitor.charge(evaluator.drrs_per_evaluation):
+        if not monitor.charge(drrs, rays):
             return math.inf  # another capture run was stopped: render nothing more
         return -evaluator.similarity(space.motion(x))
 

@@ -10,6 +10,7 @@ plan's order, from 0 (:attr:`registration.core.register.Progress.level`).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Protocol
@@ -22,7 +23,7 @@ from registration.core.problem import LevelProblem
 from registration.core.register.inputs import Inputs
 from registration.core.register.monitor import Monitor
 from registration.core.register.options import RegistrationOptions
-from registration.core.register.result import RotationCheck
+from registration.core.register.result import RotationCheck, StageCost
 from registration.core.search import SearchSpace
 
 Array = NDArray[np.float64]
@@ -106,13 +107,19 @@ class Plan:
         return "\n".join(f"{n + 1}. {stage.describe()}" for n, stage in enumerate(self.stages))
 
     def run(self, state: State) -> State:
-        """Run the stages in order until the monitor stops; Progress numbers those that run."""
+        """Run the stages in order until the monitor stops; Progress numbers those that run, and
+        the monitor keeps each one's cost (:class:`StageCost`)."""
         number = 0
+        monitor = state.run.monitor
         for stage in self.stages:
-            if state.run.monitor.stopped:
+            if monitor.stopped:
                 break
             if not stage.runs(state):
                 continue
+            drrs, rays, began = monitor.drr_count, monitor.ray_count, time.perf_counter()
             state = stage.run(replace(state, number=number))
+            cost = StageCost(stage.describe(), monitor.drr_count - drrs, monitor.ray_count - rays,
+                             time.perf_counter() - began)  # fmt: skip
+            monitor.stages.append(cost)
             number += 1
         return state

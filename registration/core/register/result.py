@@ -29,6 +29,20 @@ class Progress:
     elapsed_s: float
 
 
+@dataclass(frozen=True)
+class StageCost:
+    """What one stage of the plan cost: its description, the DRRs and DRR pixels (rays) it
+    rendered and its wall time."""
+
+    stage: str
+    drrs: int
+    rays: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return {"stage": self.stage, "drrs": self.drrs, "rays": self.rays, "seconds": self.seconds}
+
+
 @dataclass
 class RegistrationResult:
     """The outcome of one registration (CONVENTIONS.md §4, §6).
@@ -76,6 +90,8 @@ class RegistrationResult:
     #: Restarts of the whole search from an estimate that ended at the search bounds, each with
     #: the box centred there (:mod:`registration.core.register.walk`); 0: none was needed.
     walk_hops: int = 0
+    #: Each stage that ran, in order, with its cost (a walk's restarts follow the first search's).
+    stages: tuple[StageCost, ...] = ()
 
     @property
     def success(self) -> bool | None:
@@ -109,6 +125,8 @@ class RegistrationResult:
             out["intensity"] = list(self.intensity)
         if self.walk_hops:
             out["walk_hops"] = self.walk_hops
+        if self.stages:
+            out["stages"] = [c.to_dict() for c in self.stages]
         return out
 
 

@@ -32,7 +32,7 @@ def walk_from_bounds(
     bounds (at most ``options.start.walk_hops`` times). The result is the last run's, with the
     DRRs and similarity trace of every run and ``walk_hops`` set to the restarts made."""
     result = register_once(inputs)
-    drr_count, trace, hops = result.drr_count, list(result.similarity_trace), 0
+    drr_count, trace, hops, stages = result.drr_count, list(result.similarity_trace), 0, list(result.stages)
     while result.at_bounds and not result.stopped and hops < options.start.walk_hops:
         start = _start_at(result, inputs)
         renderer = prepared_renderer(inputs.volume, inputs.views, start, options)
@@ -41,7 +41,9 @@ def walk_from_bounds(
         hops += 1
         drr_count += result.drr_count
         trace += result.similarity_trace
+        stages += [replace(c, stage=f"walk {hops}: {c.stage}") for c in result.stages]
     result.drr_count, result.similarity_trace, result.walk_hops = drr_count, trace, hops
+    result.stages = tuple(stages)
     return result
 
 

@@ -188,3 +188,23 @@ def test_refine_level_image_sizes(pixels, expected):
     geometry = CArm.for_format(27.0, pixels=pixels)
     for voxel_mm in (2.85, 4.0):
         assert geometry.cols // level_factor(geometry, refine.image_px, voxel_mm) == expected
+
+
+def test_each_stage_reports_its_cost(setup):
+    """The result accounts per stage of the plan: DRRs, DRR pixels and seconds that add up."""
+    from registration.core.register import registration_plan
+    from registration.sim.xray import simulate_xray
+
+    volume, anatomy = setup
+    geometry = CArm.for_format(27.0, pixels=256)
+    truth = offsets_to_matrix(TABLE_I["T2"], geometry)
+    xray = simulate_xray(anatomy, geometry, motion=truth, kind="fluoro", seed=1)
+    result = register(volume, xray, seed=1, truth=truth)
+    planned = registration_plan(volume, xray).describe().splitlines()
+    ran = [c.stage for c in result.stages]
+    # every stage that ran is one of the plan's, in the plan's order (single plane: all of them run)
+    assert [line.split(". ", 1)[1] for line in planned] == ran
+    assert sum(c.drrs for c in result.stages) == result.drr_count  # every DRR charged to one stage
+    assert all(c.drrs > 0 and c.rays >= c.drrs * 16 * 16 and c.seconds > 0 for c in result.stages)
+    assert sum(c.seconds for c in result.stages) <= result.seconds + 1e-6
+    assert result.to_dict()["stages"][0]["drrs"] == result.stages[0].drrs

@@ -22,6 +22,7 @@ class _Result:
     stopped: bool = False
     walk_hops: int = 0
     similarity: float = -1.0
+    stages: tuple = ()
     parameters: tuple[str, ...] = ("tx", "ty", "rx", "ry", "rz")
     offsets: tuple[float, ...] = (30.0, 0.0, 0.0, 0.0, 0.0)
     geometry: CArm = field(default_factory=lambda: CArm.for_format(27.0, pixels=64))
