@@ -169,8 +169,8 @@ def register(
             at least 4 on one image (docs/landmarks.md).
         roi: The part of the volume the registration follows: "cranium" leaves out the cervical spine below the
             skull base (found in the volume), which follows a head's motion only partly; "none" the whole volume.
-        roi_mask: A label mask on the volume's grid (.npz with an array "mask", or NIfTI): the registration follows
-            the labelled voxels only (outside them, bone is rendered as soft tissue).
+        roi_mask: A label mask on the volume's grid (.npz with an array "mask", NIfTI, or a DICOM SEG): the
+            registration follows the labelled voxels only (outside them, bone is rendered as soft tissue).
         estimate_geometry: With two planes, estimate each plane's source-image distance together with the pose,
             for a C-arm nobody calibrated or a file whose distances are nominal (docs/landmarks.md).
     """

@@ -99,3 +99,64 @@ def test_a_bent_neck_leaves_the_heads_estimate(real_ct) -> None:
     result = register(head, image, truth=truth, seed=7, options=RegistrationOptions())
     # the head's motion is the truth: the skull moved rigidly with it
     assert result.residual.inplane_mm < 1.0 and result.residual.rotation_deg < 3.0, result.residual
+
+
+def _write_seg(path, volume: Volume, mask: np.ndarray, *, shift_mm: float = 0.0) -> None:
+    """A DICOM Segmentation (binary, one segment) of ``mask``'s non-empty slices, as a viewer
+    such as 3D Slicer exports it: one frame per slice, its position and orientation per frame."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.pixels import pack_bits
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    from registration.io.roi_masks import SEGMENTATION_SOP_CLASS
+
+    a = volume.index_to_world
+    slices = [k for k in range(mask.shape[0]) if mask[k].any()]
+    ds = Dataset()
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.MediaStorageSOPClassUID = SEGMENTATION_SOP_CLASS
+    ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.SOPClassUID, ds.SOPInstanceUID = SEGMENTATION_SOP_CLASS, ds.file_meta.MediaStorageSOPInstanceUID
+    ds.Modality = "SEG"
+    ds.Rows, ds.Columns, ds.NumberOfFrames = mask.shape[1], mask.shape[2], len(slices)
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.SamplesPerPixel = 1, 1, 0, 1
+    ds.PixelRepresentation, ds.PhotometricInterpretation, ds.SegmentationType = 0, "MONOCHROME2", "BINARY"
+    spacing = np.linalg.norm(a[:3, :2], axis=0)
+    orientation = Dataset()
+    orientation.ImageOrientationPatient = [*(a[:3, 0] / spacing[0]), *(a[:3, 1] / spacing[1])]
+    measures = Dataset()
+    measures.PixelSpacing = [float(spacing[1]), float(spacing[0])]  # row spacing, column spacing
+    measures.SliceThickness = float(abs(a[2, 2]))
+    shared = Dataset()
+    shared.PlaneOrientationSequence, shared.PixelMeasuresSequence = [orientation], [measures]
+    ds.SharedFunctionalGroupsSequence = [shared]
+    groups = []
+    for k in slices:
+        position = Dataset()
+        position.ImagePositionPatient = [float(v) for v in a[:3, 2] * k + a[:3, 3] + [shift_mm, 0.0, 0.0]]
+        group = Dataset()
+        group.PlanePositionSequence = [position]
+        groups.append(group)
+    ds.PerFrameFunctionalGroupsSequence = groups
+    ds.PixelData = pack_bits(mask[slices].astype(np.uint8))
+    ds.save_as(path, enforce_file_format=True)
+
+
+def test_a_users_dicom_seg_mask(tmp_path) -> None:
+    volume = _small_volume()
+    mask = np.zeros(volume.shape, dtype=bool)
+    mask[3:6, 2:8, 4:10] = True
+    mask[5, 0, 0] = True  # a lone voxel in a corner: placed exactly
+    _write_seg(tmp_path / "roi.dcm", volume, mask)
+    roi = read_roi_mask(tmp_path / "roi.dcm", volume)
+    np.testing.assert_array_equal(roi.mask, mask)  # voxel for voxel on the volume's grid
+    _write_seg(tmp_path / "shifted.dcm", volume, mask, shift_mm=0.5)  # half a voxel off the grid
+    with pytest.raises(ValueError, match="shifted.dcm: a frame at .* lies on none of the volume's slices"):
+        read_roi_mask(tmp_path / "shifted.dcm", volume)
+    other = Volume(volume.data, np.diag([1.5, 1.0, 2.0, 1.0]), label="other grid")
+    with pytest.raises(ValueError, match="roi.dcm: a frame's orientation or pixel spacing is not the volume's"):
+        read_roi_mask(tmp_path / "roi.dcm", other)
+    (tmp_path / "not.dcm").write_bytes(b"\0" * 200)
+    with pytest.raises(ValueError, match="not.dcm: not a readable DICOM file"):
+        read_roi_mask(tmp_path / "not.dcm", volume)
