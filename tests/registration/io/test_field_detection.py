@@ -142,6 +142,30 @@ def test_burned_in_text_and_ruler_are_masked_within_2_px(tmp_path: Path) -> None
     assert "burned-in graphics" in image.meta["mask_from"]
 
 
+def test_dark_burned_in_text_is_masked_and_a_clipped_vessel_is_not(tmp_path: Path) -> None:
+    """Text at full black (some systems burn it in dark on a bright field) beside a thin vessel
+    clipped to the same black by the display window: the text is masked within 2 px, the vessel
+    (long, not a line of characters) stays in the field."""
+    stored = _stored(_anatomy(6), 12.0, 6)
+    canvas = np.zeros(stored.shape, dtype=np.uint8)
+    cv2.putText(canvas, "PAT 0427 12/03", (30, 60), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 255, 1)
+    cv2.putText(canvas, "RAO 20", (150, 230), cv2.FONT_HERSHEY_PLAIN, 1.0, 255, 1)
+    text = canvas > 0
+    vessel = np.zeros(stored.shape, dtype=np.uint8)
+    t = np.linspace(0.0, 1.0, 600)
+    cv2.polylines(vessel, [np.stack([60 + 140 * t, 100 + 90 * t + 12 * np.sin(6 * t)], axis=1).astype(np.int32)],
+                  False, 255, 2)  # fmt: skip
+    clipped = (vessel > 0) & ~ndimage.binary_dilation(text, iterations=4)
+    stored = np.where(text | clipped, 0, stored).astype(np.uint16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        image = dicom.read_xray(xa_file(tmp_path / "dark.dcm", stored))
+    assert not (image.mask & text).any()  # every character's pixel masked
+    assert not (~image.mask & ~ndimage.binary_dilation(text, iterations=2)).any()  # nothing 2 px beyond them
+    assert image.mask[clipped].all()  # the vessel is anatomy
+    assert "burned-in graphics" in image.meta["mask_from"]
+
+
 def _overlay(ds: Dataset, plane: np.ndarray, origin: tuple[int, int], frames: int = 1, first: int = 1) -> None:
     rows, cols = plane.shape[-2:]
     ds.add_new(0x60000010, "US", rows)
