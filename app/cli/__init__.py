@@ -526,8 +526,8 @@ def password(file: tyro.conf.Positional[Path], force: bool = False) -> int:
     """
     import getpass
 
-    from app.web.signin import PasswordHash
     from registration.io.dicom import write_text_atomic
+    from registration.io.passwords import PasswordHash
 
     if file.is_dir():
         raise UserError(f"{file}: is a folder; give the password file's name")

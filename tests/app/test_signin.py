@@ -22,6 +22,7 @@ from websockets.sync.client import connect
 from app.web import signin
 from app.web.main import make_guard, make_server, url_of
 from app.web.signin import Guard
+from registration.io.passwords import PasswordHash
 
 TOKEN = "sign-in-test-token-42"
 SUBPROTOCOL = f"viser-v{viser.__version__}"
@@ -208,25 +209,25 @@ PASSWORD = "correct horse battery staple"
 
 
 def test_a_password_file_holds_only_a_salted_hash(tmp_path: Path) -> None:
-    made = signin.PasswordHash.of(PASSWORD)
+    made = PasswordHash.of(PASSWORD)
     path = tmp_path / "password"
     path.write_text(made.text() + "\n")
-    read = signin.PasswordHash.read(path)
+    read = PasswordHash.read(path)
     assert read == made and PASSWORD not in path.read_text()
     assert read.verify(PASSWORD) and not read.verify(PASSWORD + "!") and not read.verify("")
-    assert signin.PasswordHash.of(PASSWORD).salt != made.salt  # salted: the same password, another hash
+    assert PasswordHash.of(PASSWORD).salt != made.salt  # salted: the same password, another hash
     path.write_text("scrypt$16384$8$1$not-base64$x\n")
     with pytest.raises(ValueError, match="not a roadmap3d password file"):
-        signin.PasswordHash.read(path)
+        PasswordHash.read(path)
     with pytest.raises(ValueError, match="cannot read it"):
-        signin.PasswordHash.read(tmp_path / "missing")
+        PasswordHash.read(tmp_path / "missing")
     with pytest.raises(ValueError, match="at least 12 characters"):
-        signin.PasswordHash.of("short")
+        PasswordHash.of("short")
 
 
 def test_signing_in_by_password(tmp_path: Path) -> None:
     audit: list = []
-    guard = Guard(None, password=signin.PasswordHash.of(PASSWORD), audit=lambda action, **f: audit.append((action, f)))
+    guard = Guard(None, password=PasswordHash.of(PASSWORD), audit=lambda action, **f: audit.append((action, f)))
     server = make_server("127.0.0.1", 0, guard=guard)
     try:
         port = server.get_port()
@@ -261,7 +262,7 @@ def test_the_password_command_and_flag(tmp_path: Path, monkeypatch: pytest.Monke
         cli.main(["password", str(path)])
     assert info.value.code == 0
     assert path.stat().st_mode & 0o077 == 0 and PASSWORD not in path.read_text()
-    assert signin.PasswordHash.read(path).verify(PASSWORD)
+    assert PasswordHash.read(path).verify(PASSWORD)
     monkeypatch.setattr("sys.stdin", io.StringIO(PASSWORD + "\n"))
     with pytest.raises(SystemExit) as info:
         cli.main(["password", str(path)])
@@ -282,7 +283,7 @@ def test_the_browser_signs_in_by_password(tmp_path: Path) -> None:
     if executable is None:
         pytest.skip("chromium is not installed (apt-get install chromium)")
     path = tmp_path / "password"
-    path.write_text(signin.PasswordHash.of(PASSWORD).text())
+    path.write_text(PasswordHash.of(PASSWORD).text())
     guard = make_guard("127.0.0.1", password_file=path)
     server = make_server("127.0.0.1", 0, guard=guard)
     server.gui.add_markdown("Signed in by password")
