@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from functools import wraps
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -107,7 +108,8 @@ class Controller:
             control.on_update(on(self._on_carm))
         ui.register_button.on_click(on(lambda e: self.start_registration(client=self.address(e))))
         ui.stop_button.on_click(on(lambda e: self.stop_registration(client=self.address(e))))
-        for box in (ui.show_ghost, ui.show_skull, ui.show_gradients):
+        ui.field_mask_upload.on_upload(on(self._on_field_mask))
+        for box in (ui.show_ghost, ui.show_skull, ui.show_gradients, ui.show_field):
             box.on_update(on(lambda _e: self.force_refresh()))
         ui.autocorrect.on_update(on(lambda _e: self._on_autocorrect()))
         ui.upload.on_upload(on(self._on_upload))
@@ -276,6 +278,30 @@ class Controller:
         audit.record("upload", client=client, result=f"loaded, {len(content)} bytes", **self._data_uids())
         self.message(f"Loaded {name}: {data.label}. Press **Register**.")
         return True
+
+    def _on_field_mask(self, event: Any) -> None:
+        uploaded = self.layout.field_mask_upload.value
+        self.load_field_mask(uploaded.name, uploaded.content, client=self.address(event))
+
+    def load_field_mask(self, name: str, content: bytes, *, client: str = "") -> None:
+        """The user's field mask for their image (a PNG/TIFF upload): the field narrowed, shown
+        shaded (Display: Usable field) and used by the next Register. A refusal is said in the page."""
+        import tempfile
+
+        suffix = Path(name).suffix.lower()
+        if suffix not in (".png", ".tif", ".tiff"):
+            raise ValueError(f"{name}: a field mask is a PNG or TIFF image")
+        if len(content) > 64 * 2**20:
+            raise ValueError(f"{name}: {len(content) / 2**20:.0f} MB is too large for a field mask")
+        with tempfile.TemporaryDirectory(prefix="roadmap3d-mask-") as folder:
+            path = Path(folder) / f"mask{suffix}"
+            path.write_bytes(content)
+            self.session.set_image_mask(path)
+        self.layout.show_field.value = True
+        self.show_source()
+        audit.record("upload", client=client, result=f"field mask {len(content)} bytes", **self._data_uids())
+        usable = self.session.data.fixed_xray.mask.mean() if self.session.data.fixed_xray is not None else 0.0
+        self.message(f"Field mask {name}: {100 * usable:.0f} % of the image is used. Press **Register**.")
 
     def use_data(self, data: DataSource) -> None:
         self.session.use_data(data)

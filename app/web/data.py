@@ -295,6 +295,14 @@ class FileData:
             self.fixed_xray = replace(self.fixed_xray, geometry=geometry)
             self.isocenter_from = source
 
+    def set_user_mask(self, path: str | os.PathLike[str]) -> None:
+        """Narrow the image's field by the user's mask file (PNG or TIFF of the image's stored
+        size, nonzero = usable), as ``register --image-mask`` does; ValueError naming the file."""
+        from registration.io.dicom.xray import with_user_mask
+
+        with self._lock:
+            self.fixed_xray = with_user_mask(self.fixed_xray, path)
+
     @classmethod
     def from_paths(
         cls, volume_path: str | os.PathLike[str], image_path: str | os.PathLike[str], *, frame: int | None,

@@ -194,6 +194,13 @@ class Layout:
                 "a value here replaces the file's (with a warning). Empty: from the file.",
             )
             gui.add_markdown("<small>SID/SOD: only for images that lack the distances; then upload again.</small>")
+            self.field_mask_upload = gui.add_upload_button(
+                "Field mask (PNG/TIFF)",
+                icon=viser.Icon.MASK,
+                mime_type="image/*",
+                hint="Your own mask of the image's usable field: the image's stored size, nonzero = usable; it narrows "
+                "the field found from the file (as register --image-mask)",
+            )
             self.isocenter_info = gui.add_markdown("")
             self.isocenter_field = gui.add_text(
                 "Iso-center (mm)",
@@ -212,6 +219,9 @@ class Layout:
             self.show_ghost = gui.add_checkbox("True position (ghost)", False)
             self.show_skull = gui.add_checkbox("Skull", True)
             self.show_gradients = gui.add_checkbox("Gradient images", False)
+            self.show_field = gui.add_checkbox(
+                "Usable field", False, hint="Shade what the registration leaves out of the X-ray image (blades, text)"
+            )
 
         #: Disabled during a run, and while the user's file fixes the C-arm.
         self.carm_controls: list[Any] = [

@@ -344,6 +344,8 @@ class Presenter:
                 drr_initial=drr_initial, outline_initial=initial_silhouette, tile_px=settings.checker_px,
                 wipe_fraction=settings.wipe, thickness=thickness,
             )  # fmt: skip
+        if bool(self.layout.show_field.value):  # what the registration leaves out, shaded and outlined
+            views.shade_outside(fluoro, tiles["mask"])
         if settings.zoom > 1.0:
             fluoro = qa_images.zoomed(fluoro, settings.zoom, settings.pan)
         prefix = f"PLANE {plane}  " if plane else ""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -179,6 +180,19 @@ class Session:
                 )
             self.data.set_isocenter(isocenter_mm, source)
             self.estimate = np.eye(4)
+            self.run = RunState()
+            self._changed()
+
+    def set_image_mask(self, path: str | os.PathLike[str]) -> None:
+        """Narrow the user's image field by a mask file (:meth:`FileData.set_user_mask`); the roadmap
+        keeps its pose. Refused while a registration runs and for the phantom (its field is known)."""
+        from app.web.data import FileData
+
+        with self.lock:
+            self._refuse_while_running()
+            if not isinstance(self.data, FileData):
+                raise ValueError("the phantom's field is known: a field mask is for your data (an upload or the PACS)")
+            self.data.set_user_mask(path)
             self.run = RunState()
             self._changed()
 

@@ -69,6 +69,18 @@ def draw_outline(rgb: RGB, silhouette: np.ndarray, *, thickness: int = 1) -> RGB
     return rgb
 
 
+def shade_outside(rgb: RGB, mask: np.ndarray) -> RGB:
+    """Darken and tint blue what lies outside ``mask`` (the usable field), and outline the field
+    in yellow, in place."""
+    outside = ~np.asarray(mask, dtype=bool)
+    if outside.any():
+        tinted = rgb[outside].astype(np.float32) * 0.35 + np.array([20.0, 40.0, 110.0], np.float32)
+        rgb[outside] = np.clip(tinted, 0, 255).astype(np.uint8)
+        contours, _ = cv2.findContours((~outside).astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(rgb, contours, -1, (255, 210, 0), 1)
+    return rgb
+
+
 def gradient_image(attenuation: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Magnitude of the Sobel gradient (what gradient difference compares), uint8."""
     img = np.asarray(attenuation, dtype=np.float32)

@@ -145,3 +145,45 @@ def test_the_users_skull_is_drawn_whole_on_a_ct_like_grid() -> None:
     # registration test of bone_surface for the reason)
     shell = r[r < SHELL_RADIUS_MM + 20.0]
     assert shell.min() > 68.5 - 6.25 and shell.max() < 71.5 + 6.25
+
+
+def test_the_users_field_mask_narrows_the_field_and_is_shown(fresh: RoadmapApp) -> None:
+    """The Data tab's field mask (as register --image-mask): the image's field narrowed to it, the
+    Display tab's Usable field shading what is left out; refused for the phantom and for a file
+    that is no image."""
+    import cv2
+
+    from app.web.data import simulate_xray
+    from registration.sim.phantom import make_head_phantom, registration_volume
+
+    app = fresh
+    anatomy = make_head_phantom(seed=0, contrast=False)
+    volume = registration_volume(make_head_phantom(seed=0), 27.0, voxels=TEST_CONFIG.voxels)
+    xray = simulate_xray(anatomy, app.session.settings.geometry(TEST_CONFIG.pixels))
+    rows, cols = xray.shape
+    drawn = np.full((rows, cols), 255, np.uint8)
+    drawn[:, : cols // 2] = 0  # a blade over the left half, say
+    ok, png = cv2.imencode(".png", drawn)
+    assert ok
+    with pytest.raises(ValueError, match="a field mask is for your data"):
+        app.controller.load_field_mask("mask.png", png.tobytes())
+    data = FileData(volume, xray, source="phantom image (test)", config=TEST_CONFIG)
+    try:
+        app._use_data(data)  # noqa: SLF001 - what the upload callback does after reading
+        with pytest.raises(ValueError, match="notes.txt: a field mask is a PNG or TIFF image"):
+            app.controller.load_field_mask("notes.txt", b"hello")
+        app.controller.load_field_mask("mask.png", png.tobytes())
+        mask = app.session.data.fixed_xray.mask
+        assert not mask[:, : cols // 2].any() and mask[:, cols // 2 :].sum() == xray.mask[:, cols // 2 :].sum()
+        assert "user mask" in app.session.data.fixed_xray.meta["mask_from"]
+        assert app.show_field.value and "% of the image is used" in app.status.content
+        assert wait_until(lambda: app._shown_version == app.session.version, 30)  # noqa: SLF001
+        tile = np.asarray(app.images.image)
+        size = tile.shape[0]  # the fluoro tile: the row's first square
+        left, right = tile[40:-40, 10 : size // 2 - 10], tile[40:-40, size // 2 + 10 : size - 10]
+        # left of the mask's edge the fluoro tile is shaded blue; right of it the image is gray
+        assert left[..., 2].mean() > left[..., 0].mean() + 40 and abs(right[..., 2].mean() - right[..., 0].mean()) < 15
+    finally:
+        app.show_field.value = False
+        app.phantom_button.value = True
+    assert wait_until(lambda: app._shown_version == app.session.version, 30)  # noqa: SLF001
