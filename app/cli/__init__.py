@@ -568,6 +568,7 @@ def track(
     frame_time_ms: float | None = None,
     report: Path | None = None,
     report_identify: bool = False,
+    pixel_mm: float | None = None,
 ) -> int:
     """Follow patient motion over a fluoroscopy run at its frame times (CONVENTIONS §7).
 
@@ -589,10 +590,13 @@ def track(
         report: Write a report folder here (new or empty): strip charts, per-frame decisions, the last frame
             compared in place (docs/report.md).
         report_identify: Name the patient (name, ID) and the file paths in the report (left out by default).
+        pixel_mm: Pixel spacing at the detector (mm, square pixels) for runs without ImagerPixelSpacing (0018,1164).
     """
     if pacs is not None:
         if report is not None:
             raise UserError("--report works on files only (not with --pacs) for now")
+        if pixel_mm is not None:
+            raise UserError("--pixel-mm works on files only (not with --pacs) for now")
         from app.cli.net_commands import run_track_pacs
 
         return run_track_pacs(
@@ -607,7 +611,7 @@ def track(
     return run_track(
         volume=volume, run=run, run_b=run_b, out=out, truth=truth, isocenter=isocenter, seed=seed,
         every_frame=every_frame, sid_mm=sid_mm, sod_mm=sod_mm, frame_time_ms=frame_time_ms, report=report,
-        report_identify=report_identify,
+        report_identify=report_identify, pixel_mm=pixel_mm,
     )  # fmt: skip
 
 

@@ -65,12 +65,13 @@ def run_track(
     frame_time_ms: float | None = None,
     report: Path | None = None,
     report_identify: bool = False,
+    pixel_mm: float | None = None,
 ) -> int:
     """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON and,
     with ``report``, the report folder (:mod:`app.cli.report_commands`; ``report_identify``: with the
     patient's name, ID and the file paths).
 
-    ``sid_mm``, ``sod_mm`` and ``frame_time_ms`` fill in what a run's files lack
+    ``sid_mm``, ``sod_mm``, ``pixel_mm`` and ``frame_time_ms`` fill in what a run's files lack
     (:func:`registration.io.dicom.read_xray_run`)."""
     from app.cli.commands import parse_isocenter, prepare_for_registration
     from registration.core.metrics import residuals
@@ -83,7 +84,7 @@ def run_track(
     check_report_folder(report)
     if isocenter is not None and isocenter.strip().lower() != "volume-center":
         parse_isocenter(isocenter)  # a bad value is refused before any file is read
-    given = {"sid_mm": sid_mm, "sod_mm": sod_mm, "frame_time_ms": frame_time_ms}
+    given = {"sid_mm": sid_mm, "sod_mm": sod_mm, "frame_time_ms": frame_time_ms, "pixel_mm": pixel_mm}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         vol = dicom.read_volume(volume)

@@ -42,3 +42,16 @@ def test_a_real_xa_without_pixel_spacing_is_read_with_the_flag(capsys) -> None:
         dicom.read_xray(REAL_XA, frame=3, sid_mm=1000.0, sod_mm=750.0)
     with pytest.raises(ValueError, match="positive"):
         dicom.read_xray(REAL_XA, frame=3, sid_mm=1000.0, sod_mm=750.0, pixel_mm=-1.0)
+
+
+def test_a_real_run_without_pixel_spacing_is_read_with_the_flag() -> None:
+    """The same file as a run (what track and listen read): every frame's geometry has the spacing."""
+    if not REAL_XA.exists():
+        pytest.skip(f"{REAL_XA} is absent (the real X-ray files live in ../shared/data/real-xa)")
+    from registration.io import dicom
+
+    run = dicom.read_xray_run(REAL_XA, sid_mm=1000.0, sod_mm=750.0, pixel_mm=0.3)
+    assert len(run) == 96 and all(g.pixel_mm == (0.3, 0.3) for g in run.geometries)
+    assert run[5].geometry.pixel_mm == (0.3, 0.3)  # a frame read later keeps it
+    with pytest.raises(ValueError, match="--pixel-mm"):
+        dicom.read_xray_run(REAL_XA, sid_mm=1000.0, sod_mm=750.0)

@@ -124,6 +124,7 @@ class XRayRun(Sequence["XRayImage"]):
             kind=self._read["kind"],
             sid_mm=self._read["sid_mm"],
             sod_mm=self._read["sod_mm"],
+            pixel_mm=self._read.get("pixel_mm"),
             image_mask=self._read.get("image_mask"),
             field_cache=self._read.setdefault("field_cache", {}),
         )
@@ -153,10 +154,11 @@ def read_xray_run(
     sod_mm: float | None = None,
     frame_time_ms: float | None = None,
     image_mask: str | os.PathLike[str] | None = None,
+    pixel_mm: float | None = None,
 ) -> XRayRun:
     """Read an XA/RF run: times and per-frame geometry now, pixels frame by frame later.
 
-    ``isocenter_mm``, ``kind``, ``sid_mm`` and ``sod_mm`` mean what they mean for
+    ``isocenter_mm``, ``kind``, ``sid_mm``, ``sod_mm`` and ``pixel_mm`` mean what they mean for
     :func:`registration.io.dicom.read_xray`. ``frame_time_ms`` supplies the frame spacing for
     files that state no times (see the module docstring); a file that does state them wins.
     ``image_mask``: the user's field mask for every frame (as for ``read_xray``).
@@ -173,7 +175,8 @@ def read_xray_run(
         warnings.simplefilter("once")
         for n in range(frames):
             out_rows, out_cols = _field_rotation_shape(path, ds, rows, cols, n)
-            geometry, info = _geometry(path, ds, n, frames, out_rows, out_cols, iso, sid_mm=sid_mm, sod_mm=sod_mm)
+            geometry, info = _geometry(path, ds, n, frames, out_rows, out_cols, iso, sid_mm=sid_mm, sod_mm=sod_mm,
+                                       pixel_mm=pixel_mm)  # fmt: skip
             geometries.append(geometry)
     planes = tuple(frame_plane(path, ds, n) for n in range(frames))
     meta = {
@@ -193,6 +196,7 @@ def read_xray_run(
         "kind": kind,
         "sid_mm": sid_mm,
         "sod_mm": sod_mm,
+        "pixel_mm": pixel_mm,
         "image_mask": image_mask,
     }
     return XRayRun(
