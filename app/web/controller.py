@@ -109,6 +109,7 @@ class Controller:
         ui.register_button.on_click(on(lambda e: self.start_registration(client=self.address(e))))
         ui.stop_button.on_click(on(lambda e: self.stop_registration(client=self.address(e))))
         ui.field_mask_upload.on_upload(on(self._on_field_mask))
+        ui.region_upload.on_upload(on(self._on_region))
         for box in (ui.show_ghost, ui.show_skull, ui.show_gradients, ui.show_field):
             box.on_update(on(lambda _e: self.force_refresh()))
         ui.autocorrect.on_update(on(lambda _e: self._on_autocorrect()))
@@ -302,6 +303,30 @@ class Controller:
         audit.record("upload", client=client, result=f"field mask {len(content)} bytes", **self._data_uids())
         usable = self.session.data.fixed_xray.mask.mean() if self.session.data.fixed_xray is not None else 0.0
         self.message(f"Field mask {name}: {100 * usable:.0f} % of the image is used. Press **Register**.")
+
+    def _on_region(self, event: Any) -> None:
+        uploaded = self.layout.region_upload.value
+        self.load_region(uploaded.name, uploaded.content, client=self.address(event))
+
+    def load_region(self, name: str, content: bytes, *, client: str = "") -> None:
+        """The user's region of interest for their volume (a label mask upload): the next Register
+        follows only its voxels. A refusal is said in the page."""
+        import tempfile
+
+        lower = name.lower()
+        suffix = next((x for x in (".nii.gz", ".nii", ".npz", ".dcm") if lower.endswith(x)), None)
+        if suffix is None:
+            raise ValueError(f"{name}: a region mask is .npz, NIfTI (.nii, .nii.gz) or a DICOM SEG (.dcm)")
+        if len(content) > self.max_upload_bytes:
+            raise ValueError(f"{name}: {len(content) / 1e6:.0f} MB is over the upload limit")
+        with tempfile.TemporaryDirectory(prefix="roadmap3d-region-") as folder:
+            path = Path(folder) / f"region{suffix}"
+            path.write_bytes(content)
+            self.session.set_region(path, name)
+        self.show_source()
+        audit.record("upload", client=client, result=f"region mask {len(content)} bytes", **self._data_uids())
+        region = self.session.data.region
+        self.message(f"Region {name}: the registration follows {int(region.mask.sum()):,} voxels. Press **Register**.")
 
     def use_data(self, data: DataSource) -> None:
         self.session.use_data(data)

@@ -28,6 +28,7 @@ from registration.sim.xray import simulate_xray
 
 if TYPE_CHECKING:
     from registration.core.prepare import PreparedVolume
+    from registration.core.roi import RegionOfInterest
 
 __all__ = ["AppConfig", "DataSource", "FileData", "PhantomData", "XRayImage", "simulate_xray", "ProgressFn"]
 
@@ -269,6 +270,10 @@ class FileData:
         self.config = config
         self.source = source
         self._volume = volume
+        #: The volume as read: the meshes and a new region of interest start from it.
+        self._full_volume = volume
+        #: The region the registration follows (None: the whole volume).
+        self.region: RegionOfInterest | None = None
         self.fixed_xray = xray
         #: Where the iso-center came from: "--isocenter", the volume's IsocenterPosition tag, the
         #: center of its grid, the world origin (default), the Data tab.
@@ -294,6 +299,20 @@ class FileData:
             geometry = replace(self.fixed_xray.geometry, isocenter_mm=tuple(float(v) for v in isocenter_mm))
             self.fixed_xray = replace(self.fixed_xray, geometry=geometry)
             self.isocenter_from = source
+
+    def set_region(self, path: str | os.PathLike[str], name: str) -> None:
+        """Follow only the labelled voxels of a mask file on the volume's grid (``.npz``, NIfTI,
+        DICOM SEG; as ``register --roi-mask``): outside them bone becomes soft tissue in the
+        registration's volume; the scene keeps the whole volume. ValueError naming the file."""
+        from dataclasses import replace as replaced
+
+        from registration.core.roi import roi_volume
+        from registration.io.roi_masks import read_roi_mask
+
+        with self._lock:
+            region = replaced(read_roi_mask(path, self._full_volume), source=name)
+            self._volume = roi_volume(self._full_volume, region)
+            self.region = region
 
     def set_user_mask(self, path: str | os.PathLike[str]) -> None:
         """Narrow the image's field by the user's mask file (PNG or TIFF of the image's stored
@@ -379,7 +398,7 @@ class FileData:
                 # components dropped: a CT's grid is anisotropic and far larger than the head, and a
                 # step of its voxels broke the skull into floating plates.
                 self._meshes = surface_meshes(
-                    self._volume, step=self.vessel_step, bone_cells_across=self.config.skull_detail
+                    self._full_volume, step=self.vessel_step, bone_cells_across=self.config.skull_detail
                 )
             return self._meshes
 

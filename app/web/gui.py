@@ -42,7 +42,7 @@ _LAYOUT_HANDLES = frozenset(
     """images badge readout details plot view_panel volume_info vessel_info register_button stop_button autocorrect
     status offset_sliders table_buttons random_button reset_button primary secondary sid image_format
     volume_format kind contrast catheter source upload phantom_button show_ghost show_skull show_gradients show_field
-    field_mask_upload
+    field_mask_upload region_upload
     carm_controls motion_controls view_tabs control_tabs upload_sid upload_sod biplane primary_b secondary_b
     plane_b_folder isocenter_info isocenter_field isocenter_button volume_center_button""".split()
 )

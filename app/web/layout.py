@@ -201,6 +201,12 @@ class Layout:
                 hint="Your own mask of the image's usable field: the image's stored size, nonzero = usable; it narrows "
                 "the field found from the file (as register --image-mask)",
             )
+            self.region_upload = gui.add_upload_button(
+                "Region mask (.npz, NIfTI, DICOM SEG)",
+                icon=viser.Icon.BOX,
+                hint="A label mask on the volume's grid: the registration follows the labelled voxels only (the "
+                "cranium without the spine, say), as register --roi-mask",
+            )
             self.isocenter_info = gui.add_markdown("")
             self.isocenter_field = gui.add_text(
                 "Iso-center (mm)",

@@ -183,6 +183,21 @@ class Session:
             self.run = RunState()
             self._changed()
 
+    def set_region(self, path: str | os.PathLike[str], name: str) -> None:
+        """Register only a region of the user's volume (:meth:`FileData.set_region`); refused while
+        a registration runs and for the phantom."""
+        from app.web.data import FileData
+
+        with self.lock:
+            self._refuse_while_running()
+            if not isinstance(self.data, FileData):
+                raise ValueError(
+                    "the phantom is registered whole: a region mask is for your data (an upload or the PACS)"
+                )
+            self.data.set_region(path, name)
+            self.run = RunState()
+            self._changed()
+
     def set_image_mask(self, path: str | os.PathLike[str]) -> None:
         """Narrow the user's image field by a mask file (:meth:`FileData.set_user_mask`); the roadmap
         keeps its pose. Refused while a registration runs and for the phantom (its field is known)."""
