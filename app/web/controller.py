@@ -379,7 +379,8 @@ class Controller:
         from app.web.data import FileData
 
         fixed = not isinstance(self.session.data, FileData)
-        for control in self.layout.isocenter_controls:
+        ui = self.layout
+        for control in (*ui.isocenter_controls, ui.field_mask_upload, ui.region_upload):  # for the user's data
             control.disabled = running or fixed
 
     def set_isocenter(self, text: str) -> None:
