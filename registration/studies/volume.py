@@ -299,7 +299,7 @@ def run_volume_case(
         from registration.studies.cases import assessment_fields
 
         found = assessment_fields(assess(result, images, preparation))
-        assessed = {k: found[k] for k in ("confidence", "applied", "withheld_reason")}
+        assessed = {k: found[k] for k in ("confidence", "applied", "withheld_reason", "confidence_evidence")}
     return (
         assessed
         | notes
