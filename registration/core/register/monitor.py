@@ -93,7 +93,7 @@ class Monitor:
 def cost_function(problem: LevelProblem, space: SearchSpace, monitor: Monitor, parallel: bool | None) -> Callable:
     """cost(x) = -similarity of the DRRs at the motion of x (inf once stopped)."""
     evaluator = problem.evaluator(parallel=parallel)
-    drrs, rays = evaluator.drrs_per_evaluation, evaluator.rays_per_evaluation
+    drrs, rays = evaluator.drrs_per_evaluation, getattr(evaluator, "rays_per_evaluation", 0)  # 0: a stand-in
 
     def cost(x: Array) -> float:
         if not monitor.charge(drrs, rays):
