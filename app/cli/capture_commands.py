@@ -9,6 +9,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from app.cli.options import CaptureStudy
+from app.cli.study_commands import ct_folder, registrations_flag
 from registration.studies import capture, runs
 
 
@@ -18,9 +19,7 @@ def _stderr(message: str) -> None:
 
 def capture_config(args: CaptureStudy) -> capture.CaptureConfig:
     """The study's frozen configuration from the command line's options (ValueError on bad ones)."""
-    ct = None if args.ct is None else str(Path(args.ct).resolve())
-    if ct is not None and not Path(ct).is_dir():
-        raise ValueError(f"--ct {args.ct}: not a folder of DICOM CT slices")
+    ct = ct_folder(args.ct)
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {args.jobs}")
     config = (
@@ -28,9 +27,7 @@ def capture_config(args: CaptureStudy) -> capture.CaptureConfig:
         if args.quick
         else capture.CaptureConfig(seed=args.seed, ct_path=ct)
     )
-    if args.registrations is not None:
-        if args.registrations < 1:
-            raise ValueError(f"--registrations must be >= 1, got {args.registrations}")
+    if registrations_flag(args.registrations) is not None:
         config = replace(config, registrations_per_level=args.registrations)
     if not args.sweep:
         raise ValueError("--sweep needs at least one of translation, rotation, combined")

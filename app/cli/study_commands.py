@@ -115,21 +115,33 @@ def run_clinical_study(args: ClinicalStudy) -> int:
     return 0
 
 
+def ct_folder(ct: Path | None) -> str | None:
+    """``--ct``: the CT folder's absolute path (ValueError when it is no folder)."""
+    if ct is None:
+        return None
+    if not Path(ct).is_dir():
+        raise ValueError(f"--ct {ct}: not a folder of DICOM CT slices")
+    return str(Path(ct).resolve())
+
+
+def registrations_flag(value: int | None) -> int | None:
+    """``--registrations``: None (the study's default) or a count >= 1 (ValueError otherwise)."""
+    if value is not None and value < 1:
+        raise ValueError(f"--registrations must be >= 1, got {value}")
+    return value
+
+
 def run_biplane_study(args: BiplaneStudy) -> int:
     """``roadmap3d validate biplane``: biplane beside single-plane, written to ``args.out``."""
     from registration.studies import biplane
 
-    ct = None if args.ct is None else str(Path(args.ct).resolve())
-    if ct is not None and not Path(ct).is_dir():
-        raise ValueError(f"--ct {args.ct}: not a folder of DICOM CT slices")
+    ct = ct_folder(args.ct)
     config = (
         biplane.BiplaneConfig.quick_config(args.seed, ct)
         if args.quick
         else biplane.BiplaneConfig(seed=args.seed, ct_path=ct)
     )
-    if args.registrations is not None:
-        if args.registrations < 1:
-            raise ValueError(f"--registrations must be >= 1, got {args.registrations}")
+    if registrations_flag(args.registrations) is not None:
         config = replace(config, registrations_per_patient=args.registrations)
     tasks = biplane.biplane_tasks(config)
     log = None if args.json else _stderr
