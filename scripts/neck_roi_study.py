@@ -1,6 +1,7 @@
 """A bent neck and the cranium region: the shared real CT's images with the neck bent
 (registration.sim.clinical's Neck: flexion at C1/C2, the spine following part of the motion),
-registered to the whole CT and to its cranium (registration.core.roi), single plane.
+registered to the whole CT and to its cranium (registration.core.roi), single plane; after the
+cranium's registration the skull-and-spine check (registration.core.skull_spine) from its estimate.
 
 python scripts/neck_roi_study.py --cases 6 --seed 23 --flexion 5
 Prints one JSON line per registration and a summary per arm.
@@ -16,6 +17,7 @@ import numpy as np
 
 from registration.core.register import RegistrationOptions, register
 from registration.core.roi import cranium_region, roi_volume
+from registration.core.skull_spine import skull_spine_check
 from registration.io import dicom
 from registration.sim.clinical import ClinicalEffects, ClinicalImager, Neck
 from registration.studies.volume import (
@@ -59,8 +61,12 @@ def main() -> int:
             res = r.residual
             ok = bool(res.inplane_mm < 1.0 and res.rotation_deg < 3.0)
             out[name].append((ok, res.inplane_mm))
-            print(json.dumps({"case": case.number, "arm": name, "inplane_mm": round(res.inplane_mm, 3),
-                              "rotation_deg": round(res.rotation_deg, 3), "success": ok}), flush=True)  # fmt: skip
+            row = {"case": case.number, "arm": name, "inplane_mm": round(res.inplane_mm, 3),
+                   "rotation_deg": round(res.rotation_deg, 3), "success": ok}  # fmt: skip
+            if name == "cranium":
+                check = skull_spine_check(volume, image, r.patient_motion, seed=case.seed)
+                row["skull_spine"] = {k: v for k, v in check.to_dict().items() if k != "whole_volume_motion"}
+            print(json.dumps(row), flush=True)
     for name, rows in out.items():
         inplane = [r[1] for r in rows]
         print(json.dumps({"arm": name, "success": f"{sum(r[0] for r in rows)}/{len(rows)}",

@@ -289,6 +289,18 @@ def confidence_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRend
     return probe_renderer(prepared, planes=planes)
 
 
+def _skull_spine(whole: Volume, views: Sequence[XRayImage], result, *, seed: int, cache: bool):  # noqa: ANN001, ANN202
+    """Whether the whole volume (its spine included) fits where the region's estimate says
+    (:func:`registration.core.skull_spine.skull_spine_check`)."""
+    from registration.core.skull_spine import skull_spine_check
+
+    prepared, store = prepare_for_registration(whole, views, np.asarray(result.patient_motion), cache=cache)
+    check = skull_spine_check(whole, views, result.patient_motion, renderer=prepared.renderer, seed=seed)
+    if store is not None:
+        store.flush()
+    return check
+
+
 def _region_of_interest(vol, roi: str, roi_mask: Path | None):  # noqa: ANN001, ANN202
     """The region the registration follows (None: the whole volume)."""
     if roi_mask is not None:
@@ -446,6 +458,7 @@ def run_register(
         _say(f"start: {landmarks}'s {len(start.inliers)} landmarks, reprojection error {start.rms_px:.1f} px rms"
              + (f" ({left_out} left out as disagreeing)" if left_out else "")
              + f": {_format_offsets(start.patient_motion, g)}")  # fmt: skip
+    whole = vol
     if region is not None:
         from registration.core.roi import roi_volume
 
@@ -476,6 +489,11 @@ def run_register(
         clock.lap("estimating the geometry")
     _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
+    skull_spine = None
+    if region is not None and region.left_out_ml > 0 and not result.at_bounds:
+        skull_spine = _skull_spine(whole, views, result, seed=seed, cache=cache)
+        clock.lap("skull and spine")
+        _say(skull_spine.message())
     for assumed in result.intensity:
         if assumed is not None:
             _say(assumed["note"])
@@ -530,6 +548,10 @@ def run_register(
             document["images"] = described
         if start is not None:
             document["landmark_start"] = start.to_dict()
+        if region is not None:
+            document["region"] = region.summary()
+        if skull_spine is not None:
+            document["skull_spine"] = skull_spine.to_dict()
         if assessed is not None:
             keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
             document.update({k: assessed[k] for k in keys})

@@ -38,8 +38,10 @@ def veto(result: RegistrationResult) -> str | None:
         return "no usable overlap between the DRR and the image"
     hops = getattr(result, "walk_hops", 0)
     if hops:
-        return (f"the estimate lies beyond the search box around the machine-based pose (the search walked "
-                f"{hops} time{'s' if hops > 1 else ''} from the bounds): check it by eye before applying it")
+        return (
+            f"the estimate lies beyond the search box around the machine-based pose (the search walked "
+            f"{hops} time{'s' if hops > 1 else ''} from the bounds): check it by eye before applying it"
+        )
     return None
 
 

@@ -129,6 +129,12 @@ def cranium_region(volume: Volume) -> RegionOfInterest:
     return RegionOfInterest(keep, "cranium", base_z, left * voxel_ml)
 
 
+def dense_left_out_ml(volume: Volume, mask: NDArray[np.bool_]) -> float:
+    """The volume (ml) of what lies outside ``mask`` and is denser than soft tissue."""
+    voxel_ml = abs(float(np.linalg.det(volume.index_to_world[:3, :3]))) / 1000.0
+    return float(((~mask) & (volume.data > SOFT_TISSUE_HU)).sum()) * voxel_ml
+
+
 def roi_volume(volume: Volume, roi: RegionOfInterest) -> Volume:
     """``volume`` with what lies outside ``roi`` and is denser than soft tissue set to
     ``SOFT_TISSUE_HU`` (a new volume; labelled so)."""

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from registration.core.roi import RegionOfInterest
+from registration.core.roi import RegionOfInterest, dense_left_out_ml
 from registration.core.volume import Volume
 
 
@@ -45,7 +45,7 @@ def read_roi_mask(path: str | os.PathLike[str], volume: Volume) -> RegionOfInter
     region = np.asarray(mask) != 0
     if not region.any():
         raise ValueError(f"{p}: the mask is empty")
-    return RegionOfInterest(region, str(p.name))
+    return RegionOfInterest(region, str(p.name), left_out_ml=dense_left_out_ml(volume, region))
 
 
 #: SOP Class UID of a DICOM Segmentation.

@@ -33,3 +33,25 @@ def test_register_cranium_on_a_volume_without_spine(small_export: Path, capsys, 
                           str(small_export / "xa_fluoro.dcm"), "--roi", roi], capsys)  # fmt: skip
     assert code == 0, err
     assert "region: cranium" in out
+
+
+def test_register_on_a_region_says_whether_skull_and_spine_agree(small_export: Path, tmp_path: Path, capsys) -> None:
+    """A mask leaving out the lower third of the phantom: the registration follows the rest,
+    then the whole volume is searched near its estimate; the result says how far it moved."""
+    import json
+
+    volume = dicom.read_volume(small_export / "volume")
+    mask = np.ones(volume.shape, dtype=np.uint8)
+    mask[: volume.shape[0] // 3] = 0
+    np.savez(tmp_path / "roi.npz", mask=mask)
+    code, out, err = run(["register", "--volume", str(small_export / "volume"), "--image",
+                          str(small_export / "xa_fluoro.dcm"), "--roi-mask", str(tmp_path / "roi.npz"),
+                          "--out", str(tmp_path / "r.json")], capsys)  # fmt: skip
+    assert code == 0, err
+    assert "skull and spine agree" in out or "skull and spine DISAGREE" in out, out
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert doc["region"]["source"] == "roi.npz" and doc["region"]["left_out_ml"] > 0
+    check = doc["skull_spine"]
+    assert check["criterion"] == "in-plane" and check["drr_count"] > 0
+    # agreement is the thresholds applied to what was measured
+    assert check["agree"] == (check["shift_mm"] <= 1.0 and check["rotation_deg"] <= 1.5)

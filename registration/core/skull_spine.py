@@ -1,0 +1,112 @@
+"""Whether the skull and the spine agree: the whole volume's fit near the cranium's estimate.
+
+A registration on the cranium (:func:`registration.core.roi.cranium_region`) follows the head and
+ignores the cervical spine. When the neck is bent (flexion or rotation at C1/C2), the spine in
+the image lies elsewhere than the rigid head says, and a fit of the whole volume is pulled
+toward it. :func:`skull_spine_check` measures that pull: it searches the whole volume (spine
+included) near the cranium's estimate, within ``reach_mm`` and ``reach_deg``, and reports how
+far the whole volume's fit lies from it at the iso-center (in the image plane for one view, in
+3-D for two). Beyond ``agree_mm`` or ``agree_deg`` the skull and the spine disagree: the neck
+moved relative to the head, and the head's estimate (the cranium's) is the one to use.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.core.anneal import Schedule
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import apply, check_rigid, invert_rigid, rotation_angle_deg
+from registration.core.images import XRayImage
+from registration.core.register import Level, RegistrationOptions, StartOptions, register
+from registration.core.volume import Volume
+
+#: Beyond this shift at the iso-center (mm) the whole volume's fit and the cranium's disagree.
+AGREE_MM = 1.0
+#: Beyond this rotation (degrees) they disagree.
+AGREE_DEG = 1.5
+
+
+@dataclass(frozen=True)
+class SkullSpineCheck:
+    """How far the whole volume's fit (``whole_motion``) lies from the cranium's estimate:
+    ``shift_mm`` at the iso-center (in plane A's image plane for one view, 3-D for two),
+    ``rotation_deg``; ``agree`` when both are within the thresholds; ``drr_count``, ``seconds``:
+    what the check cost."""
+
+    shift_mm: float
+    rotation_deg: float
+    agree: bool
+    whole_motion: NDArray[np.float64]
+    drr_count: int
+    seconds: float
+    criterion: str
+
+    def to_dict(self) -> dict:
+        return {
+            "agree": self.agree,
+            "shift_mm": round(self.shift_mm, 3),
+            "rotation_deg": round(self.rotation_deg, 3),
+            "criterion": self.criterion,
+            "whole_volume_motion": np.round(self.whole_motion, 6).tolist(),
+            "drr_count": self.drr_count,
+            "seconds": round(self.seconds, 3),
+        }
+
+    def message(self) -> str:
+        where = f"{self.shift_mm:.2f} mm {self.criterion}, {self.rotation_deg:.2f} deg"
+        if self.agree:
+            return f"skull and spine agree: with the spine the fit moves {where} from the cranium's estimate"
+        return (f"skull and spine DISAGREE: with the spine the fit moves {where} from the cranium's estimate "
+                "(the neck moved relative to the head); the cranium's estimate is the head's")  # fmt: skip
+
+
+def check_options(*, reach_mm: float = 6.0, reach_deg: float = 6.0) -> RegistrationOptions:
+    """A short local search within ``reach_mm`` / ``reach_deg`` of the start: one annealing level
+    at half resolution with small steps, then the polish; no depth correction, rotation check or
+    walk (the start is already a registration's estimate)."""
+    level = Level(96, 1, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=6, moves_per_stage=10, cooling=0.7))
+    return RegistrationOptions(
+        levels=(level,), bound_mm=reach_mm, bound_deg=reach_deg, support_margin_mm=(6.0, 4.0),
+        depth_correction=False, rotation_check=False, start=StartOptions(enabled=False),
+    )  # fmt: skip
+
+
+def skull_spine_check(
+    whole: Volume,
+    views: XRayImage | Sequence[XRayImage],
+    cranium_motion: ArrayLike,
+    *,
+    renderer: DRRRenderer | None = None,
+    seed: int = 0,
+    agree_mm: float = AGREE_MM,
+    agree_deg: float = AGREE_DEG,
+    options: RegistrationOptions | None = None,
+) -> SkullSpineCheck:
+    """Search ``whole`` (the volume with its spine) near ``cranium_motion`` (a registration's
+    estimate on the cranium) against ``views`` and say whether the two agree (see the module).
+    ``renderer``: ``whole`` prepared for the views (:func:`registration.core.register.prepared_renderer`),
+    by default prepared here around ``cranium_motion``."""
+    views = (views,) if isinstance(views, XRayImage) else tuple(views)
+    start = check_rigid(cranium_motion, name="cranium motion")
+    began = time.perf_counter()
+    result = register(whole, views, initial_motion=start, options=options or check_options(), seed=seed,
+                      renderer=renderer)  # fmt: skip
+    motion = np.asarray(result.patient_motion, dtype=np.float64)
+    g = views[0].geometry
+    iso = np.asarray(g.isocenter_mm, dtype=np.float64)
+    shift = apply(motion, iso) - apply(start, iso)
+    criterion = "3-D"
+    if len(views) == 1:
+        shift = shift - (shift @ g.direction) * g.direction
+        criterion = "in-plane"
+    shift_mm = float(np.linalg.norm(shift))
+    rotation = rotation_angle_deg(motion @ invert_rigid(start))
+    agree = shift_mm <= agree_mm and rotation <= agree_deg
+    return SkullSpineCheck(shift_mm, rotation, agree, motion, result.drr_count, time.perf_counter() - began,
+                           criterion)  # fmt: skip
