@@ -21,6 +21,7 @@ import viser
 
 from app.web.calibration import CalibrationPanel
 from app.web.controller import Controller
+from app.web.landmarks import LandmarksPanel
 from app.web.layout import Layout
 from app.web.pacs_panel import PacsPanel
 from app.web.panels import Panel, PanelContext, PanelFactory, mount
@@ -35,7 +36,7 @@ if TYPE_CHECKING:
 
 #: The optional panels every app mounts, in tab order after the layout's own tabs (left:
 #: Roadmap; right: Patient motion, C-arm, Data, Display). A new panel: one line here.
-PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel, PlaybackPanel, ComparePanel)
+PANELS: tuple[PanelFactory, ...] = (CalibrationPanel, PacsPanel, PlaybackPanel, ComparePanel, LandmarksPanel)
 
 #: Handles of the layout that are also reachable as ``app.<name>`` (tests, scripts, panels).
 _LAYOUT_HANDLES = frozenset(
@@ -125,6 +126,11 @@ class RoadmapApp:
     def playback(self) -> PlaybackPanel:
         """The Play run panel (a mounted panel)."""
         return next(p for p in self.panels if isinstance(p, PlaybackPanel))
+
+    @property
+    def landmarks(self) -> LandmarksPanel:
+        """The Landmarks panel (a mounted panel)."""
+        return next(p for p in self.panels if isinstance(p, LandmarksPanel))
 
     @property
     def frames_shown(self) -> int:

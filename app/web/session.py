@@ -23,6 +23,7 @@ from registration.core.geometry import (
     DEFAULT_SID_MM,
     TABLE_I,
     CArm,
+    check_rigid,
     default_system,
     matrix_to_offsets,
     offsets_to_matrix,
@@ -330,6 +331,16 @@ class Session:
             if reset_estimate:
                 self.estimate = np.eye(4)
                 self.run = RunState()
+            self._changed()
+
+    def start_from(self, motion: Array) -> None:
+        """Put the roadmap at ``motion`` (a start found another way, e.g. from landmarks); the next
+        registration refines it."""
+        m = check_rigid(motion, name="start")
+        with self.lock:
+            self._refuse_while_running()
+            self.estimate = m
+            self.run = RunState()
             self._changed()
 
     def apply_table_offset(self, name: str) -> None:
