@@ -277,7 +277,8 @@ class Controller:
             return False
         self.use_data(data)
         audit.record("upload", client=client, result=f"loaded, {len(content)} bytes", **self._data_uids())
-        self.message(f"Loaded {name}: {data.label}. Press **Register**.")
+        nominal = " (C-arm geometry nominal: the file's tags, no calibration)" if data.fixed_xray is not None else ""
+        self.message(f"Loaded {name}: {data.label}{nominal}. Press **Register**.")
         return True
 
     def _on_field_mask(self, event: Any) -> None:
@@ -352,6 +353,13 @@ class Controller:
             ui.volume_info.content += (
                 f"  \n<small>Image field: {field.get('found_by', '')}; {field.get('usable_pixels', 0):,} pixels "
                 f"usable ({100.0 * field.get('usable_fraction', 0.0):.0f} % of the image)</small>"
+            )
+        if data.fixed_xray is not None:
+            g = data.fixed_xray.geometry
+            ui.volume_info.content += (
+                f"  \n<small>C-arm geometry: nominal (the file's angles {g.primary_deg:+.1f}°, "
+                f"{g.secondary_deg:+.1f}°, SID {g.sid_mm:.0f} mm, SOD {g.sod_mm:.0f} mm; "
+                "no C-arm calibration applied)</small>"
             )
         ui.phantom_button.visible = data is not self.phantom
         ui.show_ghost.disabled = not self.session.has_truth

@@ -173,6 +173,19 @@ def _numbers(doc: Mapping[str, Any]) -> str:
         rows.append(
             ("rotation check: best rival (relative)", number(rc.get("rival_gain"), "rotation_check.rival_gain", ".5f"))
         )
+    if doc.get("geometry_source") is not None:
+        said = number(doc["geometry_source"], "geometry_source")
+        if doc["geometry_source"] == "nominal":
+            said += " (the files' positioner angles and distances; no C-arm calibration applied)"
+        rows.append(("C-arm geometry", said))
+    if doc.get("landmark_start") is not None:
+        rms = number(doc["landmark_start"].get("reprojection_rms_px"), "landmark_start.reprojection_rms_px", ".2f")
+        rows.append(("start from landmarks: reprojection error (px rms)", rms))
+    if doc.get("skull_spine") is not None:
+        ss = doc["skull_spine"]
+        agree = "agree" if ss.get("agree") else "DISAGREE (the neck moved relative to the head)"
+        shift = number(ss.get("shift_mm"), "skull_spine.shift_mm", ".2f")
+        rows.append((f"skull and spine: {agree}; the whole volume's fit moves (mm {ss.get('criterion', '')})", shift))
     motion = np.asarray(doc["patient_motion"], dtype=float)
     matrix = "<br>".join(
         " ".join(number(motion[i, j], f"patient_motion.{i}.{j}", "+.5f") for j in range(4)) for i in range(4)

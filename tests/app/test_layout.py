@@ -120,6 +120,11 @@ def test_the_data_tab_supplies_distances_a_file_lacks(fresh: RoadmapApp, tmp_pat
         read = app.session.data.fixed_xray.geometry
         assert (read.sid_mm, read.sod_mm) == (geometry.sid_mm, geometry.sod_mm)
         assert "Image field: shutter tags (circular), constant border; " in app.volume_info.content
+        # the distances typed are the file's nominal geometry: the page says no calibration is applied
+        assert "C-arm geometry: nominal" in app.volume_info.content and f"SID {geometry.sid_mm:.0f} mm" in (
+            app.volume_info.content
+        )
+        assert "C-arm geometry nominal" in app.status.content
     finally:
         app.upload_sid.value = app.upload_sod.value = ""
         app.phantom_button.value = True
