@@ -36,6 +36,12 @@ def veto(result: RegistrationResult) -> str | None:
         return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
     if not math.isfinite(getattr(result, "similarity", 0.0)):
         return "no usable overlap between the DRR and the image"
+    shift = getattr(result, "start_shift_mm", 0.0)
+    if shift:
+        return (
+            f"the search started {shift:.0f} mm from the machine-based pose, where the image shift put the "
+            "patient: check the estimate by eye before applying it"
+        )
     hops = getattr(result, "walk_hops", 0)
     if hops:
         return (

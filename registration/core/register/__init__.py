@@ -58,6 +58,7 @@ from registration.core.register.options import (
 from registration.core.register.plan import Plan, Run, State
 from registration.core.register.result import Progress, RegistrationResult, RotationCheck, StageCost
 from registration.core.register.rotation_check import RIVAL_DISTINCT_DEG, rotation_check
+from registration.core.register.shift_start import shifted_start
 from registration.core.register.walk import walk_from_bounds
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
@@ -141,8 +142,11 @@ def register(
         state = build_plan(inputs, options).run(State(run, space.start(), space))
         return _result(state, vessel_points_mm, time.perf_counter() - start)
 
+    shift_mm = 0.0
+    if options.start.enabled:
+        inputs, shift_mm = shifted_start(inputs, options)
     result = walk_from_bounds(once, inputs, options) if options.start.enabled else once(inputs)
-    result.intensity = intensity
+    result.intensity, result.start_shift_mm = intensity, shift_mm
     return result
 
 

@@ -202,16 +202,22 @@ class RotationCheckOptions:
 
 @dataclass(frozen=True)
 class StartOptions:
-    """Where the search starts: the machine-based pose, and from there a search box that walks
-    when the estimate ends on its bounds (:mod:`registration.core.register.walk`)."""
+    """Where the search starts: the machine-based pose, or the image shift beyond the clinical
+    offsets (:mod:`registration.core.register.shift_start`), and from there a search box that
+    walks when the estimate ends on its bounds (:mod:`registration.core.register.walk`)."""
 
-    #: Whether the box walks (default True; it runs only when an estimate ends at the bounds).
+    #: Whether the box walks and the shifted start is tried (default True; the walk runs only
+    #: when an estimate ends at the bounds).
     enabled: bool = True
     #: Restarts at most, each from the last estimate with the box centred there (default 3, >= 1).
     walk_hops: int = 3
+    #: Start from the image shift found by phase correlation when it moves the start by at least
+    #: this much, mm (default 25.0, > 0; None: never; :mod:`registration.core.register.shift_start`).
+    shift_mm: float | None = 25.0
 
     def __post_init__(self) -> None:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
+        _positive("StartOptions", shift_mm=self.shift_mm)
 
 
 def _check_level(level: Level) -> None:

@@ -90,6 +90,9 @@ class RegistrationResult:
     #: Restarts of the whole search from an estimate that ended at the search bounds, each with
     #: the box centred there (:mod:`registration.core.register.walk`); 0: none was needed.
     walk_hops: int = 0
+    #: How far the search's start was moved from the machine-based pose by the image shift
+    #: (:mod:`registration.core.register.shift_start`), mm; 0.0: not moved.
+    start_shift_mm: float = 0.0
     #: Each stage that ran, in order, with its cost (a walk's restarts follow the first search's).
     stages: tuple[StageCost, ...] = ()
 
@@ -125,6 +128,8 @@ class RegistrationResult:
             out["intensity"] = list(self.intensity)
         if self.walk_hops:
             out["walk_hops"] = self.walk_hops
+        if self.start_shift_mm:
+            out["start_shift_mm"] = self.start_shift_mm
         if self.stages:
             out["stages"] = [c.to_dict() for c in self.stages]
         return out

@@ -1,0 +1,125 @@
+"""The shifted start: a patient moved far across the image, found by phase correlation.
+
+The annealing searches a box around the machine-based pose. A patient moved further than the
+box across the beam (a table moved, the head repositioned) leaves the search in a wrong minimum
+inside the box or walking the wrong way. The shift of the anatomy between the DRR at the
+machine-based pose and the X-ray image is found at once by phase correlation of their gradient
+magnitudes (scikit-image's :func:`~skimage.registration.phase_cross_correlation`, on ~128 px
+images at the coarse level): one DRR per view.
+
+Each view's shift gives the patient's translation across its beam at the iso-center (pixel
+spacing over magnification); with two views, each plane's translation and the two combined
+(least squares over the planes) are candidates. A candidate is taken only when it moves the
+start by at least :attr:`StartOptions.shift_mm` (within the paper's clinical offsets the search
+needs no help, so their registrations are unchanged) and the views' gradient difference (their
+sum, the biplane measure) is better there than at the machine-based pose. The registration then runs from it, its box
+centred there; its estimate lies outside the box around the machine-based pose, so
+:func:`registration.core.assess.veto` withholds it for a look.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from registration.core.drr import DRRRenderer
+from registration.core.geometry import rigid
+from registration.core.images import XRayImage
+from registration.core.register.inputs import Inputs, prepared_renderer
+from registration.core.register.options import RegistrationOptions
+from registration.core.similarity import gradient_difference
+
+#: The images compared are block-averaged to about this many pixels across.
+SHIFT_IMAGE_PX = 128
+
+
+def _coarse(view: XRayImage) -> XRayImage:
+    rows, cols = view.shape
+    for factor in range(max(1, min(rows, cols) // SHIFT_IMAGE_PX), 0, -1):
+        if rows % factor == 0 and cols % factor == 0:
+            try:
+                return view.downsample(factor)
+            except ValueError:  # no block wholly inside the field
+                continue
+    return view
+
+
+def _edges(image: NDArray[np.floating], mask: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Gradient magnitude inside the field (its border eroded: the collimator's edge is no anatomy)."""
+    image = np.asarray(image, dtype=np.float64)
+    g = np.hypot(ndimage.sobel(image, 0), ndimage.sobel(image, 1))
+    inside = ndimage.binary_erosion(mask, iterations=2)
+    g = np.where(inside, g, 0.0)
+    spread = float(g[inside].std()) if inside.any() else 0.0
+    return g / spread if spread > 0 else g
+
+
+def _coarse_level(renderer: DRRRenderer, options: RegistrationOptions) -> int:
+    coarsest = max(lv.volume_level for lv in options.levels)
+    return next((k for k in range(coarsest, -1, -1) if renderer.has_level(k)), 0)
+
+
+def view_shift_mm(renderer: DRRRenderer, view: XRayImage, motion: NDArray[np.float64], level: int) -> NDArray[np.float64]:
+    """The patient's translation across ``view``'s beam at the iso-center (world mm) that moves
+    the DRR at ``motion`` onto the image, by phase correlation of their gradient magnitudes."""
+    from skimage.registration import phase_cross_correlation
+
+    coarse = _coarse(view)
+    g = coarse.geometry
+    drr = renderer.render(g, motion, level=level)
+    image = _edges(coarse.image, coarse.mask)
+    moving = _edges(drr, coarse.mask)
+    shift, _, _ = phase_cross_correlation(image, moving, upsample_factor=4, normalization=None)
+    u, v, _ = g.detector_axes()
+    return (shift[1] * g.pixel_mm[1] * u + shift[0] * g.pixel_mm[0] * v) / g.magnification
+
+
+def _combined(views: tuple[XRayImage, ...], shifts: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """The 3-D translation whose part across each view's beam is nearest that view's shift."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for view, s in zip(views, shifts, strict=True):
+        d = view.geometry.direction
+        p = np.eye(3) - np.outer(d, d)  # across the beam
+        a += p
+        b += p @ s
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def _score(renderer: DRRRenderer, views: tuple[XRayImage, ...], motion: NDArray[np.float64], level: int) -> list[float]:
+    scores = []
+    for view in views:
+        coarse = _coarse(view)
+        scores.append(gradient_difference(renderer.render(coarse.geometry, motion, level=level), coarse.image,
+                                          coarse.mask))  # fmt: skip
+    return scores
+
+
+def shifted_start(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs, float]:
+    """``inputs`` started from the shifted start when one is taken (see the module), with its
+    renderer prepared around it, and the shift's length (mm; 0.0 when none is taken)."""
+    threshold = options.start.shift_mm
+    if threshold is None:
+        return inputs, 0.0
+    renderer, views = inputs.renderer, tuple(inputs.views)
+    start = np.asarray(inputs.initial_motion, dtype=np.float64)
+    level = _coarse_level(renderer, options)
+    shifts = [view_shift_mm(renderer, v, start, level) for v in views]
+    candidates = shifts + ([_combined(views, shifts)] if len(views) > 1 else [])
+    candidates = [t for t in candidates if float(np.linalg.norm(t)) >= threshold]
+    if not candidates:
+        return inputs, 0.0
+    here = _score(renderer, views, start, level)
+    best, best_score = None, None
+    for t in candidates:
+        moved = rigid(None, t) @ start
+        scores = _score(renderer, views, moved, level)
+        if sum(scores) > sum(here) and (best_score is None or sum(scores) > best_score):
+            best, best_score = moved, sum(scores)
+    if best is None:
+        return inputs, 0.0
+    shifted = replace(inputs, initial_motion=best, renderer=prepared_renderer(inputs.volume, views, best, options))
+    return shifted, float(np.linalg.norm(best[:3, 3] - start[:3, 3]))
