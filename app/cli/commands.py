@@ -507,6 +507,11 @@ def run_register(
             f"{r.outofplane_mm:.2f} mm out-of-plane of plane A), {r.rotation_deg:.2f} deg{mtre} -> {verdict} "
             f"({criterion} criterion)"
         )
+    if result.start_shift_mm:
+        _say(
+            f"the image shows the patient {result.start_shift_mm:.0f} mm from the machine-based pose: the search "
+            "started there; check the estimate by eye"
+        )
     if result.walk_hops:
         _say(
             f"the search walked {result.walk_hops} time{'s' if result.walk_hops > 1 else ''} beyond its box around the "
