@@ -165,11 +165,6 @@ def biplane_run_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-@pytest.mark.xfail(
-    reason="the biplane run's summary has no tracking error at this revision (no frame scored); the PACS and local "
-    "frames still agree exactly; open",
-    strict=False,
-)
 def test_track_a_biplane_pair_from_pacs(
     orthanc: OrthancServer, biplane_run_export: Path, tmp_path: Path, capsys, monkeypatch
 ) -> None:
