@@ -408,6 +408,7 @@ def demo(
     keyfile: Path | None = None,
     allow_origin: tuple[str, ...] = (),
     password_file: Path | None = None,
+    verbose: bool = False,
 ) -> int:
     """Start the web app on the built-in phantom.
 
@@ -421,12 +422,13 @@ def demo(
         keyfile: TLS private key (PEM) of --certfile (when not inside it).
         allow_origin: Other web origins (scheme://host:port) whose pages may connect, e.g. behind a proxy.
         password_file: Sign in by a password instead of a token: the file `roadmap3d password FILE` made.
+        verbose: Log each registration's plan (as register --explain prints it) on stderr.
     """
     from app.web.main import run_app
 
     return run_app(host=host, port=port, volume=None, image=None, open_browser=open_browser,
                    token=token, no_sign_in=no_sign_in, certfile=certfile, keyfile=keyfile,
-                   allow_origin=allow_origin, password_file=password_file)  # fmt: skip
+                   allow_origin=allow_origin, password_file=password_file, verbose=verbose)  # fmt: skip
 
 
 def app(
@@ -450,6 +452,7 @@ def app(
     keyfile: Path | None = None,
     allow_origin: tuple[str, ...] = (),
     password_file: Path | None = None,
+    verbose: bool = False,
 ) -> int:
     """Start the web app, optionally on your own DICOM data.
 
@@ -476,6 +479,7 @@ def app(
         keyfile: TLS private key (PEM) of --certfile (when not inside it).
         allow_origin: Other web origins (scheme://host:port) whose pages may connect, e.g. behind a proxy.
         password_file: Sign in by a password instead of a token: the file `roadmap3d password FILE` made.
+        verbose: Log each registration's plan (as register --explain prints it) on stderr.
     """
     if listen_port is not None:
         from registration.io.node import ENV_APP_NODE_ALLOW, ENV_APP_NODE_PORT, check_ae_title
@@ -512,6 +516,7 @@ def app(
         keyfile=keyfile,
         allow_origin=allow_origin,
         password_file=password_file,
+        verbose=verbose,
     )
 
 

@@ -216,13 +216,16 @@ def run_app(
     keyfile: Path | None = None,
     allow_origin: tuple[str, ...] = (),
     password_file: Path | None = None,
+    verbose: bool = False,
 ) -> int:
     """Serve the app until Ctrl-C (or SIGTERM); returns the exit code. Sign-in, origins and TLS
     as :func:`make_guard`. ``sid_mm`` / ``sod_mm``
     supply the distances of an ``image`` that lacks them; ``isocenter`` places it (as
     ``register --isocenter``: "x,y,z" mm or "volume-center"; default the volume's
-    IsocenterPosition, else the world origin)."""
+    IsocenterPosition, else the world origin); ``verbose``: log each registration's plan."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if verbose:
+        logging.getLogger("app.web.session").setLevel(logging.INFO)
     config = AppConfig.from_env()
     start = time.perf_counter()
     if (volume is None) != (image is None):

@@ -29,7 +29,7 @@ from registration.core.geometry import (
     offsets_to_matrix,
 )
 from registration.core.metrics import Residual, residuals
-from registration.core.register import Progress, RegistrationResult, register
+from registration.core.register import Progress, RegistrationResult, register, registration_plan
 from registration.sim.biplane import plane_b_spec
 
 log = logging.getLogger(__name__)
@@ -423,16 +423,21 @@ class Session:
             views = self.views()  # biplane: plane A first, offsets in its view frame
             run.views = views
             data = self.data
+            volume = data.volume(volume_format)
+            # the user's volume: prepared for these views and this start (app.data.FileData.prepared)
+            renderer = data.renderer(volume_format, views=views, initial_motion=initial)
+            if log.isEnabledFor(logging.INFO):  # the plan this registration runs, as register --explain prints it
+                plan = registration_plan(volume, views, initial_motion=initial, renderer=renderer)
+                log.info("registration plan:\n%s", plan.describe())
             result = register(
-                data.volume(volume_format),
+                volume,
                 views if len(views) > 1 else views[0],
                 initial_motion=initial,
                 seed=self.config.seed,
                 callback=callback,
                 truth=truth,
                 vessel_points_mm=data.vessel_points_mm(),
-                # the user's volume: prepared for these views and this start (app.data.FileData.prepared)
-                renderer=data.renderer(volume_format, views=views, initial_motion=initial),
+                renderer=renderer,
             )
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
                 assessment = self._assess(views, result, volume_format, initial)

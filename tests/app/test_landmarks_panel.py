@@ -72,3 +72,22 @@ def test_clicks_that_miss_and_too_few_pairs_are_told(fresh: RoadmapApp) -> None:
     assert "neither" in said
     with pytest.raises(ValueError):
         panel.start_from_landmarks()
+
+
+def test_the_apps_log_shows_the_plan_each_registration_runs(fresh: RoadmapApp, caplog) -> None:
+    """``roadmap3d app --verbose`` logs the plan at INFO, as ``register --explain`` prints it."""
+    import logging
+
+    from registration.core.register import registration_plan
+
+    s = fresh.session
+    s.apply_table_offset("T4")
+    with caplog.at_level(logging.INFO, logger="app.web.session"):
+        assert fresh.start_registration()
+        assert s.wait(120)
+    logged = [r.getMessage() for r in caplog.records if r.getMessage().startswith("registration plan:")]
+    assert len(logged) == 1
+    views = s.views()
+    volume = s.data.volume(s.settings.volume_format_cm)
+    expected = registration_plan(volume, views, renderer=s.data.renderer(s.settings.volume_format_cm, views=views))
+    assert logged[0] == "registration plan:\n" + expected.describe()

@@ -62,7 +62,9 @@ def _coarse_level(renderer: DRRRenderer, options: RegistrationOptions) -> int:
     return next((k for k in range(coarsest, -1, -1) if renderer.has_level(k)), 0)
 
 
-def view_shift_mm(renderer: DRRRenderer, view: XRayImage, motion: NDArray[np.float64], level: int) -> NDArray[np.float64]:
+def view_shift_mm(
+    renderer: DRRRenderer, view: XRayImage, motion: NDArray[np.float64], level: int
+) -> NDArray[np.float64]:
     """The patient's translation across ``view``'s beam at the iso-center (world mm) that moves
     the DRR at ``motion`` onto the image, by phase correlation of their gradient magnitudes."""
     from skimage.registration import phase_cross_correlation
