@@ -466,6 +466,8 @@ class Controller:
                 return  # a fresh state (the patient moved, new data): nothing ran
             residual = s.residual() if s.has_truth else None
             text, error = status.run_outcome(run, residual, biplane=s.biplane)
+            if getattr(run, "skull_spine", None) is not None:
+                text += f" · {run.skull_spine.message()}"
         self.message(text, error=error)
         assessment = getattr(run, "assessment", None)
         if run.abandoned or (run.result is not None and getattr(run.result, "stopped", False)):

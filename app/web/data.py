@@ -300,6 +300,11 @@ class FileData:
             self.fixed_xray = replace(self.fixed_xray, geometry=geometry)
             self.isocenter_from = source
 
+    @property
+    def whole_volume(self) -> Volume:
+        """The volume as read, before any region (the skull-and-spine check searches it)."""
+        return self._full_volume
+
     def set_region(self, path: str | os.PathLike[str], name: str) -> None:
         """Follow only the labelled voxels of a mask file on the volume's grid (``.npz``, NIfTI,
         DICOM SEG; as ``register --roi-mask``): outside them bone becomes soft tissue in the

@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -120,6 +121,9 @@ class RunState:
     views: list[XRayImage] | None = None
     isocenter_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     trigger: str = "Register"
+    #: After a registration on the user's region: whether the whole volume, spine included, fits
+    #: where the region's estimate says (:mod:`registration.core.skull_spine`); None otherwise.
+    skull_spine: Any = None
 
 
 class Session:
@@ -439,8 +443,10 @@ class Session:
                 vessel_points_mm=data.vessel_points_mm(),
                 renderer=renderer,
             )
+            skull_spine = None
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
                 assessment = self._assess(views, result, volume_format, initial)
+                skull_spine = self._skull_spine(views, result)
         except Exception as exc:  # shown in the page, never a dead worker thread
             with self.lock:
                 if run.abandoned:
@@ -458,6 +464,7 @@ class Session:
                     return
                 run.result = result
                 run.assessment = assessment
+                run.skull_spine = skull_spine
                 if not math.isfinite(result.similarity):
                     run.error = "Registration found no usable overlap between the DRR and the image."
                 elif getattr(result, "at_bounds", ()):  # inputs without information drift there
@@ -474,6 +481,16 @@ class Session:
                 self._changed()
         if on_done is not None:
             on_done()
+
+    def _skull_spine(self, views: list[XRayImage], result: RegistrationResult) -> Any:
+        """The skull-and-spine check after a registration on the user's region that leaves dense
+        tissue out (as ``register --roi-mask`` runs it); None without such a region."""
+        region = getattr(self.data, "region", None)
+        if region is None or region.left_out_ml <= 0:
+            return None
+        from registration.core.skull_spine import skull_spine_check
+
+        return skull_spine_check(self.data.whole_volume, views, result.patient_motion, seed=self.config.seed)
 
     def _assess(
         self, views: list[XRayImage], result: RegistrationResult, volume_format: float, initial: Array
