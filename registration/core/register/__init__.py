@@ -44,7 +44,7 @@ from registration.core.register.biplane import (
 )
 from registration.core.register.build import build_plan
 from registration.core.register.depth import depth_resolvable
-from registration.core.register.inputs import Inputs, check_inputs, prepared_renderer, prepared_volume
+from registration.core.register.inputs import Inputs, check_inputs, coarse_level, prepared_renderer, prepared_volume
 from registration.core.register.monitor import Monitor
 from registration.core.register.options import (
     BiplaneOptions,
@@ -153,8 +153,7 @@ def register(
 def _matched_intensities(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs, tuple[dict | None, ...]]:
     """The views with their intensities matched to the DRR's as ``options.intensity`` asks
     (:mod:`registration.core.intensity`), and what each assumed (None: as read)."""
-    coarsest = max(lv.volume_level for lv in options.levels)
-    level = next((L for L in range(coarsest, -1, -1) if inputs.renderer.has_level(L)), 0)
+    level = coarse_level(inputs.renderer, options)
     margin = options.margin_mm(0) or 0.0
     views, infos = match_views(
         inputs.renderer, inputs.views, inputs.initial_motion, options.intensity, level=level,

@@ -83,3 +83,9 @@ def prepared_volume(
     )
     levels = options.volume_levels()
     return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=levels, store=store)
+
+
+def coarse_level(renderer: DRRRenderer, options: RegistrationOptions) -> int:
+    """The coarsest annealing level's volume level, or the nearest finer one ``renderer`` has."""
+    coarsest = max(lv.volume_level for lv in options.levels)
+    return next((k for k in range(coarsest, -1, -1) if renderer.has_level(k)), 0)

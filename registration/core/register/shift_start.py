@@ -12,8 +12,8 @@ spacing over magnification); with two views, each plane's translation and the tw
 (least squares over the planes) are candidates. A candidate is taken only when it moves the
 start by at least :attr:`StartOptions.shift_mm` (within the paper's clinical offsets the search
 needs no help, so their registrations are unchanged) and the views' gradient difference (their
-sum, the biplane measure) is better there than at the machine-based pose. The registration then runs from it, its box
-centred there; its estimate lies outside the box around the machine-based pose, so
+sum, the biplane measure) is better there than at the machine-based pose. The registration then
+runs from it, its box centred there; its estimate lies outside the box around the machine-based pose, so
 :func:`registration.core.assess.veto` withholds it for a look.
 """
 
@@ -28,9 +28,9 @@ from scipy import ndimage
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import rigid
 from registration.core.images import XRayImage
-from registration.core.register.inputs import Inputs, prepared_renderer
+from registration.core.register.inputs import Inputs, coarse_level, prepared_renderer
 from registration.core.register.options import RegistrationOptions
-from registration.core.similarity import gradient_difference
+from registration.core.similarity import gradient_difference, sobel_gradients
 
 #: The images compared are block-averaged to about this many pixels across.
 SHIFT_IMAGE_PX = 128
@@ -49,27 +49,22 @@ def _coarse(view: XRayImage) -> XRayImage:
 
 def _edges(image: NDArray[np.floating], mask: NDArray[np.bool_]) -> NDArray[np.float64]:
     """Gradient magnitude inside the field (its border eroded: the collimator's edge is no anatomy)."""
-    image = np.asarray(image, dtype=np.float64)
-    g = np.hypot(ndimage.sobel(image, 0), ndimage.sobel(image, 1))
+    g = np.hypot(*sobel_gradients(image))
     inside = ndimage.binary_erosion(mask, iterations=2)
     g = np.where(inside, g, 0.0)
     spread = float(g[inside].std()) if inside.any() else 0.0
     return g / spread if spread > 0 else g
 
 
-def _coarse_level(renderer: DRRRenderer, options: RegistrationOptions) -> int:
-    coarsest = max(lv.volume_level for lv in options.levels)
-    return next((k for k in range(coarsest, -1, -1) if renderer.has_level(k)), 0)
-
-
 def view_shift_mm(
-    renderer: DRRRenderer, view: XRayImage, motion: NDArray[np.float64], level: int
+    renderer: DRRRenderer, view: XRayImage, motion: NDArray[np.float64], level: int, *, coarse: XRayImage | None = None
 ) -> NDArray[np.float64]:
     """The patient's translation across ``view``'s beam at the iso-center (world mm) that moves
-    the DRR at ``motion`` onto the image, by phase correlation of their gradient magnitudes."""
+    the DRR at ``motion`` onto the image, by phase correlation of their gradient magnitudes
+    (``coarse``: the view already block-averaged to ~128 px, by default done here)."""
     from skimage.registration import phase_cross_correlation
 
-    coarse = _coarse(view)
+    coarse = _coarse(view) if coarse is None else coarse
     g = coarse.geometry
     drr = renderer.render(g, motion, level=level)
     image = _edges(coarse.image, coarse.mask)
@@ -91,10 +86,11 @@ def _combined(views: tuple[XRayImage, ...], shifts: list[NDArray[np.float64]]) -
     return np.linalg.lstsq(a, b, rcond=None)[0]
 
 
-def _score(renderer: DRRRenderer, views: tuple[XRayImage, ...], motion: NDArray[np.float64], level: int) -> list[float]:
+def _score(
+    renderer: DRRRenderer, coarse_views: tuple[XRayImage, ...], motion: NDArray[np.float64], level: int
+) -> list[float]:
     scores = []
-    for view in views:
-        coarse = _coarse(view)
+    for coarse in coarse_views:
         scores.append(gradient_difference(renderer.render(coarse.geometry, motion, level=level), coarse.image,
                                           coarse.mask))  # fmt: skip
     return scores
@@ -108,17 +104,18 @@ def shifted_start(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs,
         return inputs, 0.0
     renderer, views = inputs.renderer, tuple(inputs.views)
     start = np.asarray(inputs.initial_motion, dtype=np.float64)
-    level = _coarse_level(renderer, options)
-    shifts = [view_shift_mm(renderer, v, start, level) for v in views]
+    level = coarse_level(renderer, options)
+    coarse = tuple(_coarse(v) for v in views)
+    shifts = [view_shift_mm(renderer, v, start, level, coarse=c) for v, c in zip(views, coarse, strict=True)]
     candidates = shifts + ([_combined(views, shifts)] if len(views) > 1 else [])
     candidates = [t for t in candidates if float(np.linalg.norm(t)) >= threshold]
     if not candidates:
         return inputs, 0.0
-    here = _score(renderer, views, start, level)
+    here = _score(renderer, coarse, start, level)
     best, best_score = None, None
     for t in candidates:
         moved = rigid(None, t) @ start
-        scores = _score(renderer, views, moved, level)
+        scores = _score(renderer, coarse, moved, level)
         if sum(scores) > sum(here) and (best_score is None or sum(scores) > best_score):
             best, best_score = moved, sum(scores)
     if best is None:
