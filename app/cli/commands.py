@@ -23,10 +23,10 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
+from app.cli.configs import Info, Mesh, Phantom
 from registration.core.geometry import OFFSET_NAMES, TABLE_I, CArm, check_rigid, matrix_to_offsets, offsets_to_matrix
 from registration.io import dicom
-from registration.io.isocenter import VOLUME_CENTER, resolve_isocenter
-from registration.io.transforms import ITK_SUFFIXES, write_itk_transform
+from registration.io.isocenter import resolve_isocenter
 from registration.sim.threedra import VOLUME_SOURCES, VolumeRecipe
 
 if TYPE_CHECKING:
@@ -289,311 +289,6 @@ def confidence_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRend
     return probe_renderer(prepared, planes=planes)
 
 
-def _skull_spine(whole: Volume, views: Sequence[XRayImage], result, *, seed: int, cache: bool):  # noqa: ANN001, ANN202
-    """Whether the whole volume (its spine included) fits where the region's estimate says
-    (:func:`registration.core.skull_spine.skull_spine_check`)."""
-    from registration.core.skull_spine import skull_spine_check
-
-    prepared, store = prepare_for_registration(whole, views, np.asarray(result.patient_motion), cache=cache)
-    check = skull_spine_check(whole, views, result.patient_motion, renderer=prepared.renderer, seed=seed)
-    if store is not None:
-        store.flush()
-    return check
-
-
-def _region_of_interest(vol, roi: str, roi_mask: Path | None):  # noqa: ANN001, ANN202
-    """The region the registration follows (None: the whole volume)."""
-    if roi_mask is not None:
-        from registration.io.roi_masks import read_roi_mask
-
-        return read_roi_mask(roi_mask, vol)
-    if roi == "cranium":
-        from registration.core.roi import cranium_region
-
-        return cranium_region(vol)
-    if roi != "none":
-        raise ValueError(f"--roi must be 'none' or 'cranium', got {roi!r}")
-    return None
-
-
-def run_register(
-    *,
-    volume: Path,
-    image: Path | Sequence[Path],
-    frame: int | None = None,
-    initial_motion: Path | None = None,
-    truth: Path | None = None,
-    out: Path | None = None,
-    out_dicom: Path | None = None,
-    out_transform: Path | None = None,
-    geometry: Sequence[Path] = (),
-    isocenter: str | None = None,
-    seed: int = 0,
-    sid_mm: float | None = None,
-    sod_mm: float | None = None,
-    pixel_mm: float | None = None,
-    verbose: bool = False,
-    confidence: bool = False,
-    cache: bool = True,
-    explain: bool = False,
-    report: Path | None = None,
-    report_identify: bool = False,
-    image_mask: Sequence[Path] = (),
-    landmarks: Path | None = None,
-    roi: str = "none",
-    roi_mask: Path | None = None,
-    estimate_geometry: bool = False,
-) -> int:
-    """Register a volume file to an X-ray file (or a biplane pair: two files of one moment),
-    print a summary, optionally write the JSON and the DICOM Spatial Registration object.
-    ``verbose``: where the time went, on stderr. ``confidence``: the estimate's confidence and
-    decision (applied / withheld, CONVENTIONS §7) by the studies' rule. ``cache``: keep the
-    preparation's view-independent part on disk (:class:`registration.io.cache.PreparationCache`)
-    and use it. ``explain``: print the registration's plan of stages first. ``report``: write the
-    report folder there (:mod:`app.cli.report_commands`; assesses the confidence);
-    ``report_identify``: with the patient's name, ID and the file paths. ``landmarks``: start
-    from the pose picked point pairs give (:mod:`registration.core.landmarks`), not the machine's.
-    ``estimate_geometry``: with two planes, estimate each plane's source-image distance with the
-    pose (:mod:`registration.core.intrinsics`)."""
-    from app.cli.report_commands import check_report_folder
-
-    clock = _Stopwatch()
-    check_report_folder(report)
-    confidence = confidence or report is not None
-    images = [Path(image)] if isinstance(image, (str, Path)) else [Path(p) for p in image]
-    if len(images) not in (1, 2):
-        raise ValueError(f"one X-ray image, or two (plane A and plane B of one moment), got {len(images)}")
-    if estimate_geometry and len(images) != 2:
-        raise ValueError(
-            "--estimate-geometry needs two planes: one view cannot tell its source-image distance from the depth "
-            "(give --sid-mm when it is known)"
-        )
-    if isocenter is not None and isocenter.strip().lower() != VOLUME_CENTER:
-        parse_isocenter(isocenter)  # a bad value is refused before any file is read
-    if geometry and len(geometry) != len(images):
-        raise ValueError(f"--geometry: one side file per --image ({len(images)}), got {len(geometry)}")
-    if image_mask and len(image_mask) != len(images):
-        raise ValueError(f"--image-mask: one mask per --image ({len(images)}), got {len(image_mask)}")
-    if out_transform is not None and Path(out_transform).suffix.lower() not in ITK_SUFFIXES:
-        raise ValueError(f"{out_transform}: --out-transform takes an ITK transform file ({', '.join(ITK_SUFFIXES)})")
-    targets = ((out, "--out", "JSON"), (out_dicom, "--out-dicom", "DICOM"), (out_transform, "--out-transform", "ITK"))
-    for target, flag, kind in targets:
-        if target is not None and Path(target).is_dir():
-            raise ValueError(f"{target}: is a folder; {flag} takes a {kind} file name")
-        check_writable(target, flag)  # before the registration runs, not after
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        vol = dicom.read_volume(volume)
-        clock.lap("reading the volume")
-        region = _region_of_interest(vol, roi, roi_mask)
-        iso, iso_from = resolve_isocenter(isocenter, vol)
-        sides = list(geometry) or [None] * len(images)
-        masks = list(image_mask) or [None] * len(images)
-        views = [
-            dicom.read_xray(
-                p,
-                frame=frame,
-                isocenter_mm=iso,
-                sid_mm=sid_mm,
-                sod_mm=sod_mm,
-                pixel_mm=pixel_mm,
-                geometry=g,
-                image_mask=m,
-            )
-            for p, g, m in zip(images, sides, masks, strict=True)
-        ]
-        clock.lap("reading the image" + ("s" if len(images) > 1 else ""))
-        if len(views) == 2:
-            from registration.io.dicom.biplane import pair_views
-
-            views = list(pair_views(views))
-    _show_warnings(caught)
-    xray = views[0]
-    volume_for = str(vol.meta.get("frame_of_reference_uid") or "") or None
-    m_init = None
-    if initial_motion is not None:
-        m_init, _ = read_motion(initial_motion, what="initial motion", volume_frame_of_reference=volume_for)
-    start = None
-    if landmarks is not None:
-        if m_init is not None:
-            raise ValueError("--landmarks and --initial-motion both give the start: use one")
-        from registration.core.landmarks import landmark_start, read_landmarks
-
-        start = landmark_start([v.geometry for v in views], read_landmarks(landmarks))
-        m_init = start.patient_motion
-    m_true = None
-    vessel_points = None
-    if truth is not None:
-        m_true, truth_doc = read_motion(truth, what="truth", volume_frame_of_reference=volume_for)
-        try:
-            pts = np.asarray(truth_doc.get("vessel_points_mm", []), dtype=np.float64)
-        except (TypeError, ValueError):
-            pts = np.zeros((0, 3))
-        if pts.ndim == 2 and pts.shape[1] == 3 and len(pts) and np.all(np.isfinite(pts)):
-            vessel_points = pts
-
-    from registration.core.register import register
-
-    compiling = kernels_to_compile()
-    clock.lap("loading the engine")
-    g = xray.geometry
-    _say(
-        f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels, "
-        f"{', '.join(f'{s:.3g}' for s in vol.spacing_mm)} mm"
-    )
-    for view in views:
-        gv, plane = view.geometry, view.meta.get("plane") or ("PLANE A" if len(views) == 2 else "")
-        _say(
-            f"image:  {view.meta.get('source', images[0])} frame {view.meta.get('frame', 0)}"
-            f"{f' ({plane})' if plane else ''}: {gv.cols}x{gv.rows} px, "
-            f"primary {gv.primary_deg:+.1f} deg, secondary {gv.secondary_deg:+.1f} deg, "
-            f"SID {gv.sid_mm:.0f} mm, SOD {gv.sod_mm:.0f} mm"
-        )
-    _say("geometry: nominal (the files' positioner angles and distances; no C-arm calibration is applied)")
-    if len(views) == 2:
-        _say("biplane: six parameters (tx, ty, tz, rx, ry, rz) in plane A's view frame")
-    _say(f"iso-center: ({iso[0]:.2f}, {iso[1]:.2f}, {iso[2]:.2f}) mm, from {iso_from}")
-    if start is not None:
-        left_out = int((~start.inliers).sum())
-        _say(f"start: {landmarks}'s {len(start.inliers)} landmarks, reprojection error {start.rms_px:.1f} px rms"
-             + (f" ({left_out} left out as disagreeing)" if left_out else "")
-             + f": {_format_offsets(start.patient_motion, g)}")  # fmt: skip
-    whole = vol
-    if region is not None:
-        from registration.core.roi import roi_volume
-
-        vol = roi_volume(vol, region)
-        base = region.skull_base_z_mm
-        _say(f"region: {region.source}" + (f", the spine below z {base:.0f} mm left out ({region.left_out_ml:.0f} ml)"
-                                           if base is not None else " (the whole volume: no spine found)"))  # fmt: skip
-    if compiling:
-        _say("compiling the engine's kernels (numba, once after an install or an update: up to a minute on "
-             "2 cores; later runs load them from disk) ...", stream=sys.stderr)  # fmt: skip
-    # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm)
-    # a first run writes the prepared volume to disk while it registers (flushed below)
-    prepared, store = prepare_for_registration(vol, views, m_init, cache=cache)
-    renderer = prepared.renderer
-    clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
-    if explain:
-        from registration.core.register import registration_plan
-
-        _say("plan:\n" + registration_plan(vol, views, initial_motion=m_init, renderer=renderer).describe())
-    result = register(vol, views, initial_motion=m_init, seed=seed, truth=m_true, vessel_points_mm=vessel_points,
-                      renderer=renderer)  # fmt: skip
-    if store is not None:
-        store.flush()
-    clock.lap("registration")
-    estimated = None
-    if estimate_geometry and not result.at_bounds:
-        views, estimated = _estimate_geometry(result, views, renderer, m_true, vessel_points)
-        clock.lap("estimating the geometry")
-    _say(f"patient motion: {_format_offsets(result.patient_motion, g)}")
-    _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
-    skull_spine = None
-    if region is not None and region.left_out_ml > 0 and not result.at_bounds:
-        skull_spine = _skull_spine(whole, views, result, seed=seed, cache=cache)
-        clock.lap("skull and spine")
-        _say(skull_spine.message())
-    for assumed in result.intensity:
-        if assumed is not None:
-            _say(assumed["note"])
-    if result.residual is not None:
-        r = result.residual
-        verdict = "success" if r.success else "FAILURE"
-        mtre = "" if r.mtre_mm is None else f", mTRE {r.mtre_mm:.2f} mm"
-        criterion = "3-D" if len(views) == 2 else "in-plane"
-        _say(
-            f"residual vs truth: {r.translation_mm:.2f} mm total ({r.inplane_mm:.2f} mm in-plane, "
-            f"{r.outofplane_mm:.2f} mm out-of-plane of plane A), {r.rotation_deg:.2f} deg{mtre} -> {verdict} "
-            f"({criterion} criterion)"
-        )
-    if result.start_shift_mm:
-        _say(
-            f"the image shows the patient {result.start_shift_mm:.0f} mm from the machine-based pose: the search "
-            "started there; check the estimate by eye"
-        )
-    if result.walk_hops:
-        _say(
-            f"the search walked {result.walk_hops} time{'s' if result.walk_hops > 1 else ''} beyond its box around the "
-            "machine-based pose: the patient is far from it; check the estimate by eye"
-        )
-    assessed = None
-    if confidence and not result.at_bounds:
-        from registration.core.assess import assess
-        from registration.core.preparation import Preparation
-        from registration.studies.cases import assessment_fields
-
-        # the registration's prepared levels (cropped, in mm, cached), not a pyramid of the whole volume
-        assessed = assessment_fields(assess(result, views, Preparation(vol, prepared, len(views))))
-        clock.lap("confidence")
-        decision = "applied" if assessed["applied"] else f"withheld: {assessed['withheld_reason']}"
-        _say(f"confidence {assessed['confidence']:.2f} -> {decision}")
-    if verbose:
-        _say(clock.report(), stream=sys.stderr)
-        _say("the registration's stages (DRRs, DRR pixels, seconds):", stream=sys.stderr)
-        for cost in result.stages:
-            _say(f"  {cost.drrs:6d} {cost.rays:11,d} {cost.seconds:6.2f} s  {cost.stage}", stream=sys.stderr)
-    if result.at_bounds:  # inputs without information drift to the search bounds: not a registration
-        print(
-            f"error: cannot register: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "
-            "no result written",
-            file=sys.stderr,
-        )
-        return 2
-    if out is not None or report is not None:
-        document = result.to_dict()
-        document["volume"] = {"path": str(volume), "label": vol.label}
-        described = [
-            {"path": str(v.meta.get("source", p)), "frame": v.meta.get("frame", 0), "kind": v.kind}
-            | ({"plane": v.meta.get("plane") or name} if len(views) == 2 else {})
-            for v, p, name in zip(views, images, ("PLANE A", "PLANE B"), strict=False)
-        ]
-        document["image"] = described[0]
-        if len(views) == 2:
-            document["images"] = described
-        if start is not None:
-            document["landmark_start"] = start.to_dict()
-        if region is not None:
-            document["region"] = region.summary()
-        if skull_spine is not None:
-            document["skull_spine"] = skull_spine.to_dict()
-        if assessed is not None:
-            keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
-            document.update({k: assessed[k] for k in keys})
-        document["geometry_source"] = "nominal"  # the files' positioner tags, no calibration
-        if estimated is not None:
-            document["geometry_source"] = "estimated (source-image distance per plane, with the pose)"
-            document["geometry_estimated"] = estimated.to_dict()
-        document["conventions"] = "shared/CONVENTIONS.md: patient_motion is M with anatomy at X moved to M @ X"
-    if out is not None:
-        dicom.write_text_atomic(out, dicom.json_dumps(document))
-        _say(f"wrote {out}")
-    if report is not None:
-        from app.cli.report_commands import write_register_report
-
-        write_register_report(
-            report, document=document, assessed=assessed, volume=vol, views=list(views),
-            renderer=confidence_renderer(prepared, planes=len(views)), initial_motion=m_init, identify=report_identify,
-        )  # fmt: skip
-        clock.lap("report")
-        _say(f"wrote {report}/ (open {Path(report) / 'report.html'})")
-    if out_dicom is not None:
-        dicom.write_registration(
-            out_dicom,
-            result.patient_motion,
-            volume=vol,
-            xray=xray,
-            description=f"roadmap3d: similarity {result.similarity:.4f}, {result.drr_count} DRRs",
-        )
-        _say(f"wrote {out_dicom} (DICOM Spatial Registration: volume frame of reference -> X-ray image)")
-    if out_transform is not None:
-        write_itk_transform(result.patient_motion, out_transform)
-        _say(
-            f"wrote {out_transform} (ITK transform, LPS: inverse of the patient motion; fixed = the patient as imaged)"
-        )
-    return 0
-
-
 # --------------------------------------------------------------------------------------
 # info
 # --------------------------------------------------------------------------------------
@@ -627,16 +322,10 @@ def _print_info(report: dict[str, Any]) -> None:
         _say(f"{'warning':>18}: {message}")
 
 
-def run_info(
-    path: Path,
-    *,
-    as_json: bool = False,
-    sid_mm: float | None = None,
-    sod_mm: float | None = None,
-    pixel_mm: float | None = None,
-    image_mask: Path | None = None,
-) -> int:
+def run_info(options: Info) -> int:
     """Print what the project reads from ``path``; exit code 2 when it is not accepted."""
+    path, as_json, sid_mm, sod_mm = options.path, options.json, options.sid_mm, options.sod_mm
+    pixel_mm, image_mask = options.pixel_mm, options.image_mask
     report = dicom.inspect(path, sid_mm=sid_mm, sod_mm=sod_mm, image_mask=image_mask, pixel_mm=pixel_mm)
     if as_json:
         _say(json.dumps(report, indent=2))
@@ -683,20 +372,7 @@ def _phantom_3dra(
     return volume.with_data(volume.data, label=label), description, {"volume_source": source, "rotational_run": run}
 
 
-def run_phantom_export(
-    *,
-    out: Path,
-    volume_format: float = 27.0,
-    image_format: float = 27.0,
-    primary_deg: float = 0.0,
-    secondary_deg: float = 0.0,
-    offset: str = "T4",
-    contrast: bool = True,
-    seed: int = 0,
-    voxels: int = 256,
-    pixels: int = 512,
-    volume_source: str = "fdk",
-) -> int:
+def run_phantom_export(options: Phantom) -> int:
     """Export the phantom: DICOM 3DRA series, XA fluoro and exposure with known motion, truth JSON.
 
     The 3DRA series is ``volume_source`` (one of :data:`registration.sim.threedra.VOLUME_SOURCES`).
@@ -704,6 +380,10 @@ def run_phantom_export(
     their positioner tags state; the FDK volume is reconstructed in the same world frame (from
     the calibrated geometry of its run), so the truth holds for either source.
     """
+    out, volume_format, image_format = options.out, options.volume_format, options.image_format
+    primary_deg, secondary_deg, offset = options.primary_deg, options.secondary_deg, options.offset
+    contrast, seed, voxels, pixels = options.contrast, options.seed, options.voxels, options.pixels
+    volume_source = options.volume_source
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out}: exists and is not an empty folder; refusing to overwrite")
@@ -803,15 +483,10 @@ def run_phantom_export(
 # --------------------------------------------------------------------------------------
 # mesh
 # --------------------------------------------------------------------------------------
-def run_mesh(
-    *,
-    volume: Path,
-    out: Path,
-    vessel_hu: float | None = None,
-    bone_hu: float | None = None,
-    step: int = 1,
-) -> int:
+def run_mesh(options: Mesh) -> int:
     """Write the vessel and bone surfaces of a volume file to STL, PLY or GLB."""
+    volume, out, vessel_hu, bone_hu = options.volume, options.out, options.vessel_hu, options.bone_hu
+    step = options.step
     from registration.io.meshes import (
         BONE_HU,
         MESH_SUFFIXES,
@@ -847,21 +522,3 @@ def run_mesh(
     return 0
 
 
-def _estimate_geometry(
-    result: Any, views: list, renderer: Any, truth: np.ndarray | None, vessel_points: np.ndarray | None
-) -> tuple[list, Any]:
-    """Each plane's source-image distance estimated with the pose (the result updated in place,
-    its residual too); the views with the estimated geometry, and the estimate."""
-    from registration.core.intrinsics import refine_geometry
-    from registration.core.metrics import residuals
-
-    estimated = refine_geometry(renderer, views, result.patient_motion, estimate=("sid",))
-    result.patient_motion = estimated.patient_motion
-    result.similarity = estimated.similarity
-    if truth is not None:
-        g = views[0].geometry
-        result.residual = residuals(estimated.patient_motion, truth, g, vessel_points, optimizes_tz=True)
-    for view, found in zip(("PLANE A", "PLANE B"), estimated.intrinsics, strict=True):
-        _say(f"geometry estimated ({view}): SID {found.sid_mm:.1f} mm ({100 * found.sid_change:+.2f} % of the file's)")
-    _say(f"patient motion with the estimated geometry: {_format_offsets(estimated.patient_motion, views[0].geometry)}")
-    return list(estimated.views), estimated

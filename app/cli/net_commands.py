@@ -12,9 +12,12 @@ import sys
 import threading
 import warnings
 from collections import deque
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from app.cli.configs import Listen, Register, Track
 from registration.io import audit, dicom
 from registration.io.node import DicomNode, Received
 from registration.io.overlay import overlay_rgb
@@ -38,12 +41,18 @@ def _exit_soon(code: int, grace_s: float = EXIT_GRACE_S) -> None:
     threading.Thread(target=watchdog, name="exit-watchdog", daemon=True).start()
 
 
+#: One line at a time: the node's threads (receiving, registering) print side by side.
+_PRINTING = threading.Lock()
+
+
 def _say(text: str = "") -> None:
-    print(text, flush=True)
+    with _PRINTING:
+        print(text, flush=True)
 
 
 def _err(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
+    with _PRINTING:
+        print(text, file=sys.stderr, flush=True)
 
 
 def default_received_folder() -> Path:
@@ -213,18 +222,10 @@ class _Registrar:
         _say("registrations: " + ", ".join(f"{n} {what}" for what, n in self.counts.items()))
 
 
-def run_listen(
-    *,
-    ae_title: str,
-    port: int,
-    host: str,
-    allow: tuple[str, ...],
-    folder: Path | None,
-    volume: Path | None,
-    sid_mm: float | None = None,
-    sod_mm: float | None = None,
-) -> int:
+def run_listen(options: Listen) -> int:
     """Run the DICOM node until interrupted; print each received instance (and its registration)."""
+    ae_title, port, host, allow, folder = options.ae_title, options.port, options.host, options.allow, options.folder
+    volume, sid_mm, sod_mm = options.volume, options.sid_mm, options.sod_mm
     if volume is None and (sid_mm is not None or sod_mm is not None):
         raise ValueError("--sid-mm/--sod-mm apply to the images registered with --volume")
     folder = Path(folder) if folder is not None else default_received_folder()
@@ -316,78 +317,70 @@ def _retrieve_instance(client: Any, study: str | None, series: str, folder: Path
     return files[0]
 
 
-def run_track_pacs(
-    *, pacs: str | None, study: str | None, volume_series: str, run_series: str, ca_bundle: Path | None,
-    run_b_series: str | None = None, **track_args: Any,
-) -> int:  # fmt: skip
-    """``track --pacs``: retrieve the volume and the run (WADO-RS) into a private folder, track.
-    ``run_b_series``: plane B's run of a biplane pair, a series of the same study (both planes
+def run_track_pacs(options: Track, track_files: Callable[[Track], int]) -> int:
+    """``track --pacs``: retrieve the volume and the run (WADO-RS) into a private folder, track
+    them with ``track_files`` (as files).
+    ``--run-b``: plane B's run of a biplane pair, a series of the same study (both planes
     tracked together, as ``track --run A --run-b B`` does with files)."""
     import shutil
     import tempfile
 
-    from app.cli.track_commands import run_track
     from registration.io.pacs import Pacs, PacsSettings
 
+    study, volume_series, run_series = options.study, str(options.volume), str(options.run)
+    run_b_series = None if options.run_b is None else str(options.run_b)
     if run_b_series is not None and str(run_b_series) == str(run_series):
         raise ValueError(f"--run and --run-b are the same series {run_series}: a biplane pair needs both planes' runs")
-    client = Pacs(PacsSettings.resolve(pacs, ca_bundle=ca_bundle))
+    client = Pacs(PacsSettings.resolve(options.pacs, ca_bundle=options.ca_bundle))
     work = Path(tempfile.mkdtemp(prefix="roadmap3d-track-"))
+    local = replace(options, pacs=None, study=None, ca_bundle=None)
     try:
         if run_b_series is None:
             volume_folder, run_file = retrieve_pair(client, study, volume_series, run_series, work, image_flag="--run")
-            return run_track(volume=volume_folder, run=run_file, **track_args)
+            return track_files(replace(local, volume=volume_folder, run=run_file))
         wanted = ((volume_series, "--volume"), (run_series, "--run"), (str(run_b_series), "--run-b"))
         known = _study_series(client, study, wanted)
         _err(f"retrieving {', '.join(known[uid].label() for uid, _ in wanted)} from {client.name}")
         volume_folder = client.retrieve_series(study, volume_series, work / "volume")
         run_file = _retrieve_instance(client, study, run_series, work / "run")
         run_b_file = _retrieve_instance(client, study, str(run_b_series), work / "run_b")
-        return run_track(volume=volume_folder, run=run_file, run_b=run_b_file, **track_args)
+        return track_files(replace(local, volume=volume_folder, run=run_file, run_b=run_b_file))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def run_register_pacs(
-    *,
-    pacs: str | None,
-    study: str | None,
-    volume_series: str,
-    image_series: str,
-    ca_bundle: Path | None,
-    store: bool,
-    out_dicom: Path | None,
-    **register_args: Any,
-) -> int:
-    """``register --pacs``: retrieve the two series, register, optionally store the REG object and
-    the overlay capture back into the study (STOW-RS)."""
+def run_register_pacs(options: Register, register_files: Callable[[Register], int]) -> int:
+    """``register --pacs``: retrieve the two series, register them with ``register_files`` (as
+    files), optionally store the REG object and the overlay capture back into the study (STOW-RS)."""
     import shutil
     import tempfile
 
-    from app.cli.commands import run_register
     from registration.io.dicom.capture import write_overlay_capture
     from registration.io.pacs import Pacs, PacsSettings
 
-    client = Pacs(PacsSettings.resolve(pacs, ca_bundle=ca_bundle))
+    study, out_dicom = options.study, options.out_dicom
+    client = Pacs(PacsSettings.resolve(options.pacs, ca_bundle=options.ca_bundle))
     work = Path(tempfile.mkdtemp(prefix="roadmap3d-register-"))
     try:
         volume_folder, image_file = retrieve_pair(
-            client, study, volume_series, image_series, work, image_flag="--image"
+            client, study, str(options.volume), str(options.image[0]), work, image_flag="--image"
         )
         image_files = [image_file]
         registration = work / "registration.dcm"
-        code = run_register(volume=volume_folder, image=image_files[0], out_dicom=registration, **register_args)
+        local = replace(options, volume=volume_folder, image=(image_file,), out_dicom=registration, pacs=None,
+                        study=None, ca_bundle=None, store=False)  # fmt: skip
+        code = register_files(local)
         if code != 0:
             return code
         if out_dicom is not None:
             shutil.copyfile(registration, out_dicom)
             _say(f"wrote {out_dicom}")
-        if store:
+        if options.store:
             reg = dicom.read_registration(registration)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 volume = dicom.read_volume(volume_folder)
-                xray = dicom.read_xray(image_files[0], frame=register_args.get("frame"))
+                xray = dicom.read_xray(image_files[0], frame=options.frame)
             motion = reg.volume_motion(str(volume.meta.get("frame_of_reference_uid") or "") or None)
             capture = write_overlay_capture(
                 work / "overlay.dcm",

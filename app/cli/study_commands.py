@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from app.cli.configs import Bench
 from app.cli.options import (
     BiplaneStudy,
     CalibrationStudy,
@@ -199,8 +200,9 @@ def run_calibration_study(args: CalibrationStudy) -> int:
     return 0
 
 
-def run_bench(*, json: bool = False, quick: bool = False, seed: int = 0) -> int:
+def run_bench(options: Bench) -> int:
     """``roadmap3d bench``: a table, or one JSON object with ``--json``."""
+    json, quick, seed = options.json, options.quick, options.seed
     out = bench.collect(quick=quick, seed=seed, log=None if json else _stderr)
     if json:
         print(_json_dumps(out))

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from app.cli.configs import PhantomRun, Track
+from app.cli.errors import UserError
 from registration.io import dicom
 
 #: Files written by ``roadmap3d phantom-run``.
@@ -50,29 +52,32 @@ def read_run_truth(path: Path, frames: int) -> np.ndarray:
     return motions
 
 
-def run_track(
-    *,
-    volume: Path,
-    run: Path,
-    run_b: Path | None = None,
-    out: Path | None = None,
-    truth: Path | None = None,
-    isocenter: str | None = None,
-    seed: int = 0,
-    every_frame: bool = False,
-    sid_mm: float | None = None,
-    sod_mm: float | None = None,
-    frame_time_ms: float | None = None,
-    report: Path | None = None,
-    report_identify: bool = False,
-    pixel_mm: float | None = None,
-) -> int:
+def run_track(options: Track) -> int:
+    """``roadmap3d track``: a run (or a biplane pair of runs) from files, or from a PACS."""
+    if options.pacs is not None:
+        if options.report is not None:
+            raise UserError("--report works on files only (not with --pacs) for now")
+        if options.pixel_mm is not None:
+            raise UserError("--pixel-mm works on files only (not with --pacs) for now")
+        from app.cli.net_commands import run_track_pacs
+
+        return run_track_pacs(options, track_files)
+    if options.study or options.ca_bundle:
+        raise UserError("--study and --ca-bundle need --pacs URL")
+    return track_files(options)
+
+
+def track_files(options: Track) -> int:
     """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON and,
     with ``report``, the report folder (:mod:`app.cli.report_commands`; ``report_identify``: with the
     patient's name, ID and the file paths).
 
     ``sid_mm``, ``sod_mm``, ``pixel_mm`` and ``frame_time_ms`` fill in what a run's files lack
     (:func:`registration.io.dicom.read_xray_run`)."""
+    volume, run, run_b, out, truth = options.volume, options.run, options.run_b, options.out, options.truth
+    isocenter, seed, every_frame, report = options.isocenter, options.seed, options.every_frame, options.report
+    sid_mm, sod_mm, frame_time_ms, pixel_mm = options.sid_mm, options.sod_mm, options.frame_time_ms, options.pixel_mm
+    report_identify = options.report_identify
     from app.cli.commands import parse_isocenter, prepare_for_registration
     from registration.core.metrics import residuals
     from registration.core.tracking import track_run
@@ -228,22 +233,13 @@ def run_track(
     return 0
 
 
-def run_phantom_run_export(
-    *,
-    out: Path,
-    seconds: float = 20.0,
-    pixels: int = 128,
-    image_format: float = 27.0,
-    primary_deg: float = 0.0,
-    secondary_deg: float = 0.0,
-    biplane: bool = False,
-    sudden_moves: int = 2,
-    seed: int = 0,
-    voxels: int = 128,
-    volume_source: str = "fdk",
-) -> int:
+def run_phantom_run_export(options: PhantomRun) -> int:
     """Write a simulated fluoroscopy run of the phantom (multi-frame XA with its frame times),
     its per-frame truth, and the 3DRA series to track it with."""
+    out, seconds, pixels, image_format = options.out, options.seconds, options.pixels, options.image_format
+    primary_deg, secondary_deg, biplane = options.primary_deg, options.secondary_deg, options.biplane
+    sudden_moves, seed, voxels = options.sudden_moves, options.seed, options.voxels
+    volume_source = options.volume_source
     from app.cli.commands import _phantom_3dra
     from registration.core.geometry import CArm
     from registration.sim.fluoro import RunScript, simulate_biplane_run

@@ -17,6 +17,7 @@ from pydicom.data import get_testdata_file
 
 from app import cli
 from app.cli import commands as cli_io
+from app.cli.configs import Phantom
 from registration.core.geometry import CArm
 from registration.core.metrics import residuals
 from registration.io import dicom
@@ -353,7 +354,7 @@ def test_parsers() -> None:
     with pytest.raises(ValueError, match="offset"):
         cli_io.parse_offset("T9")
     with pytest.raises(ValueError, match="volume-source"):
-        cli_io.run_phantom_export(out=Path("unused"), volume_source="phantom")
+        cli_io.run_phantom_export(Phantom(out=Path("unused"), volume_source="phantom"))  # type: ignore[arg-type]
 
 
 def test_vessel_surfaces_follow_the_phantom_arteries(exported: Path) -> None:
