@@ -520,5 +520,3 @@ def run_mesh(options: Mesh) -> int:
         _say(f"note: {NO_VESSELS_NOTE}")
     _say(f"wrote {out} ({parts})")
     return 0
-
-

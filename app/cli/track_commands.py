@@ -12,6 +12,7 @@ from __future__ import annotations
 import sys
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -67,32 +68,17 @@ def run_track(options: Track) -> int:
     return track_files(options)
 
 
-def track_files(options: Track) -> int:
-    """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON and,
-    with ``report``, the report folder (:mod:`app.cli.report_commands`; ``report_identify``: with the
-    patient's name, ID and the file paths).
+def _read_runs(options: Track) -> tuple[Any, list, Path, Path | None]:
+    """The volume and the run(s), a biplane pair checked and ordered plane A, plane B; returns
+    the volume, the runs and their paths in that order."""
+    from app.cli.commands import parse_isocenter
 
-    ``sid_mm``, ``sod_mm``, ``pixel_mm`` and ``frame_time_ms`` fill in what a run's files lack
-    (:func:`registration.io.dicom.read_xray_run`)."""
-    volume, run, run_b, out, truth = options.volume, options.run, options.run_b, options.out, options.truth
-    isocenter, seed, every_frame, report = options.isocenter, options.seed, options.every_frame, options.report
-    sid_mm, sod_mm, frame_time_ms, pixel_mm = options.sid_mm, options.sod_mm, options.frame_time_ms, options.pixel_mm
-    report_identify = options.report_identify
-    from app.cli.commands import parse_isocenter, prepare_for_registration
-    from registration.core.metrics import residuals
-    from registration.core.tracking import track_run
-
-    if out is not None and Path(out).is_dir():
-        raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
-    from app.cli.report_commands import check_report_folder
-
-    check_report_folder(report)
-    if isocenter is not None and isocenter.strip().lower() != "volume-center":
-        parse_isocenter(isocenter)  # a bad value is refused before any file is read
-    given = {"sid_mm": sid_mm, "sod_mm": sod_mm, "frame_time_ms": frame_time_ms, "pixel_mm": pixel_mm}
+    run, run_b, isocenter = options.run, options.run_b, options.isocenter
+    given = {"sid_mm": options.sid_mm, "sod_mm": options.sod_mm, "frame_time_ms": options.frame_time_ms,
+             "pixel_mm": options.pixel_mm}  # fmt: skip
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        vol = dicom.read_volume(volume)
+        vol = dicom.read_volume(options.volume)
         iso = parse_isocenter(isocenter, vol)
         runs = [dicom.read_xray_run(run, isocenter_mm=iso, **given)]
         if run_b is not None:
@@ -115,30 +101,29 @@ def track_files(options: Track) -> int:
             raise ValueError(f"{run} and {run_b}: frame times differ (not taken at the same moments)")
     if len(runs) == 1 and runs[0].planes and runs[0].planes[0] in ("PLANE A", "PLANE B"):
         _err(f"note: {run} is {runs[0].planes[0]} of a biplane run; --run-b with the other plane's run tracks both")
-    times = runs[0].times_s
-    m_true = read_run_truth(truth, len(times)) if truth is not None else None
-    _say(f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels")
-    g = runs[0].geometries[0]
-    span = float(times[-1] - times[0]) if len(times) > 1 else 0.0
-    _say(
-        f"run:    {run}: {len(times)} frames over {span:.1f} s (times from {runs[0].times_from}), "
-        f"{g.cols}x{g.rows} px" + (f"; plane B {run_b}" if run_b else "")
-    )
-    # decode every frame first: in the clinic frames arrive decoded; decoding is not the engine's latency
-    frames = [r.frames() for r in runs]
-    # the volume prepared as ``register`` prepares it (cropped to what the run's fields reach over
-    # a capture's search from the initial pose, levels in mm, cached on disk): the tracking level
-    # and the captures render these levels, not a pyramid of the whole volume
+    return vol, runs, run, run_b
+
+
+def _prepare(vol: Any, frames: list) -> tuple[Any, Any]:
+    """The volume prepared as ``register`` prepares it (cropped to what the run's fields reach over
+    a capture's search from the initial pose, levels in mm, cached on disk): the tracking level and
+    the captures render these levels, not a pyramid of the whole volume."""
+    from app.cli.commands import prepare_for_registration
+
     prep_start = time.perf_counter()
     prepared, store = prepare_for_registration(vol, [f[0] for f in frames])
     kept = [n for n in prepared.voxels_per_level if n is not None]
     _err(
-        f"prepared the volume for the run's field{'s' if len(runs) == 2 else ''}: "
+        f"prepared the volume for the run's field{'s' if len(frames) == 2 else ''}: "
         f"{', '.join(f'{n / 1e6:.2g} M' for n in kept)} voxels per level (the volume: "
         f"{np.prod(vol.shape) / 1e6:.3g} M) in {time.perf_counter() - prep_start:.1f} s"
         + (" (from the cache)" if prepared.base_source == "disk" else "")
     )
-    started = time.perf_counter()
+    return prepared, store
+
+
+def _frame_printer() -> Callable[[Any], None]:
+    """What ``track`` says of a frame on stderr: every change, and every 30th frame."""
     shown = {"n": 0}
 
     def on_frame(est: Any) -> None:
@@ -158,46 +143,39 @@ def track_files(options: Track) -> int:
                 f"{est.latency_ms:7.1f} ms{conf}{why}"
             )
 
-    result = track_run(vol, frames, times, seed=seed, realtime=not every_frame, on_frame=on_frame,
-                       renderer=prepared.renderer)  # fmt: skip
-    wall = time.perf_counter() - started
-    if store is not None:
-        store.flush()  # a first run writes the prepared volume while it tracks
-    summary = result.summary()
-    document = result.to_dict()
-    document["volume"] = {"path": str(volume), "label": vol.label}
-    document["runs"] = [str(run)] + ([str(run_b)] if run_b else [])
-    document["conventions"] = (
-        "shared/CONVENTIONS.md §7: per frame (frame, t_s, patient_motion, status); patient_motion is the pose the "
-        "roadmap shows after the frame (the last applied estimate)"
-    )
-    if m_true is not None:
-        geom = runs[0].geometries[0]
-        biplane = len(runs) == 2
-        errors, right, applied = [], [], []
-        for f, rec in zip(result.frames, document["frames"], strict=True):
-            r = residuals(f.patient_motion, m_true[f.frame], geom)
-            rec["shown_error_mm"] = r.translation_mm if biplane else r.inplane_mm
-            rec["shown_rotation_deg"] = r.rotation_deg
-            if f.estimate is not None:
-                e = residuals(f.estimate, m_true[f.frame], geom)
-                err = e.translation_mm if biplane else e.inplane_mm
-                rec["estimate_error_mm"] = err
-                right.append(err < 1.0 and e.rotation_deg < 3.0)
-                applied.append(f.status == "applied")
-                if f.status == "applied":
-                    errors.append(err)
-        from registration.core.confidence import precision_recall
+    return on_frame
 
-        p, rc = precision_recall(applied, right)
-        summary.update(
-            tracking_error_mm_median=float(np.median(errors)) if errors else None,
-            max_error_applied_mm=float(np.max(errors)) if errors else None,
-            applied_precision=p,
-            applied_recall=rc,
-        )
-        document["summary"] = summary
-    crop = prepared.crop
+
+def _score(result: Any, document: dict, summary: dict, m_true: np.ndarray, geom: Any, biplane: bool) -> None:
+    """Each frame's error against the truth (shown pose and estimate) into ``document``, and the
+    applied estimates' median and worst error, precision and recall into ``summary``."""
+    from registration.core.confidence import precision_recall
+    from registration.core.metrics import residuals
+
+    errors, right, applied = [], [], []
+    for f, rec in zip(result.frames, document["frames"], strict=True):
+        r = residuals(f.patient_motion, m_true[f.frame], geom)
+        rec["shown_error_mm"] = r.translation_mm if biplane else r.inplane_mm
+        rec["shown_rotation_deg"] = r.rotation_deg
+        if f.estimate is not None:
+            e = residuals(f.estimate, m_true[f.frame], geom)
+            err = e.translation_mm if biplane else e.inplane_mm
+            rec["estimate_error_mm"] = err
+            right.append(err < 1.0 and e.rotation_deg < 3.0)
+            applied.append(f.status == "applied")
+            if f.status == "applied":
+                errors.append(err)
+    p, rc = precision_recall(applied, right)
+    summary.update(
+        tracking_error_mm_median=float(np.median(errors)) if errors else None,
+        max_error_applied_mm=float(np.max(errors)) if errors else None,
+        applied_precision=p,
+        applied_recall=rc,
+    )
+    document["summary"] = summary
+
+
+def _say_summary(summary: dict, crop: Any, wall_s: float, scored: bool) -> None:
     _say(
         f"{summary['frames']} frames: {summary['processed']} processed, {summary['skipped']} skipped "
         f"(arrived while busy); {summary['applied']} applied, {summary['withheld']} withheld, "
@@ -209,15 +187,63 @@ def track_files(options: Track) -> int:
         )
     )
     med, p95 = summary["ms_per_frame_median"], summary["ms_per_frame_p95"]
-    _say(f"latency: median {med:.1f} ms, p95 {p95:.1f} ms per frame; {wall:.1f} s in all")
-    if m_true is not None and summary.get("tracking_error_mm_median") is not None:
-        prec = summary["applied_precision"]
-        rec_ = summary["applied_recall"]
+    _say(f"latency: median {med:.1f} ms, p95 {p95:.1f} ms per frame; {wall_s:.1f} s in all")
+    if scored and summary.get("tracking_error_mm_median") is not None:
+        prec, rec_ = summary["applied_precision"], summary["applied_recall"]
         _say(
             f"vs truth: applied estimates median {summary['tracking_error_mm_median']:.2f} mm, "
             f"max {summary['max_error_applied_mm']:.2f} mm; precision "
             f"{'-' if prec is None else f'{100 * prec:.1f} %'}, recall {'-' if rec_ is None else f'{100 * rec_:.1f} %'}"
         )
+
+
+def track_files(options: Track) -> int:
+    """Track a run (or a biplane pair of runs); print a summary; optionally write the JSON and,
+    with ``report``, the report folder (:mod:`app.cli.report_commands`; ``report_identify``: with the
+    patient's name, ID and the file paths).
+
+    ``sid_mm``, ``sod_mm``, ``pixel_mm`` and ``frame_time_ms`` fill in what a run's files lack
+    (:func:`registration.io.dicom.read_xray_run`)."""
+    from app.cli.commands import parse_isocenter
+    from app.cli.report_commands import check_report_folder
+    from registration.core.tracking import track_run
+
+    out, report, isocenter = options.out, options.report, options.isocenter
+    if out is not None and Path(out).is_dir():
+        raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
+    check_report_folder(report)
+    if isocenter is not None and isocenter.strip().lower() != "volume-center":
+        parse_isocenter(isocenter)  # a bad value is refused before any file is read
+    vol, runs, run, run_b = _read_runs(options)
+    times = runs[0].times_s
+    m_true = read_run_truth(options.truth, len(times)) if options.truth is not None else None
+    _say(f"volume: {vol.label}  {vol.shape[2]}x{vol.shape[1]}x{vol.shape[0]} voxels")
+    g = runs[0].geometries[0]
+    span = float(times[-1] - times[0]) if len(times) > 1 else 0.0
+    _say(
+        f"run:    {run}: {len(times)} frames over {span:.1f} s (times from {runs[0].times_from}), "
+        f"{g.cols}x{g.rows} px" + (f"; plane B {run_b}" if run_b else "")
+    )
+    # decode every frame first: in the clinic frames arrive decoded; decoding is not the engine's latency
+    frames = [r.frames() for r in runs]
+    prepared, store = _prepare(vol, frames)
+    started = time.perf_counter()
+    result = track_run(vol, frames, times, seed=options.seed, realtime=not options.every_frame,
+                       on_frame=_frame_printer(), renderer=prepared.renderer)  # fmt: skip
+    wall = time.perf_counter() - started
+    if store is not None:
+        store.flush()  # a first run writes the prepared volume while it tracks
+    summary = result.summary()
+    document = result.to_dict()
+    document["volume"] = {"path": str(options.volume), "label": vol.label}
+    document["runs"] = [str(run)] + ([str(run_b)] if run_b else [])
+    document["conventions"] = (
+        "shared/CONVENTIONS.md §7: per frame (frame, t_s, patient_motion, status); patient_motion is the pose the "
+        "roadmap shows after the frame (the last applied estimate)"
+    )
+    if m_true is not None:
+        _score(result, document, summary, m_true, g, biplane=len(runs) == 2)
+    _say_summary(summary, prepared.crop, wall, scored=m_true is not None)
     if out is not None:
         dicom.write_text_atomic(out, dicom.json_dumps(document))
         _say(f"wrote {out}")
@@ -227,7 +253,7 @@ def track_files(options: Track) -> int:
         last = result.frames[-1].frame if result.frames else len(times) - 1
         write_run_report(
             report, document=document, volume=vol, last_views=[f[last] for f in frames], renderer=prepared.renderer,
-            truth=m_true, identify=report_identify,
+            truth=m_true, identify=options.report_identify,
         )  # fmt: skip
         _say(f"wrote {report}/ (open {Path(report) / 'report.html'})")
     return 0

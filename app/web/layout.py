@@ -88,22 +88,7 @@ class Layout:
             self.badge = gui.add_html(badge("PREPARING", "#495057"))
             self.readout = gui.add_markdown("Residual: –")
             self.details = gui.add_markdown("")
-            self.plot = gui.add_uplot(
-                data=(np.zeros(1), np.full(1, np.nan), np.full(1, np.nan)),
-                series=(
-                    {"label": "iteration"},
-                    {"label": "similarity", "stroke": "#4dabf7", "width": 2, "scale": "sim"},
-                    {"label": "log10 temperature", "stroke": "#ffa94d", "width": 1.5, "scale": "temp"},
-                ),
-                scales={"x": {"time": False}, "sim": {"auto": True}, "temp": {"auto": True}},
-                axes=(
-                    {"stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
-                    {"scale": "sim", "stroke": "#4dabf7", "grid": {"stroke": "#2c2e33"}},
-                    {"scale": "temp", "side": 1, "stroke": "#ffa94d", "grid": {"show": False}},
-                ),
-                title="Convergence: gradient difference (best) and temperature",
-                height=190,
-            )
+            self.plot = self._convergence_plot()
         self.view_panel.dock_left()
         self.view_panel.set_width(VIEW_PANEL_PX)
 
@@ -126,108 +111,13 @@ class Layout:
         self.status = gui.add_markdown("")
         self.control_tabs = tabs = gui.add_tab_group()
         with tabs.add_tab("Patient motion", viser.Icon.USER):
-            self.offset_sliders = [
-                gui.add_slider(
-                    OFFSET_LABELS[name],
-                    -offset_limit(i),
-                    offset_limit(i),
-                    0.1,
-                    0.0,
-                    hint="Patient motion in the view frame (x = image columns, y = rows, z = toward the source)",
-                )
-                for i, name in enumerate(OFFSET_NAMES)
-            ]
-            gui.add_markdown("Table I of the paper (initial offsets):")
-            self.table_buttons = {
-                name: gui.add_button(name, hint=f"Table I offset {TABLE_I[name]}") for name in TABLE_I
-            }
-            self.random_button = gui.add_button("Random", hint="A random motion within 25 mm and 10°")
-            self.reset_button = gui.add_button("Reset", hint="No patient motion; roadmap from the C-arm sensors")
+            self._motion_tab(gui)
         with tabs.add_tab("C-arm", viser.Icon.RADAR):
-            self.primary = gui.add_slider(
-                "LAO/RAO (°)", -120.0, 120.0, 1.0, 0.0, hint="Primary angle: LAO positive, RAO negative"
-            )
-            self.secondary = gui.add_slider(
-                "CRAN/CAUD (°)", -50.0, 50.0, 1.0, 0.0, hint="Secondary angle: CRAN positive, CAUD negative"
-            )
-            self.sid = gui.add_slider("SID (mm)", 900.0, 1300.0, 10.0, DEFAULT_SID_MM)
-            self.image_format = gui.add_dropdown("Image format", FORMAT_OPTIONS, initial_value="27 cm")
-            self.volume_format = gui.add_dropdown("Volume format", FORMAT_OPTIONS, initial_value="27 cm")
-            self.kind = gui.add_dropdown("Image type", ("fluoro", "exposure"), initial_value="fluoro")
-            self.contrast = gui.add_checkbox("Contrast in vessels", True)
-            self.catheter = gui.add_checkbox("Catheter", False)
-            spec = plane_b_spec()
-            self.plane_b_folder = gui.add_folder("Plane B (lateral C-arm)", visible=False)
-            with self.plane_b_folder:
-                self.primary_b = gui.add_slider(
-                    "B: LAO/RAO (°)", 45.0, 135.0, 1.0, PLANE_B_PRIMARY_DEG, hint="Plane B's primary angle"
-                )
-                self.secondary_b = gui.add_slider(
-                    "B: CRAN/CAUD (°)", -40.0, 40.0, 1.0, 0.0, hint="Plane B's secondary angle"
-                )
-                gui.add_markdown(
-                    f"<small>Its own machine: SID {spec.sid_mm:g} mm, SOD {spec.sod_mm:g} mm, "
-                    f"{spec.image_format_cm:g} cm format; same image type.</small>"
-                )
+            self._carm_tab(gui)
         with tabs.add_tab("Data", viser.Icon.DATABASE):
-            self.source = gui.add_markdown("")
-            self.upload = gui.add_upload_button(
-                "Upload your DICOM (.zip)",
-                icon=viser.Icon.UPLOAD,
-                mime_type="application/zip",
-                hint="A zip with a 3DRA/CT volume (series, multi-frame or .npz) and one XA/RF image",
-            )
-            gui.add_markdown(
-                f"<small>Limit {max_upload_bytes / 1e6:g} MB. Unpacked into a private temporary folder, read, "
-                "then deleted. Your data has no ground truth: the motion controls move the roadmap.</small>"
-            )
-            self.upload_sid = gui.add_text(
-                "SID (mm)",
-                "",
-                hint="Source-detector distance for an XA/RF file without DistanceSourceToDetector; "
-                "a value here replaces the file's (with a warning). Empty: from the file.",
-            )
-            self.upload_sod = gui.add_text(
-                "SOD (mm)",
-                "",
-                hint="Source-iso-center distance for an XA/RF file without DistanceSourceToPatient; "
-                "a value here replaces the file's (with a warning). Empty: from the file.",
-            )
-            gui.add_markdown("<small>SID/SOD: only for images that lack the distances; then upload again.</small>")
-            self.field_mask_upload = gui.add_upload_button(
-                "Field mask (PNG/TIFF)",
-                icon=viser.Icon.MASK,
-                mime_type="image/*",
-                hint="Your own mask of the image's usable field: the image's stored size, nonzero = usable; it narrows "
-                "the field found from the file (as register --image-mask)",
-            )
-            self.region_upload = gui.add_upload_button(
-                "Region mask (.npz, NIfTI, DICOM SEG)",
-                icon=viser.Icon.BOX,
-                hint="A label mask on the volume's grid: the registration follows the labelled voxels only (the "
-                "cranium without the spine, say), as register --roi-mask",
-            )
-            self.isocenter_info = gui.add_markdown("")
-            self.isocenter_field = gui.add_text(
-                "Iso-center (mm)",
-                "",
-                hint="x, y, z in mm, the volume's patient coordinates (LPS), or 'volume center'; the image is "
-                "placed about it and the next Register uses it",
-            )
-            self.isocenter_button = gui.add_button(
-                "Set iso-center", icon=viser.Icon.CROSSHAIR, hint="Use the iso-center typed above"
-            )
-            self.volume_center_button = gui.add_button(
-                "Iso-center at the volume center", hint="The center of the volume's voxel grid"
-            )
-            self.phantom_button = gui.add_button("Back to the phantom", visible=False)
+            self._data_tab(gui, max_upload_bytes)
         with tabs.add_tab("Display", viser.Icon.EYE):
-            self.show_ghost = gui.add_checkbox("True position (ghost)", False)
-            self.show_skull = gui.add_checkbox("Skull", True)
-            self.show_gradients = gui.add_checkbox("Gradient images", False)
-            self.show_field = gui.add_checkbox(
-                "Usable field", False, hint="Shade what the registration leaves out of the X-ray image (blades, text)"
-            )
+            self._display_tab(gui)
 
         #: Disabled during a run, and while the user's file fixes the C-arm.
         self.carm_controls: list[Any] = [
@@ -243,6 +133,134 @@ class Layout:
             self.random_button,
             self.reset_button,
         ]
+
+    def _convergence_plot(self) -> Any:
+        """The annealing's best similarity and temperature, per iteration."""
+        return self.gui.add_uplot(
+            data=(np.zeros(1), np.full(1, np.nan), np.full(1, np.nan)),
+            series=(
+                {"label": "iteration"},
+                {"label": "similarity", "stroke": "#4dabf7", "width": 2, "scale": "sim"},
+                {"label": "log10 temperature", "stroke": "#ffa94d", "width": 1.5, "scale": "temp"},
+            ),
+            scales={"x": {"time": False}, "sim": {"auto": True}, "temp": {"auto": True}},
+            axes=(
+                {"stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
+                {"scale": "sim", "stroke": "#4dabf7", "grid": {"stroke": "#2c2e33"}},
+                {"scale": "temp", "side": 1, "stroke": "#ffa94d", "grid": {"show": False}},
+            ),
+            title="Convergence: gradient difference (best) and temperature",
+            height=190,
+        )
+
+    def _motion_tab(self, gui: Any) -> None:
+        """The patient-motion sliders, Table I's offsets, Random and Reset."""
+        self.offset_sliders = [
+            gui.add_slider(
+                OFFSET_LABELS[name],
+                -offset_limit(i),
+                offset_limit(i),
+                0.1,
+                0.0,
+                hint="Patient motion in the view frame (x = image columns, y = rows, z = toward the source)",
+            )
+            for i, name in enumerate(OFFSET_NAMES)
+        ]
+        gui.add_markdown("Table I of the paper (initial offsets):")
+        self.table_buttons = {name: gui.add_button(name, hint=f"Table I offset {TABLE_I[name]}") for name in TABLE_I}
+        self.random_button = gui.add_button("Random", hint="A random motion within 25 mm and 10°")
+        self.reset_button = gui.add_button("Reset", hint="No patient motion; roadmap from the C-arm sensors")
+
+    def _carm_tab(self, gui: Any) -> None:
+        """The C-arm's angles, distances, formats and image type, and plane B's."""
+        self.primary = gui.add_slider(
+            "LAO/RAO (°)", -120.0, 120.0, 1.0, 0.0, hint="Primary angle: LAO positive, RAO negative"
+        )
+        self.secondary = gui.add_slider(
+            "CRAN/CAUD (°)", -50.0, 50.0, 1.0, 0.0, hint="Secondary angle: CRAN positive, CAUD negative"
+        )
+        self.sid = gui.add_slider("SID (mm)", 900.0, 1300.0, 10.0, DEFAULT_SID_MM)
+        self.image_format = gui.add_dropdown("Image format", FORMAT_OPTIONS, initial_value="27 cm")
+        self.volume_format = gui.add_dropdown("Volume format", FORMAT_OPTIONS, initial_value="27 cm")
+        self.kind = gui.add_dropdown("Image type", ("fluoro", "exposure"), initial_value="fluoro")
+        self.contrast = gui.add_checkbox("Contrast in vessels", True)
+        self.catheter = gui.add_checkbox("Catheter", False)
+        spec = plane_b_spec()
+        self.plane_b_folder = gui.add_folder("Plane B (lateral C-arm)", visible=False)
+        with self.plane_b_folder:
+            self.primary_b = gui.add_slider(
+                "B: LAO/RAO (°)", 45.0, 135.0, 1.0, PLANE_B_PRIMARY_DEG, hint="Plane B's primary angle"
+            )
+            self.secondary_b = gui.add_slider(
+                "B: CRAN/CAUD (°)", -40.0, 40.0, 1.0, 0.0, hint="Plane B's secondary angle"
+            )
+            gui.add_markdown(
+                f"<small>Its own machine: SID {spec.sid_mm:g} mm, SOD {spec.sod_mm:g} mm, "
+                f"{spec.image_format_cm:g} cm format; same image type.</small>"
+            )
+
+    def _data_tab(self, gui: Any, max_upload_bytes: int) -> None:
+        """The user's data: upload, distances, field and region masks, the iso-center."""
+        self.source = gui.add_markdown("")
+        self.upload = gui.add_upload_button(
+            "Upload your DICOM (.zip)",
+            icon=viser.Icon.UPLOAD,
+            mime_type="application/zip",
+            hint="A zip with a 3DRA/CT volume (series, multi-frame or .npz) and one XA/RF image",
+        )
+        gui.add_markdown(
+            f"<small>Limit {max_upload_bytes / 1e6:g} MB. Unpacked into a private temporary folder, read, "
+            "then deleted. Your data has no ground truth: the motion controls move the roadmap.</small>"
+        )
+        self.upload_sid = gui.add_text(
+            "SID (mm)",
+            "",
+            hint="Source-detector distance for an XA/RF file without DistanceSourceToDetector; "
+            "a value here replaces the file's (with a warning). Empty: from the file.",
+        )
+        self.upload_sod = gui.add_text(
+            "SOD (mm)",
+            "",
+            hint="Source-iso-center distance for an XA/RF file without DistanceSourceToPatient; "
+            "a value here replaces the file's (with a warning). Empty: from the file.",
+        )
+        gui.add_markdown("<small>SID/SOD: only for images that lack the distances; then upload again.</small>")
+        self.field_mask_upload = gui.add_upload_button(
+            "Field mask (PNG/TIFF)",
+            icon=viser.Icon.MASK,
+            mime_type="image/*",
+            hint="Your own mask of the image's usable field: the image's stored size, nonzero = usable; it narrows "
+            "the field found from the file (as register --image-mask)",
+        )
+        self.region_upload = gui.add_upload_button(
+            "Region mask (.npz, NIfTI, DICOM SEG)",
+            icon=viser.Icon.BOX,
+            hint="A label mask on the volume's grid: the registration follows the labelled voxels only (the "
+            "cranium without the spine, say), as register --roi-mask",
+        )
+        self.isocenter_info = gui.add_markdown("")
+        self.isocenter_field = gui.add_text(
+            "Iso-center (mm)",
+            "",
+            hint="x, y, z in mm, the volume's patient coordinates (LPS), or 'volume center'; the image is "
+            "placed about it and the next Register uses it",
+        )
+        self.isocenter_button = gui.add_button(
+            "Set iso-center", icon=viser.Icon.CROSSHAIR, hint="Use the iso-center typed above"
+        )
+        self.volume_center_button = gui.add_button(
+            "Iso-center at the volume center", hint="The center of the volume's voxel grid"
+        )
+        self.phantom_button = gui.add_button("Back to the phantom", visible=False)
+
+    def _display_tab(self, gui: Any) -> None:
+        """What the views show besides the roadmap."""
+        self.show_ghost = gui.add_checkbox("True position (ghost)", False)
+        self.show_skull = gui.add_checkbox("Skull", True)
+        self.show_gradients = gui.add_checkbox("Gradient images", False)
+        self.show_field = gui.add_checkbox(
+            "Usable field", False, hint="Shade what the registration leaves out of the X-ray image (blades, text)"
+        )
 
     # ----- where new panels go ------------------------------------------------------------
     @contextmanager

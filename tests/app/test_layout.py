@@ -73,11 +73,11 @@ def test_the_command_line_offers_the_engines_volume_sources() -> None:
     """The CLI's choices are typing.Literal declarations: they must stay the engine's list."""
     import typing
 
-    from app import cli
-    from app.cli import options
+    from app.cli import configs, options
     from registration.sim.threedra import VOLUME_SOURCES
 
-    for hints in (typing.get_type_hints(options.PhantomStudy), typing.get_type_hints(cli.phantom)):
+    for hints in (typing.get_type_hints(options.PhantomStudy), typing.get_type_hints(configs.Phantom),
+                  typing.get_type_hints(configs.PhantomRun)):  # fmt: skip
         assert typing.get_args(hints["volume_source"]) == VOLUME_SOURCES
 
 
