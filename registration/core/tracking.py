@@ -431,14 +431,7 @@ class Tracker:
         self._since_refine += 1
         first = self.level is None
         if first and not o.register_first:
-            # The run starts registered: the pose the tracking level prefers near the initial
-            # pose on this frame stands for the initial pose from now on (the coarse level's
-            # own bias is not a motion).
-            tracked, f_ref, _, _ = self._refine(levels, self.pose, f0)
-            self._bias = invert_rigid(tracked) @ self.pose
-            self.pose = tracked
-            self.level = f_ref
-            self.plane_levels = self._per_plane(levels, tracked)
+            f_ref = self._start_registered(levels, f0)
             return self._result(frame, t_s, "unchanged", None, "check", None, "", start, f_ref, 0.0, drrs0, {})
         if first:
             self.level = f0
@@ -456,12 +449,7 @@ class Tracker:
         if not capture:
             estimate, f_est, margin, _ = self._refine(levels, self.pose, f0)
             self._since_refine = 0
-            gain = (f_est - f0) / scale
-            moved_mm, moved_deg = self._correction(estimate, views)
-            small = moved_mm < o.min_correction_mm and moved_deg < o.min_correction_deg
-            if small or (not significant and gain <= o.suspect_sigmas):
-                # a probe that found no better pose (or one within the tracking level's own
-                # jitter): the patient did not move, whatever else changed in the image
+            if self._no_motion(views, estimate, (f_est - f0) / scale, significant):
                 self._learn(f0, f0_planes)
                 return self._result(frame, t_s, "unchanged", None, "refine", None, "", start, f0, drop, drrs0, {})
             capture = not (
@@ -470,27 +458,76 @@ class Tracker:
             )
         if capture:
             path = "capture"
-            result = register(
-                self.volume,
-                views,  # two planes: all six parameters
-                initial_motion=self.shown_pose,
-                options=o.capture,
-                seed=self.seed + frame,
-                renderer=self.renderer,
-            )
-            motions = getattr(result, "capture_motions", None)
-            if motions:
-                from registration.core.confidence import capture_agreement
-
-                agreement = capture_agreement(list(motions), result.patient_motion, views[0].geometry.isocenter_mm)
-            # the capture's pose, refined at the tracking level (the measure the level is kept in)
-            captured = result.patient_motion @ invert_rigid(self._bias)
-            f_cap = self._evaluate(levels, [captured])[0]
-            estimate, f_est, margin, _ = self._refine(levels, captured, f_cap)
-            self._since_refine = 0
+            estimate, f_est, margin, agreement = self._capture(levels, views, frame)
             if first:
                 self.level = max(self.level, f_est)
                 scale = self._scale()
+        evidence = Evidence(
+            deficit=float(self._deficit(levels, estimate, f_est, path, scale)),
+            margin=float(margin),
+            agreement=agreement,
+            edges=float(np.mean([edge_fraction(lv.image, lv.mask) for lv in levels])),
+            plane_disagreement_mm=None,
+        )
+        assessment: Assessment = o.rule.assess(evidence)
+        status = "withheld"
+        if assessment.applied:
+            self._apply(levels, views, estimate, f_est, path)
+            status = "applied"
+        return self._result(
+            frame, t_s, status, estimate, path, assessment.confidence, assessment.reason, start, f_est, drop, drrs0,
+            evidence.to_dict(),
+        )  # fmt: skip
+
+    def _start_registered(self, levels: list, f0: float) -> float:
+        """The run starts registered: the pose the tracking level prefers near the initial pose on
+        this frame stands for the initial pose from now on (the coarse level's own bias is not a
+        motion). Returns the level."""
+        tracked, f_ref, _, _ = self._refine(levels, self.pose, f0)
+        self._bias = invert_rigid(tracked) @ self.pose
+        self.pose = tracked
+        self.level = f_ref
+        self.plane_levels = self._per_plane(levels, tracked)
+        return f_ref
+
+    def _no_motion(self, views: list[XRayImage], estimate: np.ndarray, gain: float, significant: bool) -> bool:
+        """A probe that found no better pose (or one within the tracking level's own jitter, or a
+        correction too small to show): the patient did not move, whatever else changed in the image."""
+        o = self.options
+        moved_mm, moved_deg = self._correction(estimate, views)
+        small = moved_mm < o.min_correction_mm and moved_deg < o.min_correction_deg
+        return small or (not significant and gain <= o.suspect_sigmas)
+
+    def _capture(
+        self, levels: list, views: list[XRayImage], frame: int
+    ) -> tuple[np.ndarray, float, float, float | None]:
+        """A full registration from the shown pose, refined at the tracking level (the measure the
+        level is kept in): the estimate, its level, its margin and the capture runs' agreement."""
+        result = register(
+            self.volume,
+            views,  # two planes: all six parameters
+            initial_motion=self.shown_pose,
+            options=self.options.capture,
+            seed=self.seed + frame,
+            renderer=self.renderer,
+        )
+        agreement = None
+        motions = getattr(result, "capture_motions", None)
+        if motions:
+            from registration.core.confidence import capture_agreement
+
+            agreement = capture_agreement(list(motions), result.patient_motion, views[0].geometry.isocenter_mm)
+        captured = result.patient_motion @ invert_rigid(self._bias)
+        f_cap = self._evaluate(levels, [captured])[0]
+        estimate, f_est, margin, _ = self._refine(levels, captured, f_cap)
+        self._since_refine = 0
+        return estimate, f_est, margin, agreement
+
+    def _deficit(self, levels: list, estimate: np.ndarray, f_est: float, path: str, scale: float) -> float:
+        """How far the estimate's measure falls short of the level, in the level's noise (the
+        confidence rule's deficit); biplane: the worse of the two planes' own levels too."""
+        o = self.options
+        assert self.level is not None
         deficit = (self.level - f_est) / scale
         if path == "capture":
             # After a large move the compared anatomy changed (other pixels inside the support,
@@ -505,30 +542,18 @@ class Tracker:
             worst = max((lv - f) / max(tolerance * abs(lv), 1e-12) for lv, f in zip(self.plane_levels, f_planes,
                                                                                    strict=True))  # fmt: skip
             deficit = max(deficit, worst)
-        evidence = Evidence(
-            deficit=float(deficit),
-            margin=float(margin),
-            agreement=agreement,
-            edges=float(np.mean([edge_fraction(lv.image, lv.mask) for lv in levels])),
-            plane_disagreement_mm=None,
-        )
-        assessment: Assessment = o.rule.assess(evidence)
-        if assessment.applied:
-            self.pose = estimate
-            self.level = f_est
-            if len(levels) > 1:
-                self.plane_levels = self._per_plane(levels, estimate)
-            # the compared pixels follow the patient after a large move
-            if path == "capture" and self._moved_mm(estimate, self._mask_pose, views[0].geometry) > 5.0:
-                self._mask_pose = estimate.copy()
-                self._masks.clear()
-            status = "applied"
-        else:
-            status = "withheld"
-        return self._result(
-            frame, t_s, status, estimate, path, assessment.confidence, assessment.reason, start, f_est, drop, drrs0,
-            evidence.to_dict(),
-        )  # fmt: skip
+        return deficit
+
+    def _apply(self, levels: list, views: list[XRayImage], estimate: np.ndarray, f_est: float, path: str) -> None:
+        """The estimate becomes the shown pose and its measure the level; after a large move the
+        compared pixels follow the patient."""
+        self.pose = estimate
+        self.level = f_est
+        if len(levels) > 1:
+            self.plane_levels = self._per_plane(levels, estimate)
+        if path == "capture" and self._moved_mm(estimate, self._mask_pose, views[0].geometry) > 5.0:
+            self._mask_pose = estimate.copy()
+            self._masks.clear()
 
     def warm_up(self, views: XRayImage | Sequence[XRayImage]) -> None:
         """Compile and touch everything one frame needs (before a run's clock starts)."""
