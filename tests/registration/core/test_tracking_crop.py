@@ -164,7 +164,7 @@ def test_live_run_keeps_processing_frames_while_the_crop_is_prepared(tall, monke
     swaps the new one in at the first frame after it is ready."""
     import threading
 
-    import registration.core.tracking as tracking
+    import registration.core.tracking.crop_watch as tracking
 
     volume, anatomy = tall
     prepared = _prepared(volume)
