@@ -75,7 +75,7 @@ RUNNERS: dict[type, tuple[str, str]] = {
     Bench: ("app.cli.study_commands", "run_bench"),
     Register: ("app.cli.register_command", "run_register"),
     Info: ("app.cli.commands", "run_info"),
-    Phantom: ("app.cli.commands", "run_phantom_export"),
+    Phantom: ("app.cli.phantom_commands", "run_phantom_export"),
     Mesh: ("app.cli.commands", "run_mesh"),
     Listen: ("app.cli.net_commands", "run_listen"),
     Audit: ("app.cli.local_commands", "run_audit"),

@@ -1,4 +1,4 @@
-"""The data commands: ``register``, ``info``, ``phantom`` and ``mesh``.
+"""The data commands ``info`` and ``mesh``, and the helpers every command shares.
 
 The only module of ``registration/`` that prints. Bad input raises ``ValueError`` (often a
 :class:`~registration.io.dicom.DicomError` naming the file and the tag), which ``cli.main``
@@ -17,17 +17,15 @@ import time
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from app.cli.configs import Info, Mesh, Phantom
-from registration.core.geometry import OFFSET_NAMES, TABLE_I, CArm, check_rigid, matrix_to_offsets, offsets_to_matrix
+from app.cli.configs import Info, Mesh
+from registration.core.geometry import TABLE_I, CArm, check_rigid, matrix_to_offsets
 from registration.io import dicom
 from registration.io.isocenter import resolve_isocenter
-from registration.sim.threedra import VOLUME_SOURCES, VolumeRecipe
 
 if TYPE_CHECKING:
     from registration.core.drr import DRRRenderer
@@ -36,14 +34,6 @@ if TYPE_CHECKING:
     from registration.core.volume import Volume
     from registration.io.cache import PreparationCache
 
-#: Files written by ``roadmap3d phantom`` inside its output folder.
-PHANTOM_VOLUME_DIR = "volume"
-PHANTOM_FLUORO = "xa_fluoro.dcm"
-PHANTOM_EXPOSURE = "xa_exposure.dcm"
-PHANTOM_FLUORO_B = "xa_fluoro_plane_b.dcm"
-#: Seconds between the phantom's fluoro frame and its exposure (two acquisitions, not one moment).
-EXPOSURE_AFTER_FLUORO_S = 4.0
-PHANTOM_TRUTH = "truth.json"
 #: Long work (building the FDK 3DRA the first time) is announced on stderr once it has taken
 #: this long (seconds); a cached volume loads well within it ...
 PROGRESS_AFTER_S = 3.0
@@ -334,149 +324,6 @@ def run_info(options: Info) -> int:
     if not report.get("accepted"):
         _say(f"error: {report.get('problem')}", stream=sys.stderr)
         return 2
-    return 0
-
-
-# --------------------------------------------------------------------------------------
-# phantom
-# --------------------------------------------------------------------------------------
-def _phantom_3dra(
-    *,
-    source: str,
-    seed: int,
-    contrast: bool,
-    volume_format: float,
-    voxels: int,
-) -> tuple[Volume, str, dict[str, Any]]:
-    """The 3DRA to export, its SeriesDescription (<= 64 characters) and how it was made (for the truth).
-
-    The same phantom (seed, contrast) as the XA images; the run's own noise seed and protocol
-    are the recipe's defaults, so the cache entry is shared with the validation and the app.
-    """
-    recipe = VolumeRecipe(
-        phantom_seed=seed, volume_format_cm=volume_format, source=source, voxels=voxels, contrast=contrast,
-        noise_seed=seed,
-    )  # fmt: skip
-    if not recipe.reconstructed:
-        volume = recipe.build()
-        return volume, "3DRA stand-in: phantom resampled to the 3DRA grid", {"volume_source": source}
-    message = (
-        f"3DRA: simulating the rotational run and reconstructing it (FDK, {voxels}^3 voxels, "
-        f"{volume_format:g} cm format); this takes minutes the first time and is cached afterwards"
-    )
-    with _progress(message):
-        volume = recipe.build()
-    run = {k: volume.meta[k] for k in ("projections", "arc_deg", "pixels", "kind", "seed") if k in volume.meta}
-    label = f"3DRA: {volume.label}, head phantom seed {seed} {'with' if contrast else 'without'} contrast"
-    description = f"3DRA: FDK reconstruction, {run.get('projections', '?')} projections"
-    return volume.with_data(volume.data, label=label), description, {"volume_source": source, "rotational_run": run}
-
-
-def run_phantom_export(options: Phantom) -> int:
-    """Export the phantom: DICOM 3DRA series, XA fluoro and exposure with known motion, truth JSON.
-
-    The 3DRA series is ``volume_source`` (one of :data:`registration.sim.threedra.VOLUME_SOURCES`).
-    The XA images are the analytic phantom moved by the known motion and projected with the nominal geometry that
-    their positioner tags state; the FDK volume is reconstructed in the same world frame (from
-    the calibrated geometry of its run), so the truth holds for either source.
-    """
-    out, volume_format, image_format = options.out, options.volume_format, options.image_format
-    primary_deg, secondary_deg, offset = options.primary_deg, options.secondary_deg, options.offset
-    contrast, seed, voxels, pixels = options.contrast, options.seed, options.voxels, options.pixels
-    volume_source = options.volume_source
-    out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(f"{out}: exists and is not an empty folder; refusing to overwrite")
-    if voxels < 8 or pixels < 16:
-        raise ValueError(f"voxels must be >= 8 and pixels >= 16, got {voxels} and {pixels}")
-    if volume_source not in VOLUME_SOURCES:
-        raise ValueError(f"--volume-source must be one of {', '.join(VOLUME_SOURCES)}, got {volume_source!r}")
-    offset_name, offsets = parse_offset(offset)
-
-    from registration.sim.phantom import make_head_phantom
-    from registration.sim.xray import simulate_xray
-
-    start = time.perf_counter()
-    geometry = CArm.for_format(image_format, pixels=pixels, primary_deg=primary_deg, secondary_deg=secondary_deg)
-    motion = offsets_to_matrix(offsets, geometry)
-    phantom = make_head_phantom(seed=seed, contrast=contrast)
-    volume, description, made = _phantom_3dra(
-        source=volume_source, seed=seed, contrast=contrast, volume_format=volume_format, voxels=voxels
-    )
-    fluoro = simulate_xray(phantom, geometry, motion=motion, kind="fluoro", seed=seed)
-    exposure = simulate_xray(phantom, geometry, motion=motion, kind="exposure", seed=seed + 1)
-    # Plane B of the biplane system (CONVENTIONS §6): lateral, its own distances and detector,
-    # the same moment as the plane A fluoro frame (same motion, own noise).
-    from registration.sim.biplane import plane_b_spec
-
-    geometry_b = plane_b_spec().nominal(90.0 + primary_deg, secondary_deg, pixels=max(16, 2 * round(0.375 * pixels)))
-    fluoro_b = simulate_xray(phantom, geometry_b, motion=motion, kind="fluoro", seed=seed + 2)
-    moment = datetime.now(UTC)
-    uid_seed = f"roadmap3d phantom {seed} {volume_format} {image_format} {voxels} {pixels} {contrast} {volume_source}"
-    study_uid = str(dicom.make_uid(uid_seed, "study"))
-    vessels = phantom.vessel_centerline_mm()
-    truth = {
-        "patient_motion": motion.tolist(),
-        "offset": {"name": offset_name, **dict(zip(OFFSET_NAMES, offsets.tolist(), strict=True))},
-        "geometry": geometry.to_dict(),
-        "geometry_plane_b": geometry_b.to_dict(),
-        "volume_format_cm": volume_format,
-        "image_format_cm": image_format,
-        "phantom": {"seed": seed, "contrast": contrast},
-        "volume_label": volume.label,
-        **made,
-        "images": "the analytic phantom moved by patient_motion, projected with the nominal geometry of the "
-        "XA positioner tags",
-        "files": {
-            "volume": PHANTOM_VOLUME_DIR,
-            "fluoro": PHANTOM_FLUORO,
-            "exposure": PHANTOM_EXPOSURE,
-            "fluoro_plane_b": PHANTOM_FLUORO_B,
-        },
-        "vessel_points_mm": np.round(vessels[:: max(1, len(vessels) // 200)], 3).tolist(),
-        "conventions": "shared/CONVENTIONS.md §4: anatomy the volume shows at X is at M @ X in the images",
-    }
-    with dicom.atomic_folder(out) as tmp:
-        dicom.write_series(
-            volume, tmp / PHANTOM_VOLUME_DIR, description=description, study_uid=study_uid, uid_seed=uid_seed
-        )
-        dicom.write_xray(fluoro, tmp / PHANTOM_FLUORO, study_uid=study_uid, uid_seed=uid_seed, plane="PLANE A",
-                         acquired_at=moment)  # fmt: skip
-        dicom.write_xray(fluoro_b, tmp / PHANTOM_FLUORO_B, study_uid=study_uid, uid_seed=f"{uid_seed} plane B",
-                         plane="PLANE B", acquired_at=moment, description="roadmap3d fluoro, plane B")  # fmt: skip
-        # The exposure is its own acquisition, a few seconds after the fluoro frame: never one moment
-        # with it, however fast this machine writes the files (biplane pairing refuses it).
-        dicom.write_xray(exposure, tmp / PHANTOM_EXPOSURE, study_uid=study_uid, uid_seed=uid_seed,
-                         acquired_at=moment + timedelta(seconds=EXPOSURE_AFTER_FLUORO_S))  # fmt: skip
-        if volume_source == "fdk":  # the run the 3DRA was reconstructed from (validate rotational-run)
-            from app.cli.rotational_commands import export_phantom_run
-
-            truth["files"].update(
-                export_phantom_run(
-                    tmp, volume, seed=seed, contrast=contrast, volume_format=volume_format, study_uid=study_uid,
-                    uid_seed=uid_seed,
-                )
-            )  # fmt: skip
-        dicom.write_text_atomic(tmp / PHANTOM_TRUTH, dicom.json_dumps(truth))
-    _say(f"wrote {out}/ in {time.perf_counter() - start:.1f} s:")
-    _say(
-        f"  {PHANTOM_VOLUME_DIR}/       {volume.shape[0]} CT slices of {volume.shape[2]}x{volume.shape[1]} "
-        f"({volume.label})"
-    )
-    _say(f"  {PHANTOM_FLUORO}    XA fluoroscopy, {pixels}x{pixels} px, {image_format:g} cm format")
-    _say(f"  {PHANTOM_EXPOSURE}  XA exposure")
-    _say(
-        f"  {PHANTOM_FLUORO_B}  XA fluoroscopy of plane B (lateral, same moment as {PHANTOM_FLUORO}), "
-        f"{geometry_b.cols}x{geometry_b.rows} px"
-    )
-    if "rotational_run_file" in truth["files"]:
-        _say("  rotational_run.dcm  the 3DRA's rotational run (multi-frame XA, per-frame angles) + its calibration")
-    _say(f"  {PHANTOM_TRUTH}      patient motion {offset_name}: {_format_offsets(motion, geometry)}")
-    _say(
-        f"try: roadmap3d register --volume {out / PHANTOM_VOLUME_DIR} --image {out / PHANTOM_FLUORO} "
-        f"--truth {out / PHANTOM_TRUTH}"
-    )
-    _say(f"biplane: add --image {out / PHANTOM_FLUORO_B}")
     return 0
 
 

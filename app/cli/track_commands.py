@@ -266,7 +266,7 @@ def run_phantom_run_export(options: PhantomRun) -> int:
     primary_deg, secondary_deg, biplane = options.primary_deg, options.secondary_deg, options.biplane
     sudden_moves, seed, voxels = options.sudden_moves, options.seed, options.voxels
     volume_source = options.volume_source
-    from app.cli.commands import _phantom_3dra
+    from app.cli.phantom_commands import _phantom_3dra
     from registration.core.geometry import CArm
     from registration.sim.fluoro import RunScript, simulate_biplane_run
     from registration.sim.phantom import make_head_phantom

@@ -17,6 +17,7 @@ from pydicom.data import get_testdata_file
 
 from app import cli
 from app.cli import commands as cli_io
+from app.cli import phantom_commands as pc
 from app.cli.configs import Phantom
 from registration.core.geometry import CArm
 from registration.core.metrics import residuals
@@ -46,20 +47,20 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_phantom_export_contents(exported: Path) -> None:
-    truth = json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())
+    truth = json.loads((exported / pc.PHANTOM_TRUTH).read_text())
     motion = np.asarray(truth["patient_motion"])
     assert motion.shape == (4, 4) and truth["offset"]["name"] == "T4"
     geometry = CArm.from_dict(truth["geometry"])
-    image = dicom.read_xray(exported / cli_io.PHANTOM_FLUORO)
+    image = dicom.read_xray(exported / pc.PHANTOM_FLUORO)
     assert image.kind == "fluoro"
     for key, value in geometry.to_dict().items():
         np.testing.assert_allclose(image.geometry.to_dict()[key], value, rtol=1e-12)
-    volume = dicom.read_volume(exported / cli_io.PHANTOM_VOLUME_DIR)
+    volume = dicom.read_volume(exported / pc.PHANTOM_VOLUME_DIR)
     assert volume.shape == (128, 128, 128)
     assert "stand-in" in volume.label and volume.label == truth["volume_label"]
     assert "stand-in" in volume.meta["series_description"]
     assert truth["volume_source"] == "resampled"
-    assert dicom.read_xray(exported / cli_io.PHANTOM_EXPOSURE).kind == "exposure"
+    assert dicom.read_xray(exported / pc.PHANTOM_EXPOSURE).kind == "exposure"
 
 
 def test_phantom_export_fdk(tmp_path: Path, capsys, monkeypatch) -> None:
@@ -83,8 +84,8 @@ def test_phantom_export_fdk(tmp_path: Path, capsys, monkeypatch) -> None:
     assert "simulating the rotational run" in err and "cached afterwards" in err and "done in" in err
     assert calls == [((0,), {"volume_format_cm": 22.0, "contrast": True, "voxels": 24})]
 
-    truth = json.loads((tmp_path / "a" / cli_io.PHANTOM_TRUTH).read_text())
-    volume = dicom.read_volume(tmp_path / "a" / cli_io.PHANTOM_VOLUME_DIR)
+    truth = json.loads((tmp_path / "a" / pc.PHANTOM_TRUTH).read_text())
+    volume = dicom.read_volume(tmp_path / "a" / pc.PHANTOM_VOLUME_DIR)
     assert volume.shape == (24, 24, 24)
     assert "FDK reconstruction" in volume.label and "stand-in" not in volume.label
     assert volume.label == truth["volume_label"] and "FDK" in volume.meta["series_description"]
@@ -116,7 +117,7 @@ def test_phantom_export_fdk(tmp_path: Path, capsys, monkeypatch) -> None:
     monkeypatch.setattr(cli_io, "PROGRESS_AFTER_S", 3.0)
     code, _, err = run(["phantom", "--out", str(tmp_path / "b"), *args], capsys)
     assert code == 0 and "simulating" not in err
-    again = dicom.read_volume(tmp_path / "b" / cli_io.PHANTOM_VOLUME_DIR)
+    again = dicom.read_volume(tmp_path / "b" / pc.PHANTOM_VOLUME_DIR)
     np.testing.assert_array_equal(again.data, volume.data)
 
 
@@ -136,9 +137,9 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     code, out, err = run(
         [
             "register",
-            "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
-            "--image", str(exported / cli_io.PHANTOM_EXPOSURE),
-            "--truth", str(exported / cli_io.PHANTOM_TRUTH),
+            "--volume", str(exported / pc.PHANTOM_VOLUME_DIR),
+            "--image", str(exported / pc.PHANTOM_EXPOSURE),
+            "--truth", str(exported / pc.PHANTOM_TRUTH),
             "--out", str(result_path),
             "--out-dicom", str(tmp_path / "result.dcm"),
             "--verbose",
@@ -157,7 +158,7 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     result = json.loads(result_path.read_text())
     for key in ("patient_motion", "similarity", "drr_count", "seconds", "geometry", "residual", "success"):
         assert key in result
-    truth = json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())
+    truth = json.loads((exported / pc.PHANTOM_TRUTH).read_text())
     geometry = CArm.from_dict(result["geometry"])
     # Recompute the residual independently of the result's own field (CONVENTIONS §4).
     residual = residuals(np.asarray(result["patient_motion"]), np.asarray(truth["patient_motion"]), geometry)
@@ -174,7 +175,7 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     assert np.allclose(cli_io.read_motion_json(result_path, what="result")[0], result["patient_motion"])
     # ... and the DICOM Spatial Registration written beside it: the same motion (DS strings keep
     # 16 characters: ~1e-13 relative), relating the exported series' frame to the image's.
-    volume = dicom.read_volume(exported / cli_io.PHANTOM_VOLUME_DIR)
+    volume = dicom.read_volume(exported / pc.PHANTOM_VOLUME_DIR)
     motion, _ = cli_io.read_motion(
         tmp_path / "result.dcm", what="truth", volume_frame_of_reference=volume.meta["frame_of_reference_uid"]
     )
@@ -200,8 +201,8 @@ def test_register_confidence_renders_from_the_prepared_levels_as_calibrated(expo
     from registration.core.register import RegistrationOptions, prepared_volume, register
     from registration.studies.cases import assessment_fields
 
-    volume = dicom.read_volume(exported / cli_io.PHANTOM_VOLUME_DIR)
-    xray = dicom.read_xray(exported / cli_io.PHANTOM_EXPOSURE)
+    volume = dicom.read_volume(exported / pc.PHANTOM_VOLUME_DIR)
+    xray = dicom.read_xray(exported / pc.PHANTOM_EXPOSURE)
     prepared = prepared_volume(volume, (xray,), np.eye(4), RegistrationOptions())
     result = register(volume, xray, seed=0, renderer=prepared.renderer)
     renderer = cli_io.confidence_renderer(prepared)
@@ -221,17 +222,17 @@ def test_register_confidence_renders_from_the_prepared_levels_as_calibrated(expo
 def test_biplane_register_from_exported_files(exported: Path, tmp_path: Path, capsys) -> None:
     """Plane B is written beside plane A (same moment); two --image register biplane (six
     parameters); the residual is 3-D; frames of two moments are refused with exit code 2."""
-    plane_b = dicom.read_xray(exported / cli_io.PHANTOM_FLUORO_B)
+    plane_b = dicom.read_xray(exported / pc.PHANTOM_FLUORO_B)
     assert plane_b.meta["plane"] == "PLANE B" and abs(plane_b.geometry.primary_deg - 110.0) < 1e-9
-    assert dicom.read_xray(exported / cli_io.PHANTOM_FLUORO).meta["plane"] == "PLANE A"
+    assert dicom.read_xray(exported / pc.PHANTOM_FLUORO).meta["plane"] == "PLANE A"
     result_path = tmp_path / "biplane.json"
     code, out, _ = run(
         [
             "register",
-            "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
-            "--image", str(exported / cli_io.PHANTOM_FLUORO_B),
-            "--image", str(exported / cli_io.PHANTOM_FLUORO),
-            "--truth", str(exported / cli_io.PHANTOM_TRUTH),
+            "--volume", str(exported / pc.PHANTOM_VOLUME_DIR),
+            "--image", str(exported / pc.PHANTOM_FLUORO_B),
+            "--image", str(exported / pc.PHANTOM_FLUORO),
+            "--truth", str(exported / pc.PHANTOM_TRUTH),
             "--out", str(result_path),
             "--confidence",
         ],
@@ -247,7 +248,7 @@ def test_biplane_register_from_exported_files(exported: Path, tmp_path: Path, ca
     assert result["confidence_evidence"]["depth_scan_tz_mm"] is None
     assert set(result["offsets"]) == {"tx", "ty", "tz", "rx", "ry", "rz"}
     assert [i["plane"] for i in result["images"]] == ["PLANE A", "PLANE B"]
-    truth = json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())
+    truth = json.loads((exported / pc.PHANTOM_TRUTH).read_text())
     residual = residuals(
         np.asarray(result["patient_motion"]), np.asarray(truth["patient_motion"]), CArm.from_dict(result["geometry"])
     )
@@ -256,9 +257,9 @@ def test_biplane_register_from_exported_files(exported: Path, tmp_path: Path, ca
     code, _, err = run(
         [
             "register",
-            "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
-            "--image", str(exported / cli_io.PHANTOM_FLUORO),
-            "--image", str(exported / cli_io.PHANTOM_EXPOSURE),
+            "--volume", str(exported / pc.PHANTOM_VOLUME_DIR),
+            "--image", str(exported / pc.PHANTOM_FLUORO),
+            "--image", str(exported / pc.PHANTOM_EXPOSURE),
         ],
         capsys,
     )  # fmt: skip
@@ -305,8 +306,8 @@ def test_register_bad_input_exits_2_without_output(
     (tmp_path / "scaled.json").write_text(json.dumps({"patient_motion": (2 * np.eye(4)).tolist()}))
     values = {
         "tmp": str(tmp_path),
-        "vol": str(exported / cli_io.PHANTOM_VOLUME_DIR),
-        "xa": str(exported / cli_io.PHANTOM_FLUORO),
+        "vol": str(exported / pc.PHANTOM_VOLUME_DIR),
+        "xa": str(exported / pc.PHANTOM_FLUORO),
     }
     argv = ["register", *(a.format(**values) for a in args), "--out", str(tmp_path / "result.json")]
     code, _, err = run(argv, capsys)
@@ -316,9 +317,9 @@ def test_register_bad_input_exits_2_without_output(
 
 
 def test_info(exported: Path, capsys) -> None:
-    code, out, _ = run(["info", str(exported / cli_io.PHANTOM_FLUORO)], capsys)
+    code, out, _ = run(["info", str(exported / pc.PHANTOM_FLUORO)], capsys)
     assert code == 0 and "geometry" in out and "primary +20.00 deg" in out
-    code, out, _ = run(["info", str(exported / cli_io.PHANTOM_VOLUME_DIR), "--json"], capsys)
+    code, out, _ = run(["info", str(exported / pc.PHANTOM_VOLUME_DIR), "--json"], capsys)
     report = json.loads(out)
     assert code == 0 and report["kind"] == "volume" and report["shape_kji"] == [128, 128, 128]
     code, out, err = run(["info", get_testdata_file("MR_small.dcm")], capsys)
@@ -331,13 +332,13 @@ def test_mesh(exported: Path, tmp_path: Path, capsys) -> None:
 
     out = tmp_path / "head.glb"
     code, text, _ = run(
-        ["mesh", "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR), "--out", str(out), "--step", "2"], capsys
+        ["mesh", "--volume", str(exported / pc.PHANTOM_VOLUME_DIR), "--out", str(out), "--step", "2"], capsys
     )
     assert code == 0 and "vessels" in text and "bone" in text
     scene = trimesh.load(out)
     assert set(scene.geometry) == {"vessels", "bone"}
     code, _, err = run(
-        ["mesh", "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR), "--out", str(tmp_path / "head.obj")], capsys
+        ["mesh", "--volume", str(exported / pc.PHANTOM_VOLUME_DIR), "--out", str(tmp_path / "head.obj")], capsys
     )
     assert code == 2 and "error:" in err
     assert not (tmp_path / "head.obj").exists()
@@ -354,7 +355,7 @@ def test_parsers() -> None:
     with pytest.raises(ValueError, match="offset"):
         cli_io.parse_offset("T9")
     with pytest.raises(ValueError, match="volume-source"):
-        cli_io.run_phantom_export(Phantom(out=Path("unused"), volume_source="phantom"))  # type: ignore[arg-type]
+        pc.run_phantom_export(Phantom(out=Path("unused"), volume_source="phantom"))  # type: ignore[arg-type]
 
 
 def test_vessel_surfaces_follow_the_phantom_arteries(exported: Path) -> None:
@@ -363,7 +364,7 @@ def test_vessel_surfaces_follow_the_phantom_arteries(exported: Path) -> None:
     from registration.io.meshes import surface_meshes
     from registration.sim.phantom import make_head_phantom
 
-    volume = dicom.read_volume(exported / cli_io.PHANTOM_VOLUME_DIR)
+    volume = dicom.read_volume(exported / pc.PHANTOM_VOLUME_DIR)
     vessels = surface_meshes(volume)["vessels"]
     centerline = make_head_phantom(seed=0).vessel_centerline_mm()
     distance, _ = cKDTree(centerline).query(vessels.vertices)
@@ -467,17 +468,17 @@ def test_register_confidence_on_the_real_ct(tmp_path: Path, capsys, monkeypatch)
 
 def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None:
     """--landmarks: the start from picked pairs, said on the terminal and kept in the JSON."""
-    truth = np.asarray(json.loads((exported / cli_io.PHANTOM_TRUTH).read_text())["patient_motion"])
-    xray = dicom.read_xray(exported / cli_io.PHANTOM_EXPOSURE)
+    truth = np.asarray(json.loads((exported / pc.PHANTOM_TRUTH).read_text())["patient_motion"])
+    xray = dicom.read_xray(exported / pc.PHANTOM_EXPOSURE)
     points = np.array([[40.0, 30, 20], [-45, 25, -10], [10, -50, 35], [-20, -30, -40], [30, 10, -30]])
     pixels = xray.geometry.project(points @ truth[:3, :3].T + truth[:3, 3])
     landmarks = tmp_path / "landmarks.json"
     entries = [{"image_px": px.tolist(), "volume_mm": p.tolist()} for px, p in zip(pixels, points, strict=True)]
     landmarks.write_text(json.dumps({"landmarks": entries}))
-    volume = str(exported / cli_io.PHANTOM_VOLUME_DIR)
-    image = str(exported / cli_io.PHANTOM_EXPOSURE)
+    volume = str(exported / pc.PHANTOM_VOLUME_DIR)
+    image = str(exported / pc.PHANTOM_EXPOSURE)
     result_path = tmp_path / "result.json"
-    truth_file = str(exported / cli_io.PHANTOM_TRUTH)
+    truth_file = str(exported / pc.PHANTOM_TRUTH)
     code, out, _ = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks),
                         "--truth", truth_file, "--out", str(result_path)], capsys)  # fmt: skip
     assert code == 0
@@ -495,7 +496,7 @@ def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None
 
 
 def test_estimating_the_geometry_needs_two_planes(exported: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, _, err = run(["register", "--volume", str(exported / cli_io.PHANTOM_VOLUME_DIR),
-                        "--image", str(exported / cli_io.PHANTOM_FLUORO), "--estimate-geometry"], capsys)  # fmt: skip
+    code, _, err = run(["register", "--volume", str(exported / pc.PHANTOM_VOLUME_DIR),
+                        "--image", str(exported / pc.PHANTOM_FLUORO), "--estimate-geometry"], capsys)  # fmt: skip
     assert code == 2
     assert "--estimate-geometry needs two planes" in err and "--sid-mm" in err

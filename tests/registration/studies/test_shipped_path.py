@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from app import cli
-from app.cli import commands as cli_io
+from app.cli import phantom_commands as pc
 from registration.core.assess import assess
 from registration.io import dicom
 from registration.studies.cases import assessment_fields, register_prepared
@@ -28,7 +28,7 @@ def test_study_and_cli_give_the_same_pose(tmp_path: Path, monkeypatch: pytest.Mo
     export = tmp_path / "phantom"
     small = ["--voxels", "128", "--pixels", "128", "--volume-source", "resampled"]
     assert _run(["phantom", "--out", str(export), "--primary-deg", "15", "--offset", "T2", *small]) == 0
-    volume_dir, image = export / cli_io.PHANTOM_VOLUME_DIR, export / cli_io.PHANTOM_FLUORO
+    volume_dir, image = export / pc.PHANTOM_VOLUME_DIR, export / pc.PHANTOM_FLUORO
     out = tmp_path / "result.json"
     argv = ["register", "--volume", str(volume_dir), "--image", str(image), "--seed", "3", "--confidence"]
     assert _run([*argv, "--out", str(out), "--no-cache"]) == 0
