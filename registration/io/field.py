@@ -35,9 +35,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-#: Masks found from the pixels grow by this margin (px): the collimator's penumbra, the
-#: detector's blur and lossy-compression ringing around an edge or a stroke.
-EDGE_MARGIN_PX = 2
+from registration.io.graphics import EDGE_MARGIN_PX, _members, find_graphics
+
 #: The collimated outside ends at a step of at least this fraction of the image's signal range.
 OUTSIDE_MIN_STEP = 0.1
 #: Images smaller than this (px, either side) are searched for a constant border only.
@@ -58,12 +57,6 @@ BLADE_SHARP_PX = 4.0
 BLADE_MIN_LENGTH = 0.25
 #: A blade never leaves less than this fraction of the field.
 BLADE_MAX_CLOSED = 0.6
-#: Burned-in strokes are at most this wide (px); larger extreme regions are saturated anatomy.
-GRAPHICS_MAX_STROKE_PX = 7.0
-#: ... and stand out from their surroundings by this fraction of the field's signal range.
-GRAPHICS_MIN_CONTRAST = 0.2
-#: Black strokes: the largest character (px across) taken for text.
-GRAPHICS_MAX_CHAR_PX = 30
 
 
 @dataclass
@@ -89,14 +82,6 @@ def _median5(values: NDArray[np.float64]) -> NDArray[np.float64]:
     import cv2
 
     return cv2.medianBlur(np.ascontiguousarray(values, dtype=np.float32), 5).astype(np.float64)
-
-
-def _members(labels: NDArray[np.integer], n: int, ids: NDArray[np.integer]) -> NDArray[np.bool_]:
-    """Pixels whose label is one of ``ids`` (a look-up table: no sort of the image)."""
-    table = np.zeros(n + 1, dtype=bool)
-    table[np.asarray(ids, dtype=np.int64)] = True
-    table[0] = False
-    return table[labels]
 
 
 def _with_small_holes(outside: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -253,80 +238,109 @@ def find_blades(
         hspace, thetas, dists, num_peaks=max_lines, threshold=int(0.5 * min_length), min_distance=7, min_angle=6
     )
     grad = ndimage.gaussian_gradient_magnitude(signal, 2.0)
-    cy, cx = ndimage.center_of_mass(field_mask)
-    offsets = np.arange(-40.0, 41.0)
     found: list[dict[str, Any]] = []
     for _, theta, rho in zip(*peaks, strict=True):
-        theta, rho = float(theta), float(rho)
-        center_side = cx * math.cos(theta) + cy * math.sin(theta) - rho
-        if abs(center_side) < 5:
-            continue
-        near_sign = 1.0 if center_side > 0 else -1.0
-        px, py, normal = _line_points(inside, theta, rho)
-        if px.size * 2 < min_length:
-            continue
-        prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
-        near_cols = (offsets >= 3) & (offsets <= 8)
-        far_cols = (offsets <= -3) & (offsets >= -8)
-        valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
-        if valid.sum() * 2 < min_length:
-            continue
-        step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
-        run = _longest_run(step > BLADE_MIN_STEP)
-        if run.stop - run.start < max(0.5 * min_length, BLADE_RUN_FRACTION * valid.sum()):
-            continue  # the edge must run along most of the line's chord through the field
-        piece = np.flatnonzero(valid)[run]
-        step = step[run]
-        if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION:
-            continue
-        filter_edge = bool(np.median(step) < BLADE_MEDIAN_STEP)
-        if filter_edge and not _sharp_step(prof[piece], ok[piece], offsets):
-            continue  # a weak step: only a sharp straight edge counts (a semi-transparent filter's)
-        # A blade's shadow persists away from its edge; an anatomical edge's step does not.
-        wide = np.where(ok[piece], prof[piece], np.nan)
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            far_wide = np.nanmedian(wide[:, (offsets <= -10) & (offsets >= -40)], axis=1)
-            near_wide = np.nanmedian(wide[:, (offsets >= 10) & (offsets <= 40)], axis=1)
-        persists = (near_wide - far_wide) / span > BLADE_MIN_STEP
-        known = np.isfinite(far_wide) & np.isfinite(near_wide)
-        if (
-            not filter_edge
-            and known.sum() >= 10
-            and np.mean(persists[known]) < BLADE_STEP_FRACTION
-            and not _sharp_step(prof[piece], ok[piece], offsets)
-        ):
-            continue  # neither a persisting shadow nor a sharp edge (a display window can hide the shadow)
-        theta, rho = _refine(prof[piece], ok[piece], offsets, px[piece], py[piece], near_sign * normal, theta, rho)
-        near_sign = 1.0 if cx * math.cos(theta) + cy * math.sin(theta) - rho > 0 else -1.0
-        px, py, normal = _line_points(inside, theta, rho)
-        prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
-        edge = _edge_extent(prof, ok, offsets)
-        yy, xx = np.mgrid[0:rows, 0:cols]
-        distance = (xx * math.cos(theta) + yy * math.sin(theta) - rho) * near_sign
-        far_side = (distance < edge[1]) & field_mask
-        if far_side.sum() > BLADE_MAX_CLOSED * field_mask.sum() or not far_side.any():
-            continue
-        # Structure behind the edge against structure in front of it, in bands 6..30 px away.
-        behind = field_mask & (distance < edge[0] - 6) & (distance > edge[0] - 30)
-        front = field_mask & (distance > edge[1] + 6) & (distance < edge[1] + 30)
-        if behind.sum() > 50 and front.sum() > 50:
-            ratio = float(np.median(grad[behind]) / (np.median(grad[front]) + 1e-9))
-        else:
-            ratio = 0.0  # a sliver behind the edge: masked whole
-        found.append(
-            {
-                "theta": theta,
-                "rho": rho,
-                "distance": distance,
-                "edge": edge,
-                "filter": filter_edge,
-                "structure_behind": round(ratio, 3),
-                "step": round(float(np.median(step)), 3),
-                "length_px": int(step.size * 2),
-            }
-        )
+        blade = _blade(signal, smooth, grad, field_mask, inside, span, float(theta), float(rho), min_length)
+        if blade is not None:
+            found.append(blade)
     return found
+
+
+def _blade(
+    signal: NDArray[np.float64],
+    smooth: NDArray[np.float64],
+    grad: NDArray[np.float64],
+    field_mask: NDArray[np.bool_],
+    inside: NDArray[np.bool_],
+    span: float,
+    theta: float,
+    rho: float,
+    min_length: float,
+) -> dict[str, Any] | None:
+    """The blade (or filter edge) along one Hough line, as :func:`find_blades` lists it; None when
+    the line is not one: too short, no step along most of its chord, neither a persisting shadow
+    nor a sharp edge, or closing too much of the field."""
+    rows, cols = signal.shape
+    cy, cx = ndimage.center_of_mass(field_mask)
+    offsets = np.arange(-40.0, 41.0)
+    center_side = cx * math.cos(theta) + cy * math.sin(theta) - rho
+    if abs(center_side) < 5:
+        return None
+    near_sign = 1.0 if center_side > 0 else -1.0
+    px, py, normal = _line_points(inside, theta, rho)
+    if px.size * 2 < min_length:
+        return None
+    prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
+    near_cols = (offsets >= 3) & (offsets <= 8)
+    far_cols = (offsets <= -3) & (offsets >= -8)
+    valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
+    if valid.sum() * 2 < min_length:
+        return None
+    step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
+    run = _longest_run(step > BLADE_MIN_STEP)
+    if run.stop - run.start < max(0.5 * min_length, BLADE_RUN_FRACTION * valid.sum()):
+        return None  # the edge must run along most of the line's chord through the field
+    piece = np.flatnonzero(valid)[run]
+    step = step[run]
+    if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION:
+        return None
+    filter_edge = bool(np.median(step) < BLADE_MEDIAN_STEP)
+    if filter_edge and not _sharp_step(prof[piece], ok[piece], offsets):
+        return None  # a weak step: only a sharp straight edge counts (a semi-transparent filter's)
+    if (
+        not filter_edge
+        and not _shadow_persists(prof[piece], ok[piece], offsets, span)
+        and not _sharp_step(prof[piece], ok[piece], offsets)
+    ):
+        return None  # neither a persisting shadow nor a sharp edge (a display window can hide the shadow)
+    theta, rho = _refine(prof[piece], ok[piece], offsets, px[piece], py[piece], near_sign * normal, theta, rho)
+    near_sign = 1.0 if cx * math.cos(theta) + cy * math.sin(theta) - rho > 0 else -1.0
+    px, py, normal = _line_points(inside, theta, rho)
+    prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
+    edge = _edge_extent(prof, ok, offsets)
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    distance = (xx * math.cos(theta) + yy * math.sin(theta) - rho) * near_sign
+    far_side = (distance < edge[1]) & field_mask
+    if far_side.sum() > BLADE_MAX_CLOSED * field_mask.sum() or not far_side.any():
+        return None
+    ratio = _structure_behind(grad, field_mask, distance, edge)
+    return {
+        "theta": theta,
+        "rho": rho,
+        "distance": distance,
+        "edge": edge,
+        "filter": filter_edge,
+        "structure_behind": round(ratio, 3),
+        "step": round(float(np.median(step)), 3),
+        "length_px": int(step.size * 2),
+    }
+
+
+def _structure_behind(
+    grad: NDArray[np.float64], field_mask: NDArray[np.bool_], distance: NDArray[np.float64], edge: tuple
+) -> float:
+    """Structure behind the edge against structure in front of it, in bands 6..30 px away (0: a
+    sliver behind the edge, masked whole)."""
+    behind = field_mask & (distance < edge[0] - 6) & (distance > edge[0] - 30)
+    front = field_mask & (distance > edge[1] + 6) & (distance < edge[1] + 30)
+    if behind.sum() > 50 and front.sum() > 50:
+        return float(np.median(grad[behind]) / (np.median(grad[front]) + 1e-9))
+    return 0.0
+
+
+def _shadow_persists(
+    prof: NDArray[np.float64], ok: NDArray[np.bool_], offsets: NDArray[np.float64], span: float
+) -> bool:
+    """A blade's shadow persists away from its edge (10..40 px on both sides); an anatomical
+    edge's step does not. True when too few profiles reach that far to tell."""
+    wide = np.where(ok, prof, np.nan)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        far_wide = np.nanmedian(wide[:, (offsets <= -10) & (offsets >= -40)], axis=1)
+        near_wide = np.nanmedian(wide[:, (offsets >= 10) & (offsets <= 40)], axis=1)
+    persists = (near_wide - far_wide) / span > BLADE_MIN_STEP
+    known = np.isfinite(far_wide) & np.isfinite(near_wide)
+    return bool(known.sum() < 10 or np.mean(persists[known]) >= BLADE_STEP_FRACTION)
 
 
 def _refine(
@@ -419,105 +433,6 @@ def _edge_extent(
         k += 1
     hi = float(offsets[k])
     return (min(lo, -0.5), max(hi, 0.5))
-
-
-def find_graphics(values: NDArray[np.float64], field_mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Burned-in text, rulers and markers: thin strokes at the field's largest value (full white),
-    and lines of text at its smallest (full black).
-
-    A stroke component (8-connected, at least 3 pixels) is at most ``GRAPHICS_MAX_STROKE_PX``
-    wide, and its surroundings (a 3 px ring) differ from it by ``GRAPHICS_MIN_CONTRAST`` of the
-    field's range. White: it is at least three times longer than wide (a ruler, a line), or one
-    of at least three such pieces within a few character heights (a line of text). Black: only
-    text, at most ``GRAPHICS_MAX_CHAR_PX`` high, with closed letters or among at least three
-    pieces on one baseline, since contrast-filled vessels clipped by a display window are thin,
-    dark, long and at the lowest value too. Returned grown by ``EDGE_MARGIN_PX``.
-    """
-    inside = values[field_mask]
-    if inside.size == 0:
-        return np.zeros(values.shape, dtype=bool)
-    vmin, vmax = float(inside.min()), float(inside.max())
-    lo, hi = np.percentile(inside, [1.0, 99.0])
-    span = float(max(hi - lo, 1e-9))
-    # near full white: within 4 % of the range below it (without the pixels at full black, so
-    # that black text does not widen it)
-    rest = inside[inside > vmin]
-    full = float(max(vmax - (float(rest.min()) if rest.size else vmin), 1e-9))
-    out = np.zeros(values.shape, dtype=bool)
-    for extreme, candidates, dark in (
-        (vmax, field_mask & (values >= vmax - 0.04 * full), False),
-        # black text inside the field, off its rim (where the field's own edge reaches black)
-        (vmin, ndimage.binary_erosion(field_mask, iterations=3, border_value=0) & (values <= vmin), True),
-    ):
-        if not candidates.any() or candidates.mean() > 0.5:
-            continue
-        other = (values >= vmax) if dark else (values <= vmin)  # the other extreme: not the surroundings
-        out |= _strokes(values, field_mask & ~other, candidates, extreme, span, text_only=dark)
-    if out.any():
-        out = ndimage.binary_dilation(out, iterations=EDGE_MARGIN_PX)
-    return out & field_mask
-
-
-def _strokes(
-    values: NDArray[np.float64], field_mask: NDArray[np.bool_], candidates: NDArray[np.bool_], extreme: float,
-    span: float, *, text_only: bool,
-) -> NDArray[np.bool_]:  # fmt: skip
-    """The components of ``candidates`` that are graphics (see :func:`find_graphics`)."""
-    labels, n = ndimage.label(candidates, structure=np.ones((3, 3), bool))
-    if n == 0:
-        return np.zeros(values.shape, dtype=bool)
-    index = np.arange(1, n + 1)
-    rs, cs = np.nonzero(candidates)
-    r0, r1, c0, c1 = max(rs.min() - 1, 0), rs.max() + 2, max(cs.min() - 1, 0), cs.max() + 2
-    width = np.zeros(values.shape)
-    width[r0:r1, c0:c1] = ndimage.distance_transform_edt(candidates[r0:r1, c0:c1])
-    widest = np.zeros(n + 1)
-    np.maximum.at(widest, labels[rs, cs], width[rs, cs])
-    widest = widest[1:]
-    sizes = np.bincount(labels[rs, cs], minlength=n + 1)[1:]
-    ring = ndimage.binary_dilation(candidates, iterations=3) & ~ndimage.binary_dilation(candidates) & field_mask
-    ring_labels = ndimage.grey_dilation(labels, size=(7, 7)) * ring
-    with np.errstate(invalid="ignore", divide="ignore"):
-        around = ndimage.mean(values, ring_labels, index)
-    boxes = ndimage.find_objects(labels)
-    thin = []
-    for k in range(n):
-        stroke = 2.0 * widest[k]
-        if sizes[k] < 3 or stroke > GRAPHICS_MAX_STROKE_PX or boxes[k] is None:
-            continue
-        if not np.isfinite(around[k]) or abs(extreme - float(around[k])) < GRAPHICS_MIN_CONTRAST * span:
-            continue
-        height = boxes[k][0].stop - boxes[k][0].start
-        extent = max(height, boxes[k][1].stop - boxes[k][1].start)
-        if text_only:  # a word or a character: a line's height, with letters' holes or beside others
-            if height > GRAPHICS_MAX_CHAR_PX:
-                continue
-            extent = height
-        thin.append((k, extent, extent >= 3.0 * max(stroke, 1.0), boxes[k]))
-    centers = np.array([((b[0].start + b[0].stop) / 2, (b[1].start + b[1].stop) / 2) for _, _, _, b in thin])
-    bottoms = np.array([float(b[0].stop) for _, _, _, b in thin])
-    accepted = []
-    for i, (k, extent, elongated, box) in enumerate(thin):
-        if text_only and _holes(labels[box] == k + 1) > 0:
-            accepted.append(k + 1)  # a word with closed letters (a vessel tree encloses nothing)
-            continue
-        if text_only or not elongated:
-            reach = 3.0 * max(extent, 4)
-            near = np.hypot(*(centers - centers[i]).T) <= reach
-            if text_only:  # pieces of one line: their bottoms within a third of its height
-                near &= np.abs(bottoms - bottoms[i]) <= max(2.0, extent / 3.0)
-            if near.sum() < 3:
-                continue
-        accepted.append(k + 1)
-    if not accepted:
-        return np.zeros(values.shape, dtype=bool)
-    return _members(labels, n, np.asarray(accepted))
-
-
-def _holes(piece: NDArray[np.bool_]) -> int:
-    """How many enclosed background regions a stroke component has."""
-    _, n = ndimage.label(ndimage.binary_fill_holes(piece) & ~piece)
-    return int(n)
 
 
 def find_field(

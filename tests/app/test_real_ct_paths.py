@@ -127,7 +127,7 @@ def test_app_places_the_real_ct_at_the_given_isocenter(ct, tmp_path: Path, monke
     volume, imager = ct
     monkeypatch.setenv("ROADMAP3D_CACHE", str(tmp_path / "cache"))
     from registration.core.register import register
-    from registration.io.dicom.xray import write_xray
+    from registration.io.dicom.xray_write import write_xray
 
     config = VolumeStudyConfig(cases=1, seed=0)
     case = volume_cases(config)[0]

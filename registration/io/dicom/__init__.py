@@ -11,7 +11,9 @@ Modules (import from the package, ``from registration.io.dicom import read_volum
     tilted or uneven stacks rejected) and writing.
 ``xray``
     XA/RF images: geometry from the positioner tags (CONVENTIONS §3), intensities to
-    attenuation line integrals and the field mask (§5); writing single images and runs.
+    attenuation line integrals and the field mask (§5).
+``xray_write``
+    Writing single XA images and runs.
 ``runs``
     Multi-frame runs (CONVENTIONS §7): :func:`read_xray_run` gives an :class:`XRayRun` (per-frame
     times, geometry, plane; frames decoded on demand), :func:`write_xray_run` writes one.
@@ -65,7 +67,8 @@ from registration.io.dicom.spatial import (
 )
 from registration.io.dicom.uploads import classify_upload, unpack_upload
 from registration.io.dicom.volumes import read_npz, read_series, read_volume, write_enhanced, write_npz, write_series
-from registration.io.dicom.xray import read_xray, read_xray_angles, write_xray
+from registration.io.dicom.xray import read_xray, read_xray_angles
+from registration.io.dicom.xray_write import write_xray
 
 __all__ = [
     "ENHANCED_VOLUME_CLASSES",

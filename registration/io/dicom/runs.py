@@ -48,13 +48,12 @@ from registration.core.geometry import CArm
 from registration.io.dicom._common import DicomError, _floats, _text, lookup, tag_name
 from registration.io.dicom.xray import (
     _check_isocenter,
-    _field_rotation_shape,
-    _geometry,
     _open_xray,
     _xray_frame,
     frame_plane,
-    write_xray,
 )
+from registration.io.dicom.xray_geometry import _field_rotation_shape, _geometry
+from registration.io.dicom.xray_write import write_xray
 
 if TYPE_CHECKING:
     from registration.core.images import XRayImage

@@ -242,7 +242,7 @@ class ClinicalImager:
             bits = e.display.bits
             meta.update({f"display_{k}" if k != "jpeg_ratio" else k: v for k, v in info.items()})
         else:  # the project's own LOG encoding (as registration.io.dicom.write_xray stores it)
-            from registration.io.dicom.xray import _encode_attenuation
+            from registration.io.dicom.xray_write import _encode_attenuation
 
             stored, bits = _encode_attenuation(xray.image, circle), 16
         graphics = np.zeros(circle.shape, dtype=bool)
