@@ -217,7 +217,7 @@ def _format_offsets(motion: np.ndarray, geometry: CArm) -> str:
 #: Kernels every registration runs (numba: compiled on the first run, then loaded from the
 #: on-disk cache beside the modules, ``__pycache__``), by module.
 REGISTRATION_KERNELS = (
-    ("registration.core.drr", ("_ray_setup", "_render_joseph", "_render_joseph_serial")),
+    ("registration.core.drr_kernels", ("_ray_setup", "_render_joseph", "_render_joseph_serial")),
     ("registration.core.similarity", ("_gd_prepared",)),
 )
 

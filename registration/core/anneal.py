@@ -99,6 +99,35 @@ class AnnealResult:
     trace: list[float] = field(default_factory=list)
 
 
+def _checked(x0: ArrayLike, bounds: ArrayLike, schedule: Schedule) -> tuple[Array, Array, Array]:
+    """``x0`` as a float copy, the bounds as an (n, 2) array and the schedule's first steps, checked."""
+    x = np.asarray(x0, dtype=np.float64).copy()
+    b = np.asarray(bounds, dtype=np.float64)
+    n = x.size
+    if b.shape != (n, 2):
+        raise ValueError(f"bounds must have shape ({n}, 2), got {b.shape}")
+    if np.any(~np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
+        raise ValueError(f"bounds must be finite with lower < upper, got {b.tolist()}")
+    if np.any(x < b[:, 0]) or np.any(x > b[:, 1]):
+        raise ValueError(f"x0 {x.tolist()} lies outside the bounds")
+    step0 = np.asarray(schedule.step, dtype=np.float64)
+    if step0.size != n:
+        raise ValueError(f"schedule.step has {step0.size} entries for {n} parameters")
+    return x, b, step0
+
+
+def _initial_temperature(ups: list[float], fx: float, schedule: Schedule) -> float:
+    """The temperature at which the typical uphill change of random moves (``ups``) is accepted
+    with the schedule's ``initial_acceptance``."""
+    typical_up = float(np.median(ups)) if ups else max(abs(fx), 1.0) * 1e-3
+    return typical_up / -math.log(schedule.initial_acceptance)
+
+
+def _accept(delta: float, temperature: float, rng: np.random.Generator) -> bool:
+    """Metropolis: downhill always, uphill with probability exp(-delta / temperature)."""
+    return delta <= 0 or rng.random() < math.exp(-delta / max(temperature, 1e-300))
+
+
 def anneal(
     cost: Callable[[Array], float],
     x0: ArrayLike,
@@ -115,19 +144,8 @@ def anneal(
     the message saying so.
     """
     schedule = schedule or Schedule()
-    x = np.asarray(x0, dtype=np.float64).copy()
-    b = np.asarray(bounds, dtype=np.float64)
+    x, b, step0 = _checked(x0, bounds, schedule)
     n = x.size
-    if b.shape != (n, 2):
-        raise ValueError(f"bounds must have shape ({n}, 2), got {b.shape}")
-    if np.any(~np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
-        raise ValueError(f"bounds must be finite with lower < upper, got {b.tolist()}")
-    if np.any(x < b[:, 0]) or np.any(x > b[:, 1]):
-        raise ValueError(f"x0 {x.tolist()} lies outside the bounds")
-    step0 = np.asarray(schedule.step, dtype=np.float64)
-    if step0.size != n:
-        raise ValueError(f"schedule.step has {step0.size} entries for {n} parameters")
-
     nfev = 0
 
     def evaluate(p: Array) -> float:
@@ -145,17 +163,12 @@ def anneal(
     best_x, best_f = x.copy(), fx
 
     # Initial temperature from the typical uphill change of random moves.
-    ups = []
-    for _ in range(schedule.probes):
-        xp = neighbour(x, step0)
-        fp = evaluate(xp)
+    probes = [(xp, evaluate(xp)) for xp in (neighbour(x, step0) for _ in range(schedule.probes))]
+    for xp, fp in probes:
         if fp < best_f:
             best_x, best_f = xp.copy(), fp
-        if math.isfinite(fp) and fp > fx:
-            ups.append(fp - fx)
-    typical_up = float(np.median(ups)) if ups else max(abs(fx), 1.0) * 1e-3
-    t0 = typical_up / -math.log(schedule.initial_acceptance)
-    temperature = t0
+    ups = [fp - fx for _, fp in probes if math.isfinite(fp) and fp > fx]
+    temperature = t0 = _initial_temperature(ups, fx, schedule)
 
     trace: list[float] = []
     nit = 0
@@ -167,8 +180,7 @@ def anneal(
         for _move in range(schedule.moves_per_stage):
             xp = neighbour(x, step)
             fp = evaluate(xp)
-            delta = fp - fx
-            if delta <= 0 or rng.random() < math.exp(-delta / max(temperature, 1e-300)):
+            if _accept(fp - fx, temperature, rng):
                 x, fx = xp, fp
                 if fx < best_f:
                     best_x, best_f = x.copy(), fx

@@ -87,6 +87,50 @@ def with_intrinsics(geometry: CArm, sid_scale: float, shift_px: ArrayLike) -> CA
     return replace(geometry, sid_mm=geometry.sid_mm * float(sid_scale), detector_shift_mm=moved)
 
 
+@dataclass(frozen=True)
+class _Parameters:
+    """The refinement's parameter vector: the six pose offsets, then per view its source-image
+    distance change in per cent (``sid``) and its principal point shift in pixels (``shift``)."""
+
+    views: int
+    sid: bool
+    shift: bool
+
+    @property
+    def size(self) -> int:
+        return 6 + ((1 if self.sid else 0) + (2 if self.shift else 0)) * self.views
+
+    def unpack(self, x: Array) -> tuple[Array, list[tuple[float, Array]]]:
+        """The pose offsets, and per view (the SID factor, the shift in pixels)."""
+        pose, rest, per_view = x[:6], x[6:], []
+        for _ in range(self.views):
+            sid = 1.0 + (rest[0] / 100.0 if self.sid else 0.0)  # in per cent
+            rest = rest[1:] if self.sid else rest
+            shift = rest[:2] if self.shift else np.zeros(2)
+            rest = rest[2:] if self.shift else rest
+            per_view.append((sid, np.asarray(shift, dtype=np.float64)))
+        return pose, per_view
+
+    def bounds(
+        self, reach_mm: float, reach_deg: float, max_sid_change: float, max_shift_px: float
+    ) -> list[tuple[float, float]]:
+        per = ([(-100 * max_sid_change, 100 * max_sid_change)] if self.sid else []) + (
+            [(-max_shift_px, max_shift_px)] * 2 if self.shift else []
+        )
+        return [(-reach_mm, reach_mm)] * 3 + [(-reach_deg, reach_deg)] * 3 + per * self.views
+
+
+def _check_estimable(views: Sequence[XRayImage], estimate: Sequence[str]) -> None:
+    unknown = set(estimate) - set(INTRINSICS)
+    if unknown:
+        raise ValueError(f"cannot estimate {sorted(unknown)}: choose from {', '.join(INTRINSICS)}")
+    if len(views) < 2:
+        raise ValueError(
+            "one view cannot tell its source-image distance from the depth, nor its principal point from an "
+            "in-plane translation: estimating the geometry needs two planes (or give --sid-mm / --pixel-mm)"
+        )
+
+
 def refine_geometry(
     volume_renderer: DRRRenderer,
     views: Sequence[XRayImage],
@@ -109,31 +153,15 @@ def refine_geometry(
     view (see the module) or an unknown name in ``estimate``."""
     began = time.perf_counter()
     views = tuple(views)
-    unknown = set(estimate) - set(INTRINSICS)
-    if unknown:
-        raise ValueError(f"cannot estimate {sorted(unknown)}: choose from {', '.join(INTRINSICS)}")
-    if len(views) < 2:
-        raise ValueError(
-            "one view cannot tell its source-image distance from the depth, nor its principal point from an "
-            "in-plane translation: estimating the geometry needs two planes (or give --sid-mm / --pixel-mm)"
-        )
+    _check_estimable(views, estimate)
     start = check_rigid(motion, name="motion")
     problem = LevelProblem.prepare(volume_renderer, views, image_px=image_px, volume_level=volume_level,
                                    motion=start, margin_mm=None)  # fmt: skip
     space = SearchSpace.for_views(views[0].geometry, start, optimize_tz=True, bound_mm=reach_mm, bound_deg=reach_deg)
-    sid_on, shift_on = "sid" in estimate, "principal_point" in estimate
+    params = _Parameters(len(views), "sid" in estimate, "principal_point" in estimate)
+    unpack = params.unpack
     # per view: the level's pixels per full-resolution pixel (the shift is in the file's pixels)
     ratio = [pv.geometry.pixel_mm[1] / v.geometry.pixel_mm[1] for pv, v in zip(problem.views, views, strict=True)]
-
-    def unpack(x: Array) -> tuple[Array, list[tuple[float, Array]]]:
-        pose, rest, per_view = x[:6], x[6:], []
-        for _ in views:
-            sid = 1.0 + (rest[0] / 100.0 if sid_on else 0.0)  # in per cent
-            rest = rest[1:] if sid_on else rest
-            shift = rest[:2] if shift_on else np.zeros(2)
-            rest = rest[2:] if shift_on else rest
-            per_view.append((sid, np.asarray(shift, dtype=np.float64)))
-        return pose, per_view
 
     buffers = [np.empty((pv.geometry.rows, pv.geometry.cols), np.float32) for pv in problem.views]
     count = [0]
@@ -149,12 +177,8 @@ def refine_geometry(
         count[0] += 1
         return -total / len(views)
 
-    n_intr = (1 if sid_on else 0) + (2 if shift_on else 0)
-    x0 = np.zeros(6 + n_intr * len(views))
-    per = ([(-100 * max_sid_change, 100 * max_sid_change)] if sid_on else []) + (
-        [(-max_shift_px, max_shift_px)] * 2 if shift_on else []
-    )
-    bounds = [(-reach_mm, reach_mm)] * 3 + [(-reach_deg, reach_deg)] * 3 + per * len(views)
+    x0 = np.zeros(params.size)
+    bounds = params.bounds(reach_mm, reach_deg, max_sid_change, max_shift_px)
     before = -cost(x0)
     found = minimize(cost, x0, method="Powell", bounds=bounds, options={"maxfev": evaluations, "xtol": 1e-3})
     pose, per_view = unpack(np.asarray(found.x, dtype=np.float64))
