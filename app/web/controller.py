@@ -22,7 +22,8 @@ import numpy as np
 
 from app.web import status
 from app.web.layout import OFFSET_LABELS, TZ_CORRECTED_LABEL, Layout, format_cm, format_option, offset_limit
-from app.web.session import RunState, Session
+from app.web.session import Session
+from app.web.session_state import RunState
 from app.web.upload import limit_uploads
 from registration.core.geometry import clinically_relevant
 from registration.io import audit

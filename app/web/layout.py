@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 import viser
 
-from app.web.session import PLANE_B_PRIMARY_DEG, ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
+from app.web.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
+from app.web.session_state import PLANE_B_PRIMARY_DEG
 from registration.core.geometry import DEFAULT_SID_MM, IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I
 from registration.sim.biplane import plane_b_spec
 

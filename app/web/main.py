@@ -198,6 +198,48 @@ def build_app(
     return app
 
 
+def _check_data_options(
+    volume: Path | None,
+    image: Path | None,
+    max_upload_mb: float,
+    sid_mm: float | None,
+    sod_mm: float | None,
+    isocenter: str | None,
+) -> None:
+    if (volume is None) != (image is None):
+        raise ValueError("--volume and --image go together (or neither, for the built-in phantom)")
+    if max_upload_mb <= 0:
+        raise ValueError(f"--max-upload-mb must be positive, got {max_upload_mb}")
+    if image is None and (sid_mm is not None or sod_mm is not None):
+        raise ValueError("--sid-mm/--sod-mm apply to --volume/--image only")
+    if image is None and isocenter is not None:
+        raise ValueError("--isocenter applies to --volume/--image only")
+
+
+def _announce(server: viser.ViserServer, guard: Guard, password_file: Path | None, open_browser: bool) -> None:
+    """Print the signed address (the only place the token is shown), warn when the app is
+    reachable from the network, and open the browser if asked."""
+    signed = url_of(server, guard, with_token=True)
+    by_password = f"; sign in with the password of {password_file}" if guard.password is not None else ""
+    print(f"roadmap3d: serving on {signed}  (Ctrl-C to stop{by_password})", flush=True)
+    warning = network_warning(server.get_host(), server.get_port())
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
+    if open_browser:
+        threading.Thread(target=webbrowser.open, args=(signed,), daemon=True).start()
+
+
+def _stop_on_signals() -> None:
+    """SIGTERM and SIGINT end the serving loop (as Ctrl-C), from the main thread."""
+
+    def terminate(_signum: int, _frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, terminate)
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # even if started with SIGINT ignored
+
+
 def run_app(
     host: str,
     port: int,
@@ -228,14 +270,7 @@ def run_app(
         logging.getLogger("app.web.session").setLevel(logging.INFO)
     config = AppConfig.from_env()
     start = time.perf_counter()
-    if (volume is None) != (image is None):
-        raise ValueError("--volume and --image go together (or neither, for the built-in phantom)")
-    if max_upload_mb <= 0:
-        raise ValueError(f"--max-upload-mb must be positive, got {max_upload_mb}")
-    if image is None and (sid_mm is not None or sod_mm is not None):
-        raise ValueError("--sid-mm/--sod-mm apply to --volume/--image only")
-    if image is None and isocenter is not None:
-        raise ValueError("--isocenter applies to --volume/--image only")
+    _check_data_options(volume, image, max_upload_mb, sid_mm, sod_mm, isocenter)
     guard = make_guard(host, token=token, no_sign_in=no_sign_in, certfile=certfile, keyfile=keyfile,
                        allow_origin=allow_origin, password_file=password_file)  # fmt: skip
     data = None
@@ -247,22 +282,8 @@ def run_app(
         print(f"roadmap3d: iso-center {data.isocenter_text}", flush=True)
     server = make_server(host, port, allow_share=allow_share, guard=guard)
     url = url_of(server, guard)
-    signed = url_of(server, guard, with_token=True)
-    # the only place the token is shown
-    by_password = f"; sign in with the password of {password_file}" if guard.password is not None else ""
-    print(f"roadmap3d: serving on {signed}  (Ctrl-C to stop{by_password})", flush=True)
-    warning = network_warning(server.get_host(), server.get_port())
-    if warning:
-        print(warning, file=sys.stderr, flush=True)
-    if open_browser:
-        threading.Thread(target=webbrowser.open, args=(signed,), daemon=True).start()
-
-    def terminate(_signum: int, _frame: FrameType | None) -> None:
-        raise KeyboardInterrupt
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, terminate)
-        signal.signal(signal.SIGINT, signal.default_int_handler)  # even if started with SIGINT ignored
+    _announce(server, guard, password_file, open_browser)
+    _stop_on_signals()
     app: RoadmapApp | None = None
     try:
         app = build_app(server, config, data=data, max_upload_mb=max_upload_mb, announce=True)

@@ -40,17 +40,17 @@ import viser
 from app.web import views
 from app.web.panels import BasePanel, PanelContext
 from app.web.presenter import FollowedPose
+from app.web.run_chart import ChartSeries, motion_chart
 from app.web.status import corrected_text, correction
-from registration.core.geometry import CArm, matrix_to_offsets
+from registration.core.geometry import CArm
 
 if TYPE_CHECKING:
     from registration.core.tracking import FrameEstimate
 
 log = logging.getLogger(__name__)
 
-#: Size of the shown frame (pixels) and how often the strip chart is redrawn (Hz).
+#: Size of the shown frame (pixels).
 DISPLAY_PX = 384
-CHART_HZ = 5.0
 #: What the tab says before the phantom's run plays.
 PHANTOM_RUN_TEXT = "A 20 s fluoroscopy run of the phantom (both planes in Biplane mode): press **Play**."
 #: Size of the frame on the 3-D scene's detector (pixels, as the Roadmap tab's).
@@ -129,32 +129,7 @@ class PlaybackPanel(BasePanel):
                     hint="The last played run as a report folder: strip charts, per-frame decisions, the last frame",
                 )  # fmt: skip
             self.stats = gui.add_markdown("")
-            self.chart = gui.add_uplot(
-                data=(np.zeros(1), *(np.full(1, np.nan) for _ in range(5))),
-                series=(
-                    {"label": "t (s)"},
-                    {"label": "true tx", "stroke": "#74c0fc", "width": 1, "scale": "mm"},
-                    {"label": "roadmap tx", "stroke": "#1c7ed6", "width": 2, "scale": "mm"},
-                    {"label": "true ty", "stroke": "#ffa8a8", "width": 1, "scale": "mm"},
-                    {"label": "roadmap ty", "stroke": "#e03131", "width": 2, "scale": "mm"},
-                    {
-                        "label": "latency (ms)",
-                        "stroke": "#ffd43b",
-                        "width": 1,
-                        "scale": "ms",
-                        "paths": None,
-                        "points": {"show": True, "size": 3},
-                    },
-                ),  # fmt: skip
-                scales={"x": {"time": False}, "mm": {"auto": True}, "ms": {"auto": True, "distr": 3}},
-                axes=(
-                    {"stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
-                    {"scale": "mm", "stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
-                    {"scale": "ms", "side": 1, "stroke": "#ffd43b", "grid": {"show": False}},
-                ),
-                title="Estimated (roadmap) and true motion (mm, view frame); latency (ms, log)",
-                height=220,
-            )
+            self.chart = motion_chart(gui)
         self.play_button.on_click(ctx.guarded(lambda _e: self.play()))
         self.pause_button.on_click(ctx.guarded(lambda _e: self.toggle_pause()))
         self.stop_button.on_click(ctx.guarded(lambda _e: self.stop()))
@@ -414,8 +389,7 @@ class PlaybackPanel(BasePanel):
         self.last_told = ""
         self._followed = None
         self.planes = len(runs)
-        chart: dict[str, list[float]] = {k: [] for k in ("t", "true_x", "shown_x", "true_y", "shown_y", "ms")}
-        last_chart = 0.0
+        chart = ChartSeries(self.chart)
         with Tracker(volume, renderer=renderer) as tracker:
             tracker.warm_up(views_of(0))
             shown = tracker.shown_pose
@@ -443,17 +417,9 @@ class PlaybackPanel(BasePanel):
                 shown = est.patient_motion
                 self._show_frame(runs, i, est, text, color, vertices, spacing)
                 truth = getattr(run, "truth", None)
-                true_xy = matrix_to_offsets(truth[i], geometry)[:2] if truth is not None else (np.nan, np.nan)
-                shown_xy = matrix_to_offsets(shown, geometry)[:2]
-                for key, value in zip(chart, (est.t_s, true_xy[0], shown_xy[0], true_xy[1], shown_xy[1],
-                                              est.latency_ms), strict=True):  # fmt: skip
-                    chart[key].append(float(value))
-                now = time.perf_counter()
-                if now - last_chart >= 1.0 / CHART_HZ or i == n - 1:
-                    self.chart.data = tuple(np.asarray(chart[k]) for k in chart)
-                    last_chart = now
+                chart.add(est, shown, None if truth is None else truth[i], geometry, last=i == n - 1)
                 i += 1
-        self.chart.data = tuple(np.asarray(chart[k]) for k in chart)
+        chart.show()
         self._played = {"runs": runs, "volume": volume, "renderer": renderer, "vertices": np.asarray(vertices),
                         "spacing": float(spacing), "skipped": skipped, "estimates": list(self.estimates)}  # fmt: skip
         applied = sum(e.status == "applied" for e in self.estimates)

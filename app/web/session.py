@@ -14,24 +14,22 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from app.web.data import AppConfig, DataSource, PhantomData, XRayImage, simulate_xray
+from app.web.session_state import CArmSettings, RunState
 from registration.core.geometry import (
-    DEFAULT_SID_MM,
     TABLE_I,
     CArm,
     check_rigid,
-    default_system,
     matrix_to_offsets,
     offsets_to_matrix,
 )
 from registration.core.metrics import Residual, residuals
 from registration.core.register import Progress, RegistrationResult, register, registration_plan
-from registration.sim.biplane import plane_b_spec
 
 log = logging.getLogger(__name__)
 
@@ -45,85 +43,9 @@ STOP_GRACE_S = 0.3
 #: The ``Random`` button's offsets: translation up to 25 mm, rotation up to 10 degrees.
 RANDOM_MAX_MM = 25.0
 RANDOM_MAX_DEG = 10.0
-#: Plane B's angles when biplane mode starts: lateral (LAO 90), as a neuro suite's plane B.
-PLANE_B_PRIMARY_DEG = 90.0
 #: Plane B's quantum noise is its own stream: the seed is offset by this (the two frames of one
 #: moment, CONVENTIONS §6).
 PLANE_B_NOISE_SEED_OFFSET = 7919
-
-
-@dataclass(frozen=True)
-class CArmSettings:
-    """What the C-arm controls set."""
-
-    primary_deg: float = 0.0
-    secondary_deg: float = 0.0
-    sid_mm: float = DEFAULT_SID_MM
-    image_format_cm: float = 27.0
-    volume_format_cm: float = 27.0
-    kind: str = "fluoro"
-    contrast: bool = True
-    catheter: bool = False
-    #: Biplane mode: plane B (the lateral C-arm, its own machine: sim.biplane.plane_b_spec)
-    #: images the patient at the same moment; registration then searches all six offsets.
-    biplane: bool = False
-    primary_b_deg: float = PLANE_B_PRIMARY_DEG
-    secondary_b_deg: float = 0.0
-
-    def plane_a(self) -> tuple:
-        """What plane A's image depends on (plane B's controls do not re-form it)."""
-        return (self.primary_deg, self.secondary_deg, self.sid_mm, self.image_format_cm, self.kind, self.contrast,
-                self.catheter)  # fmt: skip
-
-    def geometry_b(self, pixels: int) -> CArm:
-        """Plane B's nominal view: its own SID, SOD and image format (sim.biplane), ``pixels`` square."""
-        return plane_b_spec().nominal(self.primary_b_deg, self.secondary_b_deg, pixels=pixels)
-
-    def geometry(self, pixels: int) -> CArm:
-        """The nominal view these settings describe (raises ValueError if impossible)."""
-        pixel_mm = self.image_format_cm * 10.0 / pixels
-        return CArm(
-            primary_deg=self.primary_deg,
-            secondary_deg=self.secondary_deg,
-            sid_mm=self.sid_mm,
-            sod_mm=default_system().sod_mm,
-            rows=pixels,
-            cols=pixels,
-            pixel_mm=(pixel_mm, pixel_mm),
-        )
-
-
-@dataclass
-class RunState:
-    """A registration in progress (or the last one)."""
-
-    running: bool = False
-    iterations: list[int] | None = None
-    similarity: list[float] | None = None
-    temperature: list[float] | None = None
-    progress: Progress | None = None
-    result: RegistrationResult | None = None
-    error: str | None = None
-    started_s: float = 0.0
-    stop_requested_s: float | None = None
-    stop_latency_s: float | None = None
-    #: set by Stop; the optimizer's callback reads it (one event per run)
-    stop: threading.Event = field(default_factory=threading.Event)
-    #: Stop came before the optimizer's first iteration: the run was let go (its result is dropped)
-    abandoned: bool = False
-    #: The estimate's confidence and decision (CONVENTIONS §7: ``confidence``, ``applied``,
-    #: ``withheld_reason``), None while running, for a stopped run, or when it could not be assessed
-    assessment: dict | None = None
-    #: The roadmap's pose when the run started (the correction is measured from it) and the
-    #: iso-center it is measured at (mm, world); who started the run ("Register", "Auto-correct").
-    initial_motion: Array | None = None
-    #: The views the run registered (plane A first); the Evidence tab and the report use them.
-    views: list[XRayImage] | None = None
-    isocenter_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    trigger: str = "Register"
-    #: After a registration on the user's region: whether the whole volume, spine included, fits
-    #: where the region's estimate says (:mod:`registration.core.skull_spine`); None otherwise.
-    skull_spine: Any = None
 
 
 class Session:
@@ -409,19 +331,7 @@ class Session:
         volume_format: float,
         on_done: Callable[[], None] | None,
     ) -> None:
-        count = 0
-
-        def callback(progress: Progress) -> bool:
-            nonlocal count
-            count += 1
-            with self.lock:
-                assert run.iterations is not None and run.similarity is not None and run.temperature is not None
-                run.iterations.append(count)
-                run.similarity.append(float(progress.best_similarity))
-                run.temperature.append(float(progress.temperature))
-                run.progress = progress
-            return run.stop.is_set()
-
+        callback = self._progress_recorder(run)
         assessment = None
         try:
             views = self.views()  # biplane: plane A first, offsets in its view frame
@@ -462,25 +372,48 @@ class Session:
             with self.lock:
                 if run.abandoned:  # Stop already ended this run for the user
                     return
-                run.result = result
-                run.assessment = assessment
-                run.skull_spine = skull_spine
-                if not math.isfinite(result.similarity):
-                    run.error = "Registration found no usable overlap between the DRR and the image."
-                elif getattr(result, "at_bounds", ()):  # inputs without information drift there
-                    run.error = (
-                        f"Not registered: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "
-                        "the roadmap keeps its pose."
-                    )
-                elif assessment is None or assessment["applied"]:
-                    self.estimate = np.asarray(result.patient_motion, dtype=np.float64)
-                # withheld: a wrong correction is worse than none, the roadmap keeps its pose
-                if run.stop_requested_s is not None:
-                    run.stop_latency_s = time.perf_counter() - run.stop_requested_s
-                run.running = False
-                self._changed()
+                self._finish(run, result, assessment, skull_spine)
         if on_done is not None:
             on_done()
+
+    def _progress_recorder(self, run: RunState) -> Callable[[Progress], bool]:
+        """The registration's callback: each iteration's best similarity and temperature into
+        ``run`` (the convergence plot); True (stop) once Stop was pressed."""
+        count = 0
+
+        def callback(progress: Progress) -> bool:
+            nonlocal count
+            count += 1
+            with self.lock:
+                assert run.iterations is not None and run.similarity is not None and run.temperature is not None
+                run.iterations.append(count)
+                run.similarity.append(float(progress.best_similarity))
+                run.temperature.append(float(progress.temperature))
+                run.progress = progress
+            return run.stop.is_set()
+
+        return callback
+
+    def _finish(self, run: RunState, result: RegistrationResult, assessment: dict | None, skull_spine: Any) -> None:
+        """A finished registration into ``run`` (under the lock); the estimate applied when it is
+        a registration and the confidence applies it (withheld: a wrong correction is worse than
+        none, the roadmap keeps its pose)."""
+        run.result = result
+        run.assessment = assessment
+        run.skull_spine = skull_spine
+        if not math.isfinite(result.similarity):
+            run.error = "Registration found no usable overlap between the DRR and the image."
+        elif getattr(result, "at_bounds", ()):  # inputs without information drift there
+            run.error = (
+                f"Not registered: the estimate ended at the search bounds ({', '.join(result.at_bounds)}); "
+                "the roadmap keeps its pose."
+            )
+        elif assessment is None or assessment["applied"]:
+            self.estimate = np.asarray(result.patient_motion, dtype=np.float64)
+        if run.stop_requested_s is not None:
+            run.stop_latency_s = time.perf_counter() - run.stop_requested_s
+        run.running = False
+        self._changed()
 
     def _skull_spine(self, views: list[XRayImage], result: RegistrationResult) -> Any:
         """The skull-and-spine check after a registration on the user's region that leaves dense

@@ -17,7 +17,7 @@ import numpy as np
 from registration.core.geometry import apply, invert_rigid, rotation_angle_deg
 
 if TYPE_CHECKING:
-    from app.web.session import RunState
+    from app.web.session_state import RunState
     from registration.core.metrics import Residual
 
 

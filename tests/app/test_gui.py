@@ -77,7 +77,8 @@ def test_live_frames_show_the_newest_report_and_count_the_skipped_ones(app: Road
     """Reports that arrive while the presenter is busy are not queued: its next frame draws the
     newest one and counts the others as skipped, however fast or slow the machine is."""
     from app.web.main import make_server
-    from app.web.session import RunState, Session
+    from app.web.session import Session
+    from app.web.session_state import RunState
     from registration.core.register import Progress
 
     server = make_server("127.0.0.1", 0)

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.web.session import RunState
+from app.web.session_state import RunState
 from app.web.status import badge_state, correction, moved_text, run_outcome
 from registration.core.geometry import rigid, rotation_z
 
