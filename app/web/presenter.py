@@ -21,11 +21,11 @@ import numpy as np
 
 from app.web import status, views
 from app.web.layout import Layout, badge
+from app.web.plane_pictures import PlanePictures
 from app.web.scene import Scene
 from app.web.session import Session
 from registration.core.geometry import CArm, matrix_to_offsets
 from registration.io.meshes import NO_VESSELS_NOTE
-from registration.studies import qa_images
 
 if TYPE_CHECKING:
     import viser
@@ -36,10 +36,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: The fluoro tile's size in the large single-image layout (pixels).
-LARGE_TILE_PX = 768
-#: The fluoro tile's caption when the volume has no vessel surface.
-NO_ROADMAP = "no roadmap: no vessels in the volume"
 #: Live updates during a run (the issue asks for at least 5 per second).
 LIVE_HZ = 10.0
 
@@ -112,7 +108,7 @@ class Presenter:
         self._last_live = 0.0
         self._mesh_key: tuple | None = None
         self._shown_carm: tuple | None = None
-        self._tiles_by_image: dict[tuple[int, int], tuple[Any, dict[str, np.ndarray]]] = {}
+        self.pictures = PlanePictures(session, layout, self.settings)
         self._shown_carm_b: tuple | None = None
         self._preview_version = -1
         self._plotted = False
@@ -277,98 +273,11 @@ class Presenter:
         self._live_last_report = reports
         self.live_reports.append(reports)
 
-    def _image_tiles(self, xray: Any, size: int | None = None) -> dict[str, np.ndarray]:
-        """What depends on the X-ray image only, computed once per image (per plane) and size
-        (the display's, or ``size``)."""
-        size = self.session.config.display_px if size is None else int(size)
-        cached = self._tiles_by_image.get((id(xray), size))
-        if cached is not None and cached[0] is xray:
-            return cached[1]
-        mask_u8 = xray.mask.astype(np.uint8)
-        tiles = {
-            "fluoro": views.resize(views.to_gray(xray.image, xray.mask), size),
-            "mask": views.resize(mask_u8, size).astype(bool),
-            "mask_half": views.resize(mask_u8, size // 2).astype(bool),
-            "mask_third": views.resize(mask_u8, size // 3).astype(bool),
-            "gradient": views.resize(views.gradient_image(xray.image, xray.mask), size),
-            "attenuation": views.resize(np.asarray(xray.image, np.float32), size),
-        }
-        if len(self._tiles_by_image) >= 4:  # plane A and B, each shown and about to be shown
-            self._tiles_by_image.pop(next(iter(self._tiles_by_image)))
-        self._tiles_by_image[(id(xray), size)] = (xray, tiles)
-        return tiles
-
     def settings(self) -> CompareSettings:
         """The Compare tab's settings (defaults without the tab)."""
         from app.web.qa_panel import CompareSettings
 
         return self.compare.settings() if self.compare is not None else CompareSettings()
-
-    def _plane_pictures(
-        self, xray: Any, motion: np.ndarray, volume_format: float, *, live: bool, plane: str,
-        initial: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-        """One plane's row (fluoro with the Compare tab's overlay | DRR at the estimate; the fluoro
-        tile alone in the large layout), its detector picture for the 3-D scene, and what the
-        gradient row needs (DRR, its mask). ``initial``: the machine-based pose (before / after)."""
-        initial = np.eye(4) if initial is None else initial
-        s = self.session
-        settings = self.settings()
-        size = LARGE_TILE_PX if settings.large else s.config.display_px
-        geometry: CArm = xray.geometry
-        tiles = self._image_tiles(xray, size)
-        vessels = s.data.meshes(volume_format).get("vessels")
-        mode = "outline" if live else settings.mode  # while the optimizer runs: the outline only
-        tile_geometry = geometry.resized(size, size)
-        thickness = 1 if size <= 400 else 2
-        silhouette = initial_silhouette = None
-        if vessels is not None:
-            spacing = s.data.mesh_spacing_mm(volume_format)
-            silhouette = views.vessel_silhouette(np.asarray(vessels.vertices), motion, tile_geometry, spacing)
-        if mode == "outline":
-            fluoro = views.gray_rgb(tiles["fluoro"])
-            if silhouette is not None:
-                views.draw_outline(fluoro, silhouette, thickness=thickness)
-        else:
-            renderer = s.data.renderer(volume_format)
-            drr_tile = renderer.render(tile_geometry, motion, level=1)
-            drr_initial = None
-            if mode == "wipe":
-                drr_initial = renderer.render(tile_geometry, initial, level=1)
-                if vessels is not None:
-                    initial_silhouette = views.vessel_silhouette(
-                        np.asarray(vessels.vertices), initial, tile_geometry, s.data.mesh_spacing_mm(volume_format)
-                    )
-            fluoro = qa_images.compare(
-                mode, image=tiles["attenuation"], drr=drr_tile, mask=tiles["mask"], outline=silhouette,
-                drr_initial=drr_initial, outline_initial=initial_silhouette, tile_px=settings.checker_px,
-                wipe_fraction=settings.wipe, thickness=thickness,
-            )  # fmt: skip
-        if bool(self.layout.show_field.value):  # what the registration leaves out, shaded and outlined
-            views.shade_outside(fluoro, tiles["mask"])
-        if settings.zoom > 1.0:
-            fluoro = qa_images.zoomed(fluoro, settings.zoom, settings.pan)
-        prefix = f"PLANE {plane}  " if plane else ""
-        views.label(fluoro, f"{prefix}{xray.kind.upper()}  {views.angles_text(geometry)}")
-        captions = {
-            "outline": "red: roadmap at the estimate" if vessels is not None else NO_ROADMAP,
-            "edges": "green: DRR edges at the estimate",
-            "checkerboard": "checkerboard: image / DRR at the estimate",
-            "difference": "image - DRR at the estimate (gray: agree)",
-            "wipe": "left: before (machine-based) | right: registered",
-        }
-        views.label(fluoro, captions[mode], corner="bottom-left")
-
-        # The DRR thumbnail: coarser while the optimizer runs (it competes for the same cores).
-        drr_px = size // 3 if live else size // 2
-        drr_mask = tiles["mask_third"] if live else tiles["mask_half"]
-        drr = s.data.renderer(volume_format).render(geometry.resized(drr_px, drr_px), motion, level=2 if live else 1)
-        if settings.large:  # the fluoro tile alone (the panel is wider)
-            return fluoro, views.resize(fluoro, 256), tiles["gradient"], drr, drr_mask
-        drr_gray = views.resize(views.to_gray(drr, drr_mask), size)
-        drr_gray[~tiles["mask"]] = 0
-        drr_tile = views.label(views.gray_rgb(drr_gray), "DRR at the estimate")
-        return views.side_by_side(fluoro, drr_tile), views.resize(fluoro, 256), tiles["gradient"], drr, drr_mask
 
     def _show(
         self, xray: Any, motion: np.ndarray, truth: np.ndarray | None, volume_format: float, *, live: bool
@@ -379,11 +288,12 @@ class Presenter:
         biplane = s.biplane
         xray_b = s.xray_b() if biplane else None
         initial = np.eye(4)  # the machine-based pose: the roadmap from the C-arm sensors alone (before / after, ghost)
-        composite, detector_image, gradient, drr, drr_mask = self._plane_pictures(
+        composite, detector_image, gradient, drr, drr_mask = self.pictures.plane(
             xray, motion, volume_format, live=live, plane="A" if biplane else "", initial=initial
         )
+        detector_b = None
         if xray_b is not None:
-            row_b, detector_b, _, _, _ = self._plane_pictures(
+            row_b, detector_b, _, _, _ = self.pictures.plane(
                 xray_b, motion, volume_format, live=live, plane="B", initial=initial
             )
             composite = views.stacked(composite, row_b)
@@ -391,11 +301,6 @@ class Presenter:
             g1 = views.label(views.gray_rgb(gradient), "gradient: image")
             g2 = views.label(views.gray_rgb(views.resize(views.gradient_image(drr, drr_mask), size)), "gradient: DRR")
             composite = views.stacked(composite, views.side_by_side(g1, g2))
-        # the iso-center too: a CT's is moved in the Data tab, and the C-arm and its marker follow it
-        carm_key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, round(geometry.field_diameter_mm, 3),
-                    geometry.isocenter_mm)  # fmt: skip
-        carm_b_key = None if xray_b is None else (xray_b.geometry.primary_deg, xray_b.geometry.secondary_deg)
-
         readout, badge_html, details = self._texts(motion, truth)
         with s.lock:
             run = s.run
@@ -405,24 +310,7 @@ class Presenter:
         hidden = any(panel.hides_patient for panel in self.panels)  # e.g. the dodecahedron is imaged on its own
         followed = self._followed
         with self.server.atomic():
-            if followed is not None:  # a played run owns the scene (after a one-plane run plane B stays the session's)
-                self._show_followed(followed)
-            elif self._shown_carm != carm_key:
-                self.scene.set_carm(geometry, detector_image)
-                self._shown_carm = carm_key
-                self.shown_geometry = geometry
-            else:
-                self.scene.set_detector_image(detector_image)
-            if followed is not None and followed.geometry_b is not None:
-                pass  # a biplane run owns plane B's C-arm too
-            elif carm_b_key != self._shown_carm_b:
-                if xray_b is None:
-                    self.scene.remove_plane_b()
-                else:
-                    self.scene.set_carm(xray_b.geometry, detector_b, plane_b=True)
-                self._shown_carm_b = carm_b_key
-            elif xray_b is not None:
-                self.scene.set_detector_image(detector_b, plane_b=True)
+            self._show_carms(geometry, detector_image, xray_b, detector_b, followed)
             settings = self.settings()
             if followed is None:
                 self.scene.place(motion, truth, show_ghost=bool(ui.show_ghost.value) and not hidden,
@@ -437,6 +325,35 @@ class Presenter:
             if it or self._plotted:
                 self._plot(it, sim, temp)
         self.frames_shown += 1
+
+    def _show_carms(
+        self, geometry: CArm, detector_image: np.ndarray, xray_b: Any, detector_b: np.ndarray | None,
+        followed: FollowedPose | None,
+    ) -> None:  # fmt: skip
+        """The C-arms and their detector pictures in the 3-D scene (inside ``server.atomic()``): a
+        played run owns the scene (after a one-plane run plane B stays the session's)."""
+        # the iso-center too: a CT's is moved in the Data tab, and the C-arm and its marker follow it
+        carm_key = (geometry.primary_deg, geometry.secondary_deg, geometry.sid_mm, round(geometry.field_diameter_mm, 3),
+                    geometry.isocenter_mm)  # fmt: skip
+        carm_b_key = None if xray_b is None else (xray_b.geometry.primary_deg, xray_b.geometry.secondary_deg)
+        if followed is not None:
+            self._show_followed(followed)
+        elif self._shown_carm != carm_key:
+            self.scene.set_carm(geometry, detector_image)
+            self._shown_carm = carm_key
+            self.shown_geometry = geometry
+        else:
+            self.scene.set_detector_image(detector_image)
+        if followed is not None and followed.geometry_b is not None:
+            return  # a biplane run owns plane B's C-arm too
+        if carm_b_key != self._shown_carm_b:
+            if xray_b is None:
+                self.scene.remove_plane_b()
+            else:
+                self.scene.set_carm(xray_b.geometry, detector_b, plane_b=True)
+            self._shown_carm_b = carm_b_key
+        elif xray_b is not None:
+            self.scene.set_detector_image(detector_b, plane_b=True)
 
     def _camera(self, geometry: CArm, motion: np.ndarray, settings: CompareSettings) -> None:
         """View from the source (following the C-arm), or back on the vessels when it is switched
