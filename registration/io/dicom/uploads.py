@@ -31,6 +31,71 @@ def _safe_member_name(name: str) -> PurePosixPath | None:
     return PurePosixPath(*parts) if parts else None
 
 
+def _empty_folder(dest: Path) -> Path:
+    """``dest`` as an empty private folder (created when absent)."""
+    if dest.exists():
+        if not dest.is_dir() or dest.is_symlink():
+            raise UploadError(f"{dest}: not a folder")
+        if any(dest.iterdir()):
+            raise UploadError(f"{dest}: not empty")
+    else:
+        dest.mkdir(mode=0o700, parents=True)
+    return dest
+
+
+def _checked_member(member: zipfile.ZipInfo, seen: set[str], dest: Path, root: Path) -> Path | None:
+    """The member's path inside the upload folder; None for the folder itself or a folder (made
+    here). UploadError for a link, a special file, an encrypted or duplicate member, or a path
+    that leaves the folder."""
+    relative = _safe_member_name(member.filename)
+    if relative is None:
+        return None
+    mode = (member.external_attr >> 16) & 0o170000
+    if mode == stat.S_IFLNK:
+        raise UploadError(f"refused archive member {member.filename!r}: symbolic link")
+    if mode not in (0, stat.S_IFREG, stat.S_IFDIR):
+        raise UploadError(f"refused archive member {member.filename!r}: not a regular file")
+    if member.flag_bits & 0x1:
+        raise UploadError(f"refused archive member {member.filename!r}: encrypted")
+    key = str(relative).lower()
+    if key in seen:
+        raise UploadError(f"refused archive member {member.filename!r}: duplicate name")
+    seen.add(key)
+    target = dest.joinpath(*relative.parts)
+    if not target.resolve().is_relative_to(root):
+        raise UploadError(f"refused archive member {member.filename!r}: leaves the upload folder")
+    if member.is_dir() or mode == stat.S_IFDIR:
+        target.mkdir(mode=0o700, parents=True, exist_ok=True)
+        return None
+    return relative
+
+
+def _write_member(
+    archive: zipfile.ZipFile, member: zipfile.ZipInfo, target: Path, root: Path, written: list[Path], total: int,
+    max_bytes: int, max_ratio: float,
+) -> int:  # fmt: skip
+    """Inflate one member to ``target`` (a new private file, listed in ``written``), counting the
+    bytes as they come; returns the running total of unpacked bytes."""
+    if member.compress_size > 0 and member.file_size / member.compress_size > max_ratio:
+        raise UploadError(f"refused archive member {member.filename!r}: compression ratio above {max_ratio:g}")
+    target.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if not target.parent.resolve().is_relative_to(root):
+        raise UploadError(f"refused archive member {member.filename!r}: leaves the upload folder")
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    fd = os.open(target, flags, 0o600)
+    written.append(target)
+    with os.fdopen(fd, "wb") as out, archive.open(member) as src:
+        while True:
+            chunk = src.read(1 << 16)
+            if not chunk:
+                break
+            total += len(chunk)
+            if total > max_bytes:
+                raise UploadError(f"archive unpacks to more than the limit of {max_bytes} bytes")
+            out.write(chunk)
+    return total
+
+
 def unpack_upload(
     zip_bytes: bytes,
     dest_dir: str | os.PathLike[str],
@@ -51,14 +116,7 @@ def unpack_upload(
         raise ValueError(f"max_bytes must be positive, got {max_bytes}")
     if len(zip_bytes) > max_bytes:
         raise UploadError(f"upload of {len(zip_bytes)} bytes exceeds the limit of {max_bytes} bytes")
-    dest = Path(dest_dir)
-    if dest.exists():
-        if not dest.is_dir() or dest.is_symlink():
-            raise UploadError(f"{dest}: not a folder")
-        if any(dest.iterdir()):
-            raise UploadError(f"{dest}: not empty")
-    else:
-        dest.mkdir(mode=0o700, parents=True)
+    dest = _empty_folder(Path(dest_dir))
     try:
         archive = zipfile.ZipFile(io.BytesIO(zip_bytes))
         members = archive.infolist()
@@ -75,43 +133,11 @@ def unpack_upload(
         total = 0
         root = dest.resolve()
         for member in members:
-            relative = _safe_member_name(member.filename)
-            if relative is None:  # "./" and the like: the upload folder itself
+            relative = _checked_member(member, seen, dest, root)
+            if relative is None:  # "./" and the like, or a folder: recreated, nothing to write
                 continue
-            mode = (member.external_attr >> 16) & 0o170000
-            if mode == stat.S_IFLNK:
-                raise UploadError(f"refused archive member {member.filename!r}: symbolic link")
-            if mode not in (0, stat.S_IFREG, stat.S_IFDIR):
-                raise UploadError(f"refused archive member {member.filename!r}: not a regular file")
-            if member.flag_bits & 0x1:
-                raise UploadError(f"refused archive member {member.filename!r}: encrypted")
-            key = str(relative).lower()
-            if key in seen:
-                raise UploadError(f"refused archive member {member.filename!r}: duplicate name")
-            seen.add(key)
-            target = dest.joinpath(*relative.parts)
-            if not target.resolve().is_relative_to(root):
-                raise UploadError(f"refused archive member {member.filename!r}: leaves the upload folder")
-            if member.is_dir() or mode == stat.S_IFDIR:
-                target.mkdir(mode=0o700, parents=True, exist_ok=True)
-                continue
-            if member.compress_size > 0 and member.file_size / member.compress_size > max_ratio:
-                raise UploadError(f"refused archive member {member.filename!r}: compression ratio above {max_ratio:g}")
-            target.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-            if not target.parent.resolve().is_relative_to(root):
-                raise UploadError(f"refused archive member {member.filename!r}: leaves the upload folder")
-            flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
-            fd = os.open(target, flags, 0o600)
-            written.append(target)
-            with os.fdopen(fd, "wb") as out, archive.open(member) as src:
-                while True:
-                    chunk = src.read(1 << 16)
-                    if not chunk:
-                        break
-                    total += len(chunk)
-                    if total > max_bytes:
-                        raise UploadError(f"archive unpacks to more than the limit of {max_bytes} bytes")
-                    out.write(chunk)
+            total = _write_member(archive, member, dest.joinpath(*relative.parts), root, written, total, max_bytes,
+                                  max_ratio)  # fmt: skip
     except UploadError:
         _remove_tree_contents(dest)
         raise
