@@ -6,7 +6,7 @@ and an :class:`~registration.sim.xray.XRayImage` that follow ``shared/CONVENTION
 
 Modules (import from the package, ``from registration.io.dicom import read_volume``):
 
-``volumes``
+``volumes``, ``volumes_write``
     Slice series, enhanced multi-frame volumes and the ``.npz``: reading (CONVENTIONS §2,
     tilted or uneven stacks rejected) and writing.
 ``xray``
@@ -66,7 +66,8 @@ from registration.io.dicom.spatial import (
     write_registration,
 )
 from registration.io.dicom.uploads import classify_upload, unpack_upload
-from registration.io.dicom.volumes import read_npz, read_series, read_volume, write_enhanced, write_npz, write_series
+from registration.io.dicom.volumes import read_npz, read_series, read_volume, write_npz
+from registration.io.dicom.volumes_write import write_enhanced, write_series
 from registration.io.dicom.xray import read_xray, read_xray_angles
 from registration.io.dicom.xray_write import write_xray
 

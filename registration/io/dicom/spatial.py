@@ -167,6 +167,50 @@ def _series_item(series_uid: str, instances: list[Any]) -> Dataset:
     return item
 
 
+def _xray_item(xmeta: dict, x_for: str) -> Dataset:
+    """Registration item 1: the X-ray image's frame (the registered RCS), identity; the image
+    itself referenced."""
+    x_item = Dataset()
+    x_item.FrameOfReferenceUID = x_for
+    if xmeta.get("sop_instance_uid"):
+        ref = Dataset()
+        ref.ReferencedSOPClassUID = str(xmeta.get("sop_class") or "")
+        ref.ReferencedSOPInstanceUID = str(xmeta["sop_instance_uid"])
+        if int(xmeta.get("frames", 1) or 1) > 1:
+            ref.ReferencedFrameNumber = int(xmeta.get("frame", 0)) + 1  # DICOM frames count from 1
+        x_item.ReferencedImageSequence = Sequence([ref])
+    identity = _matrix_item(np.eye(4), "X-ray image: registered frame", content_based=False)
+    x_item.MatrixRegistrationSequence = Sequence([identity])
+    return x_item
+
+
+def _volume_item(motion: np.ndarray, v_for: str) -> Dataset:
+    """Registration item 2: the volume's frame, mapped by the patient motion."""
+    v_item = Dataset()
+    v_item.FrameOfReferenceUID = v_for
+    v_item.MatrixRegistrationSequence = Sequence(
+        [_matrix_item(motion, "patient motion M (roadmap3d): volume X is at M @ X in the image", content_based=True)]
+    )
+    return v_item
+
+
+def _referenced_series(ds: Dataset, vmeta: dict, xmeta: dict, study: str) -> None:
+    """The registered series; the volume's under its own study when it lies in another one."""
+    series = []
+    if vmeta.get("series_uid"):
+        series.append(_series_item(str(vmeta["series_uid"]), list(vmeta.get("instances") or [])))
+    if xmeta.get("series_uid") and xmeta.get("sop_instance_uid"):
+        series.append(_series_item(str(xmeta["series_uid"]), [[xmeta.get("sop_class"), xmeta["sop_instance_uid"]]]))
+    ds.ReferencedSeriesSequence = Sequence(series)
+    other_study = str(vmeta.get("study_uid") or "")
+    if other_study and other_study != study and vmeta.get("series_uid"):
+        study_item = Dataset()
+        study_item.StudyInstanceUID = other_study
+        study_item.ReferencedSeriesSequence = Sequence([series[0]])
+        ds.StudiesContainingOtherReferencedInstancesSequence = Sequence([study_item])
+        ds.ReferencedSeriesSequence = Sequence(series[1:])
+
+
 def write_registration(
     path: str | os.PathLike[str],
     patient_motion: ArrayLike,
@@ -211,38 +255,8 @@ def write_registration(
     ds.ContentCreatorName = "roadmap3d"
     ds.FrameOfReferenceUID = x_for
     ds.PositionReferenceIndicator = ""
-    # Item 1: the X-ray image's frame (the registered RCS), identity; the image itself referenced.
-    x_item = Dataset()
-    x_item.FrameOfReferenceUID = x_for
-    if xmeta.get("sop_instance_uid"):
-        ref = Dataset()
-        ref.ReferencedSOPClassUID = str(xmeta.get("sop_class") or "")
-        ref.ReferencedSOPInstanceUID = str(xmeta["sop_instance_uid"])
-        if int(xmeta.get("frames", 1) or 1) > 1:
-            ref.ReferencedFrameNumber = int(xmeta.get("frame", 0)) + 1  # DICOM frames count from 1
-        x_item.ReferencedImageSequence = Sequence([ref])
-    identity = _matrix_item(np.eye(4), "X-ray image: registered frame", content_based=False)
-    x_item.MatrixRegistrationSequence = Sequence([identity])
-    # Item 2: the volume's frame, mapped by the patient motion.
-    v_item = Dataset()
-    v_item.FrameOfReferenceUID = v_for
-    v_item.MatrixRegistrationSequence = Sequence(
-        [_matrix_item(motion, "patient motion M (roadmap3d): volume X is at M @ X in the image", content_based=True)]
-    )
-    ds.RegistrationSequence = Sequence([x_item, v_item])
-    series = []
-    if vmeta.get("series_uid"):
-        series.append(_series_item(str(vmeta["series_uid"]), list(vmeta.get("instances") or [])))
-    if xmeta.get("series_uid") and xmeta.get("sop_instance_uid"):
-        series.append(_series_item(str(xmeta["series_uid"]), [[xmeta.get("sop_class"), xmeta["sop_instance_uid"]]]))
-    ds.ReferencedSeriesSequence = Sequence(series)
-    other_study = str(vmeta.get("study_uid") or "")
-    if other_study and other_study != study and vmeta.get("series_uid"):
-        study_item = Dataset()
-        study_item.StudyInstanceUID = other_study
-        study_item.ReferencedSeriesSequence = Sequence([series[0]])
-        ds.StudiesContainingOtherReferencedInstancesSequence = Sequence([study_item])
-        ds.ReferencedSeriesSequence = Sequence(series[1:])
+    ds.RegistrationSequence = Sequence([_xray_item(xmeta, x_for), _volume_item(motion, v_for)])
+    _referenced_series(ds, vmeta, xmeta, study)
     ds.ContentDate = ds.SeriesDate
     ds.ContentTime = datetime.now(UTC).strftime("%H%M%S")
     path = Path(path)

@@ -19,18 +19,15 @@ import os
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from pydicom.dataset import Dataset
-from pydicom.sequence import Sequence as DicomSequence
 from pydicom.uid import (
     UID,
     CTImageStorage,
-    EnhancedCTImageStorage,
     MediaStorageDirectoryStorage,
 )
 
@@ -45,27 +42,22 @@ from registration.io.dicom._common import (
     XRAY_CLASSES,
     Array,
     DicomError,
-    _base,
     _candidate_files,
     _check_pixel_module,
-    _ds_number,
     _float,
     _floats,
     _frames,
     _is_xray,
     _pixels,
-    _save,
     _short,
     _sop_class,
     _text,
-    make_uid,
     pixel_decoder,
     read_dataset,
     tag_name,
 )
 from registration.io.dicom._files import (
     _atomic_path,
-    atomic_folder,
 )
 from registration.io.dicom.limits import (
     check_affine,
@@ -102,15 +94,8 @@ def _orientation(path: Path, values: list[float]) -> Array:
     return np.concatenate([row, col / np.linalg.norm(col)])
 
 
-def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Volume:
-    """Sort slices along the slice normal, check the stack and build the volume."""
-    if len(slices) < 2:
-        s = slices[0]
-        raise DicomError(
-            source,
-            f"holds a single 2-D image ({s.rows} x {s.cols}), not a volume: a volume needs at least "
-            "2 slices (a folder of slices or a multi-frame file)",
-        )
+def _check_alike(slices: list[_Slice]) -> None:
+    """Every slice of a stack has the first's size, orientation and pixel spacing."""
     ref = slices[0]
     for s in slices[1:]:
         if (s.rows, s.cols) != (ref.rows, ref.cols):
@@ -129,6 +114,36 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
             raise DicomError(
                 s.source, f"{tag_name('PixelSpacing')} {s.spacing} differs from {ref.spacing} of {ref.source}"
             )
+
+
+def _stacked_pixels(slices: list[_Slice], source: Path) -> NDArray[np.float32]:
+    """The sorted slices' values (stored * slope + intercept) as one (slices, rows, cols) array."""
+    ref = slices[0]
+    check_voxels(source, (len(slices), ref.rows, ref.cols), what="slices x Rows x Columns")
+    data = np.empty((len(slices), ref.rows, ref.cols), dtype=np.float32)
+    for k, s in enumerate(slices):
+        pixels = s.load()
+        if pixels.shape != (ref.rows, ref.cols):
+            raise DicomError(
+                s.source, f"{tag_name('PixelData')} has shape {pixels.shape}, expected {ref.rows}x{ref.cols}"
+            )
+        # stored values * slope + intercept, written into the stack (no temporary arrays)
+        np.multiply(pixels, np.float32(s.slope), out=data[k], dtype=np.float32, casting="unsafe")
+        data[k] += np.float32(s.intercept)
+    return data
+
+
+def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Volume:
+    """Sort slices along the slice normal, check the stack and build the volume."""
+    if len(slices) < 2:
+        s = slices[0]
+        raise DicomError(
+            source,
+            f"holds a single 2-D image ({s.rows} x {s.cols}), not a volume: a volume needs at least "
+            "2 slices (a folder of slices or a multi-frame file)",
+        )
+    ref = slices[0]
+    _check_alike(slices)
     row_dir, col_dir = ref.orientation[:3], ref.orientation[3:]
     normal = np.cross(row_dir, col_dir)
     along = np.array([s.position @ normal for s in slices])
@@ -162,17 +177,7 @@ def _stack(slices: list[_Slice], source: Path, *, label: str, meta: dict) -> Vol
             f"slices are shifted within their plane along the stack ({tag_name('ImagePositionPatient')}, "
             f"gantry tilt of about {tilt:.2f} deg); tilted stacks are rejected, not resampled",
         )
-    check_voxels(source, (len(slices), ref.rows, ref.cols), what="slices x Rows x Columns")
-    data = np.empty((len(slices), ref.rows, ref.cols), dtype=np.float32)
-    for k, s in enumerate(slices):
-        pixels = s.load()
-        if pixels.shape != (ref.rows, ref.cols):
-            raise DicomError(
-                s.source, f"{tag_name('PixelData')} has shape {pixels.shape}, expected {ref.rows}x{ref.cols}"
-            )
-        # stored values * slope + intercept, written into the stack (no temporary arrays)
-        np.multiply(pixels, np.float32(s.slope), out=data[k], dtype=np.float32, casting="unsafe")
-        data[k] += np.float32(s.intercept)
+    data = _stacked_pixels(slices, source)
     affine = np.eye(4)
     affine[:3, 0] = row_dir * ref.spacing[1]  # i: along a row (increasing column index)
     affine[:3, 1] = col_dir * ref.spacing[0]  # j: down a column (increasing row index)
@@ -475,172 +480,6 @@ def read_volume(path: str | os.PathLike[str], *, label: str | None = None) -> Vo
 # --------------------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------------------
-def _volume_axes(volume: Volume) -> tuple[Array, Array, Array, tuple[float, float], float]:
-    a = volume.index_to_world[:3, :3]
-    spacing = np.linalg.norm(a, axis=0)
-    row_dir, col_dir, k_axis = a[:, 0] / spacing[0], a[:, 1] / spacing[1], a[:, 2] / spacing[2]
-    if abs(row_dir @ col_dir) > 1e-6:
-        raise ValueError("the volume's i and j axes are not orthogonal: it cannot be written as DICOM slices")
-    normal = np.cross(row_dir, col_dir)
-    if abs(abs(k_axis @ normal) - 1.0) > 1e-6:
-        raise ValueError("the volume's slice axis is not perpendicular to its slices (sheared/tilted affine)")
-    return row_dir, col_dir, normal, (float(spacing[1]), float(spacing[0])), float(spacing[2])
-
-
-def _hu_to_int16(data: NDArray[np.float32]) -> NDArray[np.int16]:
-    return np.clip(np.rint(data), -32768, 32767).astype(np.int16)
-
-
-def write_series(
-    volume: Volume,
-    folder: str | os.PathLike[str],
-    *,
-    modality: str = "CT",
-    description: str | None = None,
-    study_uid: str | None = None,
-    uid_seed: str | None = None,
-    patient_name: str = "roadmap3d^phantom",
-    patient_id: str = "ROADMAP3D",
-) -> list[Path]:
-    """Write ``volume`` as a classic CT Image Storage slice series into ``folder`` (new or empty).
-
-    Values are HU rounded to int16 (RescaleSlope 1, RescaleIntercept 0, RescaleType HU), so
-    they read back within 0.5 HU. Slice k goes to ``slice_{k:04d}.dcm`` at
-    ``index_to_world @ (0, 0, k, 1)``. The folder appears only when every slice is written.
-    """
-    row_dir, col_dir, _normal, pixel_spacing, slice_mm = _volume_axes(volume)
-    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
-    series = make_uid(uid_seed, "series", volume.label)
-    frame_of_reference = make_uid(uid_seed, "frame of reference")
-    description = description or (volume.label or "roadmap3d volume")[:64]
-    nk, nj, ni = volume.shape
-    pixels = _hu_to_int16(volume.data)
-    written: list[Path] = []
-    with atomic_folder(folder) as tmp:
-        for k in range(nk):
-            position = volume.index_to_world @ np.array([0.0, 0.0, float(k), 1.0])
-            ds = _base(
-                CTImageStorage,
-                modality,
-                study_uid=study,
-                series_uid=series,
-                instance_uid=make_uid(uid_seed, "slice", k, volume.label),
-                series_number=1,
-                description=description[:64],
-                patient_name=patient_name,
-                patient_id=patient_id,
-            )
-            ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
-            if volume.label:
-                ds.DerivationDescription = volume.label[:1024]
-            ds.FrameOfReferenceUID = frame_of_reference
-            ds.PositionReferenceIndicator = ""
-            ds.InstanceNumber = k + 1
-            ds.ImagePositionPatient = [_ds_number(v) for v in position[:3]]
-            ds.ImageOrientationPatient = [_ds_number(v) for v in (*row_dir, *col_dir)]
-            ds.PixelSpacing = [_ds_number(pixel_spacing[0]), _ds_number(pixel_spacing[1])]
-            ds.SliceThickness = _ds_number(slice_mm)
-            ds.SpacingBetweenSlices = _ds_number(slice_mm)
-            ds.SliceLocation = _ds_number(float(position[:3] @ _normal))
-            ds.KVP = "90"
-            ds.SamplesPerPixel = 1
-            ds.PhotometricInterpretation = "MONOCHROME2"
-            ds.Rows, ds.Columns = nj, ni
-            ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
-            ds.PixelRepresentation = 1
-            ds.RescaleIntercept = "0"
-            ds.RescaleSlope = "1"
-            ds.RescaleType = "HU"
-            ds.WindowCenter, ds.WindowWidth = "300", "1500"
-            ds.PixelData = np.ascontiguousarray(pixels[k]).tobytes()
-            name = f"slice_{k:04d}.dcm"
-            _save(ds, tmp / name)
-            written.append(Path(folder) / name)
-    return written
-
-
-def write_enhanced(
-    volume: Volume,
-    path: str | os.PathLike[str],
-    *,
-    description: str | None = None,
-    study_uid: str | None = None,
-    uid_seed: str | None = None,
-    patient_name: str = "roadmap3d^phantom",
-    patient_id: str = "ROADMAP3D",
-) -> Path:
-    """Write ``volume`` as one Enhanced CT multi-frame file (frame k = slice k), int16 HU."""
-    row_dir, col_dir, _normal, pixel_spacing, slice_mm = _volume_axes(volume)
-    nk, nj, ni = volume.shape
-    study = UID(study_uid) if study_uid else make_uid(uid_seed, "study")
-    ds = _base(
-        EnhancedCTImageStorage,
-        "CT",
-        study_uid=study,
-        series_uid=make_uid(uid_seed, "enh series"),
-        instance_uid=make_uid(uid_seed, "enh instance"),
-        series_number=2,
-        description=(description or volume.label or "roadmap3d volume")[:64],
-        patient_name=patient_name,
-        patient_id=patient_id,
-    )
-    ds.ImageType = ["DERIVED", "SECONDARY", "VOLUME", "NONE"]
-    if volume.label:
-        ds.DerivationDescription = volume.label[:1024]
-    ds.FrameOfReferenceUID = make_uid(uid_seed, "frame of reference")
-    ds.PositionReferenceIndicator = ""
-    ds.InstanceNumber = 1
-    ds.ContentQualification = "RESEARCH"
-    ds.AcquisitionDateTime = datetime.now(UTC).strftime("%Y%m%d%H%M%S")
-    ds.BurnedInAnnotation = "NO"
-    ds.NumberOfFrames = nk
-    ds.SamplesPerPixel = 1
-    ds.PhotometricInterpretation = "MONOCHROME2"
-    ds.Rows, ds.Columns = nj, ni
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
-    ds.PixelRepresentation = 1
-    ds.PresentationLUTShape = "IDENTITY"
-    ds.LossyImageCompression = "00"
-    shared = Dataset()
-    measures = Dataset()
-    measures.PixelSpacing = [_ds_number(pixel_spacing[0]), _ds_number(pixel_spacing[1])]
-    measures.SliceThickness = _ds_number(slice_mm)
-    measures.SpacingBetweenSlices = _ds_number(slice_mm)
-    shared.PixelMeasuresSequence = DicomSequence([measures])
-    orientation = Dataset()
-    orientation.ImageOrientationPatient = [_ds_number(v) for v in (*row_dir, *col_dir)]
-    shared.PlaneOrientationSequence = DicomSequence([orientation])
-    transform = Dataset()
-    transform.RescaleIntercept = "0"
-    transform.RescaleSlope = "1"
-    transform.RescaleType = "HU"
-    shared.PixelValueTransformationSequence = DicomSequence([transform])
-    frame_type = Dataset()
-    frame_type.FrameType = ["DERIVED", "SECONDARY", "VOLUME", "NONE"]
-    shared.CTImageFrameTypeSequence = DicomSequence([frame_type])
-    ds.SharedFunctionalGroupsSequence = DicomSequence([shared])
-    per_frame = []
-    for k in range(nk):
-        item = Dataset()
-        position = Dataset()
-        position.ImagePositionPatient = [
-            _ds_number(v) for v in (volume.index_to_world @ np.array([0.0, 0.0, float(k), 1.0]))[:3]
-        ]
-        item.PlanePositionSequence = DicomSequence([position])
-        content = Dataset()
-        content.InStackPositionNumber = k + 1
-        content.StackID = "1"
-        content.DimensionIndexValues = [1, k + 1]
-        item.FrameContentSequence = DicomSequence([content])
-        per_frame.append(item)
-    ds.PerFrameFunctionalGroupsSequence = DicomSequence(per_frame)
-    ds.PixelData = _hu_to_int16(volume.data).tobytes()
-    path = Path(path)
-    with _atomic_path(path) as tmp:
-        _save(ds, tmp)
-    return path
-
-
 def write_npz(volume: Volume, path: str | os.PathLike[str]) -> Path:
     """The project's volume file (``data``, ``index_to_world``, ``label``), written atomically."""
     path = Path(path)
