@@ -130,6 +130,49 @@ def _group_int(ds: Dataset, group: int, element: int, default: int | None = None
     return int(value)
 
 
+def _overlay_plane(
+    path: Path, ds: Dataset, group: int, shape: tuple[int, int], frame: int, raw_words: NDArray[Any] | None
+) -> tuple[NDArray[np.bool_] | None, dict[str, Any]]:
+    """One overlay plane's bits on ``frame`` (None when it draws nothing there or cannot be read
+    here) and its note (name, type, description, where its bits came from)."""
+    name = f"overlay {group:04X}"
+    o_rows, o_cols = shape
+    n_frames = _group_int(ds, group, 0x0015, 1) or 1
+    first = _group_int(ds, group, 0x0051, 1) or 1
+    kind = str(ds.get(group << 16 | 0x0040).value if (group << 16 | 0x0040) in ds else "G").strip().upper()
+    description = str(ds[group << 16 | 0x0022].value).strip() if (group << 16 | 0x0022) in ds else ""
+    note: dict[str, Any] = {"plane": name, "type": "ROI" if kind == "R" else "graphics"}
+    if description:
+        note["description"] = description[:64]
+    # A single-frame overlay on a multi-frame image is drawn on every frame.
+    index = 0 if n_frames == 1 else frame - (first - 1)
+    if not 0 <= index < n_frames:
+        note["pixels"] = 0
+        return None, note
+    data_tag = group << 16 | 0x3000
+    if data_tag in ds and ds[data_tag].value:
+        raw = np.frombuffer(bytes(ds[data_tag].value), dtype=np.uint8)
+        bits = np.unpackbits(raw, bitorder="little")
+        per = o_rows * o_cols
+        if bits.size < per * n_frames:
+            raise DicomError(
+                path,
+                f"{name}: OverlayData ({group:04X},3000) holds {bits.size} bits for {n_frames} frame(s) of "
+                f"{o_rows}x{o_cols}",
+            )
+        plane = bits[index * per : (index + 1) * per].reshape(o_rows, o_cols).astype(bool)
+        note["from"] = "OverlayData"
+    else:
+        position = _group_int(ds, group, 0x0102, 0) or 0
+        if raw_words is None or position <= 0 or (o_rows, o_cols) != raw_words.shape:
+            note["from"] = f"pixel bit {position} (not readable here)"
+            note["pixels"] = 0
+            return None, note
+        plane = ((raw_words.astype(np.int64) >> position) & 1).astype(bool)
+        note["from"] = f"pixel data bit {position}"
+    return plane, note
+
+
 def overlay_graphics(
     path: Path, ds: Dataset, rows: int, cols: int, frame: int, raw_words: NDArray[Any] | None = None
 ) -> tuple[NDArray[np.bool_] | None, list[dict[str, Any]]]:
@@ -155,41 +198,10 @@ def overlay_graphics(
             origin = [int(v) for v in (value if hasattr(value, "__iter__") and not isinstance(value, str) else [value])]
             if len(origin) != 2:
                 raise DicomError(path, f"{name}: OverlayOrigin ({group:04X},0050) must hold row and column")
-        n_frames = _group_int(ds, group, 0x0015, 1) or 1
-        first = _group_int(ds, group, 0x0051, 1) or 1
-        kind = str(ds.get(group << 16 | 0x0040).value if (group << 16 | 0x0040) in ds else "G").strip().upper()
-        description = str(ds[group << 16 | 0x0022].value).strip() if (group << 16 | 0x0022) in ds else ""
-        note: dict[str, Any] = {"plane": name, "type": "ROI" if kind == "R" else "graphics"}
-        if description:
-            note["description"] = description[:64]
-        # A single-frame overlay on a multi-frame image is drawn on every frame.
-        index = 0 if n_frames == 1 else frame - (first - 1)
-        if not 0 <= index < n_frames:
-            note["pixels"] = 0
+        plane, note = _overlay_plane(path, ds, group, (o_rows, o_cols), frame, raw_words)
+        if plane is None:
             notes.append(note)
             continue
-        data_tag = group << 16 | 0x3000
-        if data_tag in ds and ds[data_tag].value:
-            raw = np.frombuffer(bytes(ds[data_tag].value), dtype=np.uint8)
-            bits = np.unpackbits(raw, bitorder="little")
-            per = o_rows * o_cols
-            if bits.size < per * n_frames:
-                raise DicomError(
-                    path,
-                    f"{name}: OverlayData ({group:04X},3000) holds {bits.size} bits for {n_frames} frame(s) of "
-                    f"{o_rows}x{o_cols}",
-                )
-            plane = bits[index * per : (index + 1) * per].reshape(o_rows, o_cols).astype(bool)
-            note["from"] = "OverlayData"
-        else:
-            position = _group_int(ds, group, 0x0102, 0) or 0
-            if raw_words is None or position <= 0 or (o_rows, o_cols) != raw_words.shape:
-                note["from"] = f"pixel bit {position} (not readable here)"
-                note["pixels"] = 0
-                notes.append(note)
-                continue
-            plane = ((raw_words.astype(np.int64) >> position) & 1).astype(bool)
-            note["from"] = f"pixel data bit {position}"
         full = np.zeros((rows, cols), dtype=bool)
         r0, c0 = origin[0] - 1, origin[1] - 1
         rs, cs = max(r0, 0), max(c0, 0)
