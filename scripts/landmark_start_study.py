@@ -67,8 +67,10 @@ def main() -> int:
                 image_px = g.project(apply(truth, p)) + rng.normal(0.0, sigma, 2) * px_per_mm
                 volume_mm = p + rng.normal(0.0, sigma, 3)
                 landmarks.append(Landmark(tuple(image_px), tuple(volume_mm), plane))
-        for name, vs, lms, prep in (("biplane", list(views), landmarks, pair),
-                                    ("single_plane", [views[0]], [lm for lm in landmarks if lm.plane == 0], alone)):  # fmt: skip
+        for name, vs, lms, _prep in (
+            ("biplane", list(views), landmarks, pair),
+            ("single_plane", [views[0]], [lm for lm in landmarks if lm.plane == 0], alone),
+        ):
             start = landmark_start([v.geometry for v in vs], lms)
             r = register(volume, vs if len(vs) > 1 else vs[0], initial_motion=start.patient_motion, truth=truth,
                          seed=case.seed)  # fmt: skip
@@ -76,11 +78,23 @@ def main() -> int:
             rows[name].append(ok)
             iso = np.asarray(views[0].geometry.isocenter_mm)
             start_off = float(np.linalg.norm(apply(start.patient_motion, iso) - apply(truth, iso)))
-            print(json.dumps({"case": task.case_id.split("/a")[0], "planes": name, "start_rms_px": round(start.rms_px, 2),
-                              "start_off_mm": round(start_off, 2), "start_shift_mm": round(r.start_shift_mm, 1),
-                              "walk_hops": r.walk_hops,
-                              "inplane_mm": round(r.residual.inplane_mm, 3), "total_mm": round(r.residual.translation_mm, 3),
-                              "rotation_deg": round(r.residual.rotation_deg, 3), "success": ok}), flush=True)  # fmt: skip
+            print(
+                json.dumps(
+                    {
+                        "case": task.case_id.split("/a")[0],
+                        "planes": name,
+                        "start_rms_px": round(start.rms_px, 2),
+                        "start_off_mm": round(start_off, 2),
+                        "start_shift_mm": round(r.start_shift_mm, 1),
+                        "walk_hops": r.walk_hops,
+                        "inplane_mm": round(r.residual.inplane_mm, 3),
+                        "total_mm": round(r.residual.translation_mm, 3),
+                        "rotation_deg": round(r.residual.rotation_deg, 3),
+                        "success": ok,
+                    }
+                ),
+                flush=True,
+            )
     for name, oks in rows.items():
         print(json.dumps({"planes": name, "success": f"{sum(oks)}/{len(oks)}"}))
     return 0

@@ -20,7 +20,7 @@ import tempfile
 from pathlib import Path
 
 from registration.core.confidence import DEFAULT_RULE, Evidence
-from registration.studies.report import source_revision
+from registration.studies.report_kit import source_revision
 
 
 def rescore(path: Path, *, write: bool = True) -> tuple[int, int]:

@@ -130,7 +130,8 @@ def _from_pacs(args: RotationalRunStudy, work: Path) -> tuple[Path, Path, str]:
 def run_rotational_validation(args: RotationalRunStudy) -> int:
     """Register random frames of a rotational run to its own 3DRA; report as ``validate clinical``."""
     from registration.sim.calibration import CalibrationTable
-    from registration.studies.report import clinical_summary, summary_lines, write_clinical_report
+    from registration.studies.clinical_report import clinical_summary, write_clinical_report
+    from registration.studies.report import summary_lines
     from registration.studies.rotational import REPORT_TITLE, method_lines, rotational_tasks, validate_rotational_run
 
     if args.cases < 1:

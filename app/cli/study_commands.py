@@ -84,7 +84,7 @@ def _check_jobs(jobs: int | None) -> int | None:
 
 def run_phantom_study(args: PhantomStudy) -> int:
     """``roadmap3d validate phantom``: Table II-III and Fig. 6, written to ``args.out``."""
-    from registration.studies.report import phantom_summary, write_phantom_report
+    from registration.studies.phantom_report import phantom_summary, write_phantom_report
 
     config = PhantomConfig.quick_config(args.seed) if args.quick else PhantomConfig(seed=args.seed)
     if getattr(args, "volume_source", None):
@@ -100,7 +100,7 @@ def run_phantom_study(args: PhantomStudy) -> int:
 
 def run_clinical_study(args: ClinicalStudy) -> int:
     """``roadmap3d validate clinical``: the rotational-run study and Fig. 7, written to ``args.out``."""
-    from registration.studies.report import clinical_summary, write_clinical_report
+    from registration.studies.clinical_report import clinical_summary, write_clinical_report
 
     config = ClinicalConfig.quick_config(args.seed) if args.quick else ClinicalConfig(seed=args.seed)
     if args.registrations is not None:

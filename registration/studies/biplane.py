@@ -250,7 +250,7 @@ def _scores(prefix: str, result: Any) -> dict:
 
 @lru_cache(maxsize=1)
 def _revision() -> str:
-    from registration.studies.report import source_revision
+    from registration.studies.report_kit import source_revision
 
     return source_revision()
 
@@ -344,16 +344,16 @@ RESIDUAL_BINS_MM = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.75, 1.0, 2.0, 5.0)
 
 def biplane_histograms(records: list[dict], path: Path) -> Path:
     """Total and out-of-plane residuals, biplane beside single-plane (plane A)."""
-    from registration.studies.report import _binned, _headroom, _plt, _stamp
+    from registration.studies.report_kit import binned, headroom, pyplot, stamp
 
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for ax, key, title in (
         (axes[0], "translation_residual_mm", "total translational residual at the iso-center"),
         (axes[1], "outofplane_residual_mm", "out-of-plane part (along plane A's beam)"),
     ):
-        labels, bi = _binned([r[key] for r in records], RESIDUAL_BINS_MM)
-        _, single = _binned([r[f"single_{key}"] for r in records], RESIDUAL_BINS_MM)
+        labels, bi = binned([r[key] for r in records], RESIDUAL_BINS_MM)
+        _, single = binned([r[f"single_{key}"] for r in records], RESIDUAL_BINS_MM)
         x = np.arange(len(labels))
         ax.bar(x - 0.2, bi, width=0.4, color="#4a7ab5", label="biplane (6 parameters)")
         ax.bar(x + 0.2, single, width=0.4, color="#f0ad4e", label="single plane A (5 parameters)")
@@ -363,10 +363,10 @@ def biplane_histograms(records: list[dict], path: Path) -> Path:
         ax.set_ylabel("registrations", fontsize=8)
         ax.set_title(f"{title} (n = {len(records)})", fontsize=9)
         ax.legend(fontsize=7, loc="upper center")  # the middle bins: between biplane's and single plane's
-        _headroom(ax, max(bi + single))
+        headroom(ax, max(bi + single))
     fig.suptitle("Biplane vs single-plane registration; right of the dashed line: >= 1 mm (fails)", fontsize=10)
     fig.tight_layout()
-    _stamp(fig, records)
+    stamp(fig, records)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -434,7 +434,7 @@ def biplane_report_md(records: list[dict], summary: dict, image: str) -> str:
 
 
 def write_biplane_report(records: list[dict], summary: dict, out: Path) -> dict[str, str]:
-    from registration.studies.report import markdown_to_html
+    from registration.studies.report_kit import markdown_to_html
 
     out = Path(out)
     png = biplane_histograms(records, out / "biplane_histograms.png")

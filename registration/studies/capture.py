@@ -219,9 +219,9 @@ _SWEEP_AXES = {
 
 def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
     """Success and wrongly applied share against the offset, one panel per sweep."""
-    from registration.studies.report import _plt, _stamp
+    from registration.studies.report_kit import pyplot, stamp
 
-    plt = _plt()
+    plt = pyplot()
     sweeps = [s for s in SWEEPS if s in summary["biplane"]["sweeps"]]
     fig, axes = plt.subplots(1, len(sweeps), figsize=(4.6 * len(sweeps), 4.0), squeeze=False)
     for ax, sweep in zip(axes[0], sweeps, strict=True):
@@ -241,7 +241,7 @@ def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
     axes[0][0].legend(fontsize=7, loc="center left")
     fig.suptitle("Capture range: success against the initial offset (dotted: 95 %)", fontsize=10)
     fig.tight_layout()
-    _stamp(fig, records)
+    stamp(fig, records)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -300,7 +300,7 @@ def capture_report_md(summary: dict, image: str) -> str:
 
 def write_capture_report(records: list[dict], summary: dict, out: Path) -> dict[str, str]:
     """``capture_curves.png``, ``report.md`` and ``report.html`` in ``out``."""
-    from registration.studies.report import markdown_to_html
+    from registration.studies.report_kit import markdown_to_html
 
     out = Path(out)
     png = capture_curves(records, summary, out / "capture_curves.png")

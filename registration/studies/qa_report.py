@@ -301,7 +301,7 @@ def page_html(title: str, body: str) -> str:
 
 
 def footer(command: str | None) -> str:
-    from registration.studies.report import source_revision
+    from registration.studies.report_kit import source_revision
 
     rev = source_revision()
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")

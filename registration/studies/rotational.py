@@ -27,7 +27,7 @@ from registration.core.geometry import CArm
 from registration.core.images import XRayImage
 from registration.core.register import RegistrationOptions
 from registration.core.volume import Volume
-from registration.studies.report import source_revision
+from registration.studies.report_kit import source_revision
 from registration.studies.runs import (
     CLINICAL_MAX_ROTATION_DEG,
     CLINICAL_MAX_TRANSLATION_MM,

@@ -522,7 +522,7 @@ def execute(task: StudyTask, threads: int | None = None) -> dict:
 
 @lru_cache(maxsize=1)
 def _revision() -> str:
-    from registration.studies.report import source_revision
+    from registration.studies.report_kit import source_revision
 
     return source_revision()
 

@@ -354,9 +354,9 @@ def _case_from_dict(d: dict) -> TrackingCase:
 
 def strip_chart(case: dict, path: Path) -> Path:
     """Estimated (shown) vs true motion over the run, per-frame latency, and the decisions."""
-    from registration.studies.report import _plt
+    from registration.studies.report_kit import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     frames = case["frames"]
     timeline = case["timeline"]
     t_all = np.array(timeline["t_s"])
@@ -400,7 +400,7 @@ def strip_chart(case: dict, path: Path) -> Path:
 def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
     """results.json, one strip chart per case, the ROC curve, report.md and report.html."""
     from registration.io.dicom import write_text_atomic
-    from registration.studies.report import _write
+    from registration.studies.report_kit import write_report
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -410,7 +410,7 @@ def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
         name = f"strip_{case['case']}.png"
         strip_chart(case, out / name)
         images[case["case"]] = name
-    from registration.studies.report import roc_plot
+    from registration.studies.report_kit import roc_plot
 
     est = [f for c in study["cases"] for f in c["frames"] if "right" in f]
     rule_threshold = TrackingOptions().rule.threshold
@@ -485,5 +485,5 @@ def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
     if "roc" in images:
         lines += ["## Confidence", "", "![ROC](roc.png)", ""]
     md = "\n".join(lines)
-    _write(out, md, "roadmap3d: live motion compensation")
+    write_report(out, md, "roadmap3d: live motion compensation")
     return images

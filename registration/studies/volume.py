@@ -422,7 +422,7 @@ def run_volume_study(
     log: Callable[[str], None] | None = None,
 ) -> tuple[list[dict], dict]:
     """Every case of the study in this process; ``out``: results.jsonl, summary.json, report.md."""
-    from registration.studies.report import source_revision
+    from registration.studies.report_kit import source_revision
 
     say = log or (lambda _msg: None)
     records = []

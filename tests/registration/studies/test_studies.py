@@ -161,7 +161,7 @@ def test_phantom_study_runs_resumes_and_reports(tmp_path: Path):
     assert [i["ran"] for i in invocations] == [2, 1]
     assert wall == pytest.approx(sum(i["wall_seconds"] for i in invocations))
 
-    from registration.studies.report import phantom_summary, write_phantom_report
+    from registration.studies.phantom_report import phantom_summary, write_phantom_report
 
     summary = phantom_summary(records, config={"seed": 3, "quick": True}, wall_seconds=1.0)
     assert summary["runs"] == 3 and summary["runs_grid"] == 2 and summary["runs_facial_volume"] == 1
@@ -207,7 +207,7 @@ def test_dask_local_cluster(tmp_path: Path):
 
 
 def test_clinical_summary_and_report(tmp_path: Path):
-    from registration.studies.report import clinical_summary, write_clinical_report
+    from registration.studies.clinical_report import clinical_summary, write_clinical_report
 
     rng = np.random.default_rng(0)
     records = []
