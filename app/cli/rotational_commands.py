@@ -127,15 +127,11 @@ def _from_pacs(args: RotationalRunStudy, work: Path) -> tuple[Path, Path, str]:
     return vfolder, run_files[0], f"{run.label()} (series {run.series_uid} on {pacs.name})"
 
 
-def run_rotational_validation(args: RotationalRunStudy) -> int:
-    """Register random frames of a rotational run to its own 3DRA; report as ``validate clinical``."""
+def _calibration(args: RotationalRunStudy) -> tuple[Path | None, Any]:
+    """The C-arm calibration table to refine each frame's geometry with: ``--calibration``, or the
+    one an export put beside its run; (None, None) with a warning when there is none."""
     from registration.sim.calibration import CalibrationTable
-    from registration.studies.clinical_report import clinical_summary, write_clinical_report
-    from registration.studies.report import summary_lines
-    from registration.studies.rotational import REPORT_TITLE, method_lines, rotational_tasks, validate_rotational_run
 
-    if args.cases < 1:
-        raise ValueError(f"--cases must be >= 1, got {args.cases}")
     table = None
     calibration = args.calibration
     if calibration is None and args.run and not args.pacs:
@@ -153,6 +149,59 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
             "warning: no C-arm calibration (--calibration): the frames are registered on the run's nominal "
             "geometry (its positioner tags); a bent, uncalibrated C-arm makes many of them fail"
         )
+    return calibration, table
+
+
+def _summary(args: RotationalRunStudy, records: list[dict], calibration: Path | None, calibrated: bool, frames: int,
+             run_label: str, wall: float) -> dict:  # fmt: skip
+    """The study's summary, as ``validate clinical`` summarises, with the run and its geometry."""
+    from registration.studies.clinical_report import clinical_summary
+
+    config = {**asdict(args), "calibration": calibration, "frames": frames, "calibrated": calibrated,
+              "seed": args.seed}  # fmt: skip
+    config = {k: (str(v) if isinstance(v, Path) else v) for k, v in config.items()}
+    for record in records:
+        record["contrast"] = args.contrast
+    summary = clinical_summary(records, config=config, wall_seconds=wall)
+    if args.contrast is None:  # neither group: the report's contrast rows stay empty
+        empty = clinical_summary([], config={}, wall_seconds=0.0)
+        summary["contrast"], summary["no_contrast"] = empty["contrast"], empty["no_contrast"]
+    summary.update({"study": "rotational-run", "run": run_label, "frames": frames, "calibrated": calibrated,
+                    "geometry": "calibrated" if calibrated else "nominal"})  # fmt: skip
+    return summary
+
+
+def _write_and_say(args: RotationalRunStudy, records: list[dict], summary: dict, frames: int, calibrated: bool,
+                   run_label: str, volume_label: str) -> None:  # fmt: skip
+    """results.jsonl and the report in ``--out``; the summary on stdout (``--json``: as one object)."""
+    from registration.studies.clinical_report import write_clinical_report
+    from registration.studies.report import summary_lines
+    from registration.studies.rotational import REPORT_TITLE, method_lines
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "results.jsonl", "w") as fh:
+        for r in records:
+            fh.write(json.dumps(r) + "\n")
+    method = method_lines(frames=frames, calibrated=calibrated, run_label=run_label, volume_label=volume_label)
+    write_clinical_report(records, summary, out, title=REPORT_TITLE, method=method)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        lines = summary_lines(summary)
+        print("\n".join([lines[0], lines[1], lines[-1]]))
+        print(f"success (both criteria): {100.0 * (summary['success_rate'] or 0.0):.1f} %"
+              + ("" if calibrated else " (nominal geometry: no C-arm calibration)"))  # fmt: skip
+        print(f"\nwritten: {out / 'results.jsonl'}, {out / 'report.md'}, {out / 'report.html'} and the plots")
+
+
+def run_rotational_validation(args: RotationalRunStudy) -> int:
+    """Register random frames of a rotational run to its own 3DRA; report as ``validate clinical``."""
+    from registration.studies.rotational import rotational_tasks, validate_rotational_run
+
+    if args.cases < 1:
+        raise ValueError(f"--cases must be >= 1, got {args.cases}")
+    calibration, table = _calibration(args)
     work = None
     try:
         if args.pacs:
@@ -198,30 +247,7 @@ def run_rotational_validation(args: RotationalRunStudy) -> int:
     finally:
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
-    config = {**asdict(args), "calibration": calibration, "frames": len(run), "calibrated": table is not None,
-              "seed": args.seed}  # fmt: skip
-    config = {k: (str(v) if isinstance(v, Path) else v) for k, v in config.items()}
-    for record in records:
-        record["contrast"] = args.contrast
-    summary = clinical_summary(records, config=config, wall_seconds=wall)
-    if args.contrast is None:  # neither group: the report's contrast rows stay empty
-        empty = clinical_summary([], config={}, wall_seconds=0.0)
-        summary["contrast"], summary["no_contrast"] = empty["contrast"], empty["no_contrast"]
-    summary.update({"study": "rotational-run", "run": run_label, "frames": len(run), "calibrated": table is not None,
-                    "geometry": "calibrated" if table is not None else "nominal"})  # fmt: skip
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "results.jsonl", "w") as fh:
-        for r in records:
-            fh.write(json.dumps(r) + "\n")
-    method = method_lines(frames=len(run), calibrated=table is not None, run_label=run_label, volume_label=volume.label)
-    write_clinical_report(records, summary, out, title=REPORT_TITLE, method=method)
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        lines = summary_lines(summary)
-        print("\n".join([lines[0], lines[1], lines[-1]]))
-        print(f"success (both criteria): {100.0 * (summary['success_rate'] or 0.0):.1f} %"
-              + ("" if table is not None else " (nominal geometry: no C-arm calibration)"))  # fmt: skip
-        print(f"\nwritten: {out / 'results.jsonl'}, {out / 'report.md'}, {out / 'report.html'} and the plots")
+    calibrated = table is not None
+    summary = _summary(args, records, calibration, calibrated, len(run), run_label, wall)
+    _write_and_say(args, records, summary, len(run), calibrated, run_label, volume.label)
     return 0
