@@ -123,6 +123,77 @@ def device_phantom(phantom: HeadPhantom, *, wire_length_mm: float | None = None)
 # --------------------------------------------------------------------------------------
 # Image formation
 # --------------------------------------------------------------------------------------
+def _checked(
+    phantom: HeadPhantom | Attenuator, geometry: CArm, motion: ArrayLike | None, kind: str, catheter: bool,
+    devices: HeadPhantom | None, blur_px: float, supersample: int, photons_per_pixel: float | None,
+) -> tuple[np.ndarray | None, float, int, float]:  # fmt: skip
+    """:func:`simulate_xray`'s inputs checked: the motion, the blur, the supersampling and the dose."""
+    if not callable(getattr(phantom, "line_integrals", None)):
+        raise ValueError(f"phantom must be a HeadPhantom or an Attenuator, got {type(phantom).__name__}")
+    if catheter and devices is None and not isinstance(phantom, HeadPhantom):
+        raise ValueError("catheter=True follows the phantom's vessels; pass devices= for another anatomy")
+    if not isinstance(geometry, CArm):
+        raise ValueError(f"geometry must be a CArm, got {type(geometry).__name__}")
+    if kind not in PHOTONS_PER_PIXEL:
+        raise ValueError(f"kind must be one of {tuple(PHOTONS_PER_PIXEL)}, got {kind!r}")
+    if motion is not None:
+        motion = check_rigid(motion, name="motion")
+    blur_px = float(blur_px)
+    if not math.isfinite(blur_px) or blur_px < 0:
+        raise ValueError(f"blur_px must be finite and >= 0, got {blur_px}")
+    if int(supersample) != supersample or supersample < 1:
+        raise ValueError(f"supersample must be a positive integer, got {supersample}")
+    photons = PHOTONS_PER_PIXEL[kind] if photons_per_pixel is None else float(photons_per_pixel)
+    if not math.isfinite(photons) or photons <= 0:
+        raise ValueError(f"photons_per_pixel must be positive, got {photons_per_pixel}")
+    return motion, blur_px, int(supersample), photons
+
+
+def _transmission(
+    phantom: HeadPhantom | Attenuator, geometry: CArm, field_mask: np.ndarray, motion: np.ndarray | None,
+    supersample: int, devices: HeadPhantom | None, catheter: bool,
+) -> np.ndarray:  # fmt: skip
+    """The mean transmission over each field pixel's sub-pixel rays (the detector integrates
+    intensity), all traced in one call; zero outside the field."""
+    rr, cc = np.nonzero(field_mask)
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    dr, dc = np.meshgrid(offsets, offsets, indexing="ij")
+    targets = geometry.pixel_to_world(cc[None, :] + dc.reshape(-1, 1), rr[None, :] + dr.reshape(-1, 1))
+    targets = targets.reshape(-1, 3)
+    source = geometry.source_mm
+    integral = phantom.line_integrals(source, targets, motion)
+    if catheter:
+        dev = devices if devices is not None else device_phantom(phantom)
+        integral += dev.line_integrals(source, targets, motion)
+    transmission = np.exp(-integral).reshape(supersample * supersample, len(rr)).mean(axis=0)
+    frame = np.zeros((geometry.rows, geometry.cols))
+    frame[rr, cc] = transmission
+    return frame
+
+
+def _exposure_control(frame: np.ndarray, geometry: CArm, field_mask: np.ndarray, photons: float) -> float:
+    """Automatic exposure control: the unattenuated count I0 at which the central field receives
+    ``photons`` per pixel."""
+    y = (np.arange(geometry.rows) - (geometry.rows - 1) / 2.0)[:, None] * geometry.pixel_mm[0]
+    x = (np.arange(geometry.cols) - (geometry.cols - 1) / 2.0)[None, :] * geometry.pixel_mm[1]
+    aec_radius = AEC_FIELD_FRACTION * geometry.field_diameter_mm / 2.0
+    central = field_mask & (x * x + y * y <= aec_radius * aec_radius)
+    return photons / max(float(np.median(frame[central])), 1e-6)
+
+
+def _detected(frame: np.ndarray, field_mask: np.ndarray, i0: float, seed: int, blur_px: float) -> np.ndarray:
+    """Quantum noise, detector blur and electronic noise, as attenuation line integrals -log(I / I0)
+    (zero outside the field)."""
+    rng = np.random.default_rng(seed)
+    counts = rng.poisson(i0 * frame).astype(np.float64)
+    if blur_px > 0:  # normalised blur: the dark collimator does not leak into the field
+        weight = ndimage.gaussian_filter(field_mask.astype(np.float64), blur_px, mode="constant")
+        counts = ndimage.gaussian_filter(counts, blur_px, mode="constant") / np.maximum(weight, 1e-12)
+    counts += rng.normal(0.0, ELECTRONIC_NOISE_PHOTONS, counts.shape)
+    image = -np.log(np.maximum(counts, MIN_PHOTONS) / i0)
+    return np.where(field_mask, image, 0.0).astype(np.float32)
+
+
 def simulate_xray(
     phantom: HeadPhantom | Attenuator,
     geometry: CArm,
@@ -178,63 +249,18 @@ def simulate_xray(
         Attenuation line integrals ``-log(I / I0)`` (float32), zero outside the circular field,
         with the field mask.
     """
-    if not callable(getattr(phantom, "line_integrals", None)):
-        raise ValueError(f"phantom must be a HeadPhantom or an Attenuator, got {type(phantom).__name__}")
-    if catheter and devices is None and not isinstance(phantom, HeadPhantom):
-        raise ValueError("catheter=True follows the phantom's vessels; pass devices= for another anatomy")
-    if not isinstance(geometry, CArm):
-        raise ValueError(f"geometry must be a CArm, got {type(geometry).__name__}")
-    if kind not in PHOTONS_PER_PIXEL:
-        raise ValueError(f"kind must be one of {tuple(PHOTONS_PER_PIXEL)}, got {kind!r}")
-    if motion is not None:
-        motion = check_rigid(motion, name="motion")
-    blur_px = float(blur_px)
-    if not math.isfinite(blur_px) or blur_px < 0:
-        raise ValueError(f"blur_px must be finite and >= 0, got {blur_px}")
-    if int(supersample) != supersample or supersample < 1:
-        raise ValueError(f"supersample must be a positive integer, got {supersample}")
-    supersample = int(supersample)
-    photons = PHOTONS_PER_PIXEL[kind] if photons_per_pixel is None else float(photons_per_pixel)
-    if not math.isfinite(photons) or photons <= 0:
-        raise ValueError(f"photons_per_pixel must be positive, got {photons_per_pixel}")
-
-    rows, cols = geometry.rows, geometry.cols
+    motion, blur_px, supersample, photons = _checked(
+        phantom, geometry, motion, kind, catheter, devices, blur_px, supersample, photons_per_pixel
+    )
     field_mask = geometry.field_mask()
-    rr, cc = np.nonzero(field_mask)
-    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    # mean transmission over the sub-pixel rays (the detector integrates intensity), all
-    # sub-pixel rays traced in one call
-    dr, dc = np.meshgrid(offsets, offsets, indexing="ij")
-    targets = geometry.pixel_to_world(cc[None, :] + dc.reshape(-1, 1), rr[None, :] + dr.reshape(-1, 1))
-    targets = targets.reshape(-1, 3)
-    source = geometry.source_mm
-    integral = phantom.line_integrals(source, targets, motion)
-    if catheter:
-        dev = devices if devices is not None else device_phantom(phantom)
-        integral += dev.line_integrals(source, targets, motion)
-    transmission = np.exp(-integral).reshape(supersample * supersample, len(rr)).mean(axis=0)
-
-    # automatic exposure control: I0 such that the central field receives `photons`
-    frame = np.zeros((rows, cols))
-    frame[rr, cc] = transmission
+    frame = _transmission(phantom, geometry, field_mask, motion, supersample, devices if catheter else None,
+                          catheter)  # fmt: skip
     if detector_effects is not None:
         frame = np.where(field_mask, np.asarray(detector_effects(frame, field_mask), dtype=np.float64), 0.0)
         if not np.all(np.isfinite(frame)) or frame.min() < 0:
             raise ValueError("detector_effects must return a finite, non-negative transmission frame")
-    y = (np.arange(rows) - (rows - 1) / 2.0)[:, None] * geometry.pixel_mm[0]
-    x = (np.arange(cols) - (cols - 1) / 2.0)[None, :] * geometry.pixel_mm[1]
-    aec_radius = AEC_FIELD_FRACTION * geometry.field_diameter_mm / 2.0
-    central = field_mask & (x * x + y * y <= aec_radius * aec_radius)
-    i0 = photons / max(float(np.median(frame[central])), 1e-6)
-
-    rng = np.random.default_rng(seed)
-    counts = rng.poisson(i0 * frame).astype(np.float64)
-    if blur_px > 0:  # normalised blur: the dark collimator does not leak into the field
-        weight = ndimage.gaussian_filter(field_mask.astype(np.float64), blur_px, mode="constant")
-        counts = ndimage.gaussian_filter(counts, blur_px, mode="constant") / np.maximum(weight, 1e-12)
-    counts += rng.normal(0.0, ELECTRONIC_NOISE_PHOTONS, counts.shape)
-    image = -np.log(np.maximum(counts, MIN_PHOTONS) / i0)
-    image = np.where(field_mask, image, 0.0).astype(np.float32)
+    i0 = _exposure_control(frame, geometry, field_mask, photons)
+    image = _detected(frame, field_mask, i0, seed, blur_px)
     meta = {
         "kind": kind,
         "photons_per_pixel": photons,
