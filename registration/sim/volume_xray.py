@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.core.geometry import check_rigid, invert_rigid
 from registration.core.volume import Volume, hu_to_mu_per_mm
-from registration.sim.phantom import HeadPhantom, _Builder
+from registration.sim.phantom_shapes import HeadPhantom, PhantomBuilder
 from registration.sim.xray import (
     CATHETER_INNER_RADIUS_MM,
     CATHETER_MU_PER_MM,
@@ -155,7 +155,7 @@ def catheter_devices(path_mm: ArrayLike, *, seed: int = 0) -> HeadPhantom:
     s = np.linspace(0.0, arc[-1], max(2, int(arc[-1] / 2.0) + 1))
     path = np.stack([np.interp(s, arc, pts[:, a]) for a in range(3)], axis=1)
     tip = int(np.argmax(s >= arc[-1] - GUIDEWIRE_TIP_MM))
-    b = _Builder()
+    b = PhantomBuilder()
     cath = path[: max(tip, 2)]
     b.tube(cath, CATHETER_OUTER_RADIUS_MM, _hu_for_mu(CATHETER_MU_PER_MM), "catheter", "device")
     b.tube(cath, CATHETER_INNER_RADIUS_MM, -1000.0, "catheter", "air")

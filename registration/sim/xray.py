@@ -21,7 +21,8 @@ from scipy import ndimage
 
 from registration.core.geometry import CArm, check_rigid
 from registration.core.images import XRayImage
-from registration.sim.phantom import MU_WATER_PER_MM, HeadPhantom, _Builder
+from registration.core.volume import MU_WATER_PER_MM
+from registration.sim.phantom_shapes import HeadPhantom, PhantomBuilder
 
 #: Photons per pixel reaching the detector behind the head (the automatic exposure control's
 #: target, measured over the central part of the field) for a fluoroscopy frame.
@@ -94,7 +95,7 @@ def device_phantom(phantom: HeadPhantom, *, wire_length_mm: float | None = None)
     """
     ica, _ = phantom.path("ica_l")
     m1, _ = phantom.path("m1_l")
-    b = _Builder()
+    b = PhantomBuilder()
     # guide catheter: from the neck to the petrous segment (where the ICA enters the skull)
     stop = int(np.argmax(ica[:, 2] > -60.0))
     cath = ica[: max(stop, 2)]

@@ -8,16 +8,10 @@ import numpy as np
 import pytest
 
 from registration.core.geometry import CArm, offsets_to_matrix, rotation_x, rotation_z
-from registration.core.volume import format_grid, hu_to_mu_per_mm
-from registration.sim.phantom import (
-    HU_AIR,
-    MU_WATER_PER_MM,
-    STAND_IN_LABEL,
-    HeadPhantom,
-    _Builder,
-    make_head_phantom,
-    registration_volume,
-)
+from registration.core.volume import MU_WATER_PER_MM, format_grid, hu_to_mu_per_mm
+from registration.sim.phantom import STAND_IN_LABEL, HeadPhantom, make_head_phantom, registration_volume
+from registration.sim.phantom_kernels import HU_AIR
+from registration.sim.phantom_shapes import PhantomBuilder
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +20,7 @@ def head() -> HeadPhantom:
 
 
 def _ball(radius: float, hu: float, *, hole: float | None = None) -> HeadPhantom:
-    b = _Builder()
+    b = PhantomBuilder()
     b.paint(b.ellipsoid([0.0, 0.0, 0.0], radius), hu, "ball", "bone")
     if hole is not None:
         b.paint(b.ellipsoid([0.0, 0.0, 0.0], hole), HU_AIR, "ball", "air")
