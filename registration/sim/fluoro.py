@@ -262,6 +262,45 @@ def _frame_seed(seed: int, plane: int, frame: int) -> int:
     return int((int(seed) * 1_000_003 + plane * 7919 + frame * 104_729 + 17) % (2**31 - 1))
 
 
+def _plane_frames(
+    phantom: HeadPhantom, geometry: CArm, script: RunScript, times: np.ndarray, truth: np.ndarray,
+    wires: np.ndarray, plane: int, progress: object, total: int,
+) -> dict[str, np.ndarray]:  # fmt: skip
+    """One plane's frames at the script's moments (its own noise per frame; the guidewire advanced
+    in 0.5 mm steps) and the field mask."""
+    from registration.sim.xray import device_phantom, simulate_xray
+
+    frames = np.empty((len(times), geometry.rows, geometry.cols), np.float32)
+    mask = geometry.field_mask()
+    devices: dict[float, HeadPhantom] = {}
+    for i in range(len(times)):
+        dev = None
+        if script.catheter:
+            length = round(float(wires[i]) * 2.0) / 2.0  # the wire advances in 0.5 mm steps
+            dev = devices.get(length)
+            if dev is None:
+                dev = devices[length] = device_phantom(phantom, wire_length_mm=length)
+        img = simulate_xray(phantom, geometry, motion=truth[i], kind="fluoro", catheter=script.catheter, devices=dev,
+                            seed=_frame_seed(script.seed, plane, i))  # fmt: skip
+        frames[i] = img.image
+        mask = img.mask
+        if callable(progress):
+            progress(plane * len(times) + i + 1, total)
+    return {"images": frames, "mask": mask}
+
+
+def _with_glitches(images: np.ndarray, mask: np.ndarray, glitches: set[int], seed: int, plane: int) -> np.ndarray:
+    """The frames with the glitched ones replaced by flat noise (a copy when there are any)."""
+    if not glitches:
+        return images
+    images = images.copy()
+    for i in sorted(glitches):
+        rng = np.random.default_rng(_frame_seed(seed, plane, i) + 1)
+        flat = float(np.median(images[i][mask]))
+        images[i] = np.where(mask, flat + 0.04 * rng.standard_normal(mask.shape), 0.0).astype(np.float32)
+    return images
+
+
 def simulate_biplane_run(
     phantom: HeadPhantom,
     geometries: Sequence[CArm],
@@ -279,7 +318,6 @@ def simulate_biplane_run(
     ``progress``: called as ``progress(done, total)`` while frames are formed.
     """
     from registration.io.cache import cached_arrays
-    from registration.sim.xray import device_phantom, simulate_xray
 
     geometries = list(geometries)
     if not geometries:
@@ -304,41 +342,10 @@ def simulate_biplane_run(
         }
 
         def build(geometry: CArm = geometry, p: int = p) -> dict[str, np.ndarray]:
-            frames = np.empty((len(times), geometry.rows, geometry.cols), np.float32)
-            mask = geometry.field_mask()
-            devices: dict[float, HeadPhantom] = {}
-            for i in range(len(times)):
-                dev = None
-                if script.catheter:
-                    length = round(float(wires[i]) * 2.0) / 2.0  # the wire advances in 0.5 mm steps
-                    dev = devices.get(length)
-                    if dev is None:
-                        dev = devices[length] = device_phantom(phantom, wire_length_mm=length)
-                img = simulate_xray(
-                    phantom,
-                    geometry,
-                    motion=truth[i],
-                    kind="fluoro",
-                    catheter=script.catheter,
-                    devices=dev,
-                    seed=_frame_seed(script.seed, p, i),
-                )
-                frames[i] = img.image
-                mask = img.mask
-
-                if callable(progress):
-                    progress(p * len(times) + i + 1, total)
-            return {"images": frames, "mask": mask}
+            return _plane_frames(phantom, geometry, script, times, truth, wires, p, progress, total)
 
         arrays = cached_arrays("fluoro-run", params, build, enabled=cache)
-        images = arrays["images"]
-        if glitches:
-            images = images.copy()
-            mask = arrays["mask"].astype(bool)
-            for i in sorted(glitches):
-                rng = np.random.default_rng(_frame_seed(script.seed, p, i) + 1)
-                flat = float(np.median(images[i][mask]))
-                images[i] = np.where(mask, flat + 0.04 * rng.standard_normal(mask.shape), 0.0).astype(np.float32)
+        images = _with_glitches(arrays["images"], arrays["mask"].astype(bool), glitches, script.seed, p)
         meta = {
             "source": "simulated fluoroscopy run of the analytic phantom (honest image model)",
             "script": script.to_dict(),

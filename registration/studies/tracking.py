@@ -397,6 +397,65 @@ def strip_chart(case: dict, path: Path) -> Path:
     return path
 
 
+def _fmt(v: object, unit: str = "", digits: int = 2) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}{unit}"
+    return f"{v}{unit}"
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.1f} %"
+
+
+def _summary_lines(study: dict) -> list[str]:
+    """The report's opening: how the runs were made and replayed, and the numbers beside the targets."""
+    s = study["summary"]
+    return [
+        "# Live motion compensation: `roadmap3d validate tracking`",
+        "",
+        f"{'Quick' if study['config']['quick'] else 'Full'} study, seed {study['config']['seed']}, "
+        f"roadmap3d {__version__}. Frames are simulated from the analytic phantom (honest image model: exact line "
+        "integrals, Poisson noise at fluoroscopy dose, detector blur, collimation, a guidewire advancing), never "
+        "by the renderer that scores them; the registration volume is the FDK 3DRA. Times are measured on a "
+        "shared 2-core machine: other work ran beside it (the CPU time per frame does not grow with that load). "
+        + (
+            "Replayed at the frames' times: frames that arrived while the engine was busy were skipped."
+            if s["realtime"]
+            else "Replayed frame by frame (--every-frame): no frame skipped, latencies as measured."
+        ),
+        "",
+        "| what | measured | target |",
+        "| --- | --- | --- |",
+        f"| frames (processed / skipped) | {s['frames']} ({s['processed']} / {s['skipped']}) | - |",
+        f"| latency per frame, median / p95 | {_fmt(s['ms_per_frame_median'], ' ms', 1)} / "
+        f"{_fmt(s['ms_per_frame_p95'], ' ms', 1)} | <= 66 / <= 150 ms |",
+        f"| refine path (check + refine), median / p95 | {_fmt(s['refine_path_ms_median'], ' ms', 1)} / "
+        f"{_fmt(s['refine_path_ms_p95'], ' ms', 1)} | <= 66 / <= 150 ms |",
+        f"| full capture, median | {_fmt(s['capture_ms_median'], ' ms', 0)} ({s['captures']} captures) | <= 1000 ms |",
+        "| CPU time per frame (all threads), median / p95; capture median | "
+        f"{_fmt(s['cpu_ms_per_frame_median'], ' ms', 1)}"
+        f" / {_fmt(s['cpu_ms_per_frame_p95'], ' ms', 1)}; {_fmt(s['capture_cpu_ms_median'], ' ms', 0)} | - |",
+        f"| roadmap error at every frame (skipped ones too), median / p95 | "
+        f"{_fmt(s['roadmap_error_mm_median_all_frames'], ' mm')} / "
+        f"{_fmt(s['roadmap_error_mm_p95_all_frames'], ' mm')} | - |",
+        f"| tracking error of applied frames, median | {_fmt(s['tracking_error_mm_median'], ' mm')} | <= 0.5 mm |",
+        f"| worst applied estimate | {_fmt(s['max_error_applied_mm'], ' mm')} | < 2 mm |",
+        f"| applied precision / recall | {_pct(s['applied_precision'])} / {_pct(s['applied_recall'])} | "
+        ">= 99 % / >= 90 % |",
+        f"| estimates applied / withheld / frames unchanged | {s['applied']} / {s['withheld']} / "
+        f"{s['unchanged']} | - |",
+        f"| roadmap error over all processed frames, median / p95 | {_fmt(s['shown_error_mm_median'], ' mm')} / "
+        f"{_fmt(s['shown_error_mm_p95'], ' mm')} | - |",
+        "",
+        "Errors are residuals at the iso-center against each frame's truth (in-plane for one plane, total for "
+        "two); an estimate is right when < 1 mm and < 3 degrees. Precision: applied estimates that are right; "
+        "recall: right estimates that were applied.",
+        "",
+    ]
+
+
 def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
     """results.json, one strip chart per case, the ROC curve, report.md and report.html."""
     from registration.io.dicom import write_text_atomic
@@ -418,58 +477,7 @@ def write_tracking_report(study: dict, out: Path) -> dict[str, str]:
         roc_plot([f["confidence"] for f in est], [f["right"] for f in est], rule_threshold, out / "roc.png",
                  title="validate tracking: confidence of the estimates")  # fmt: skip
         images["roc"] = "roc.png"
-    s = study["summary"]
-
-    def fmt(v: object, unit: str = "", digits: int = 2) -> str:
-        if v is None:
-            return "-"
-        if isinstance(v, float):
-            return f"{v:.{digits}f}{unit}"
-        return f"{v}{unit}"
-
-    pct = lambda v: "-" if v is None else f"{100 * v:.1f} %"  # noqa: E731
-    lines = [
-        "# Live motion compensation: `roadmap3d validate tracking`",
-        "",
-        f"{'Quick' if study['config']['quick'] else 'Full'} study, seed {study['config']['seed']}, "
-        f"roadmap3d {__version__}. Frames are simulated from the analytic phantom (honest image model: exact line "
-        "integrals, Poisson noise at fluoroscopy dose, detector blur, collimation, a guidewire advancing), never "
-        "by the renderer that scores them; the registration volume is the FDK 3DRA. Times are measured on a "
-        "shared 2-core machine: other work ran beside it (the CPU time per frame does not grow with that load). "
-        + (
-            "Replayed at the frames' times: frames that arrived while the engine was busy were skipped."
-            if s["realtime"]
-            else "Replayed frame by frame (--every-frame): no frame skipped, latencies as measured."
-        ),
-        "",
-        "| what | measured | target |",
-        "| --- | --- | --- |",
-        f"| frames (processed / skipped) | {s['frames']} ({s['processed']} / {s['skipped']}) | - |",
-        f"| latency per frame, median / p95 | {fmt(s['ms_per_frame_median'], ' ms', 1)} / "
-        f"{fmt(s['ms_per_frame_p95'], ' ms', 1)} | <= 66 / <= 150 ms |",
-        f"| refine path (check + refine), median / p95 | {fmt(s['refine_path_ms_median'], ' ms', 1)} / "
-        f"{fmt(s['refine_path_ms_p95'], ' ms', 1)} | <= 66 / <= 150 ms |",
-        f"| full capture, median | {fmt(s['capture_ms_median'], ' ms', 0)} ({s['captures']} captures) | <= 1000 ms |",
-        "| CPU time per frame (all threads), median / p95; capture median | "
-        f"{fmt(s['cpu_ms_per_frame_median'], ' ms', 1)}"
-        f" / {fmt(s['cpu_ms_per_frame_p95'], ' ms', 1)}; {fmt(s['capture_cpu_ms_median'], ' ms', 0)} | - |",
-        f"| roadmap error at every frame (skipped ones too), median / p95 | "
-        f"{fmt(s['roadmap_error_mm_median_all_frames'], ' mm')} / "
-        f"{fmt(s['roadmap_error_mm_p95_all_frames'], ' mm')} | - |",
-        f"| tracking error of applied frames, median | {fmt(s['tracking_error_mm_median'], ' mm')} | <= 0.5 mm |",
-        f"| worst applied estimate | {fmt(s['max_error_applied_mm'], ' mm')} | < 2 mm |",
-        f"| applied precision / recall | {pct(s['applied_precision'])} / {pct(s['applied_recall'])} | "
-        ">= 99 % / >= 90 % |",
-        f"| estimates applied / withheld / frames unchanged | {s['applied']} / {s['withheld']} / "
-        f"{s['unchanged']} | - |",
-        f"| roadmap error over all processed frames, median / p95 | {fmt(s['shown_error_mm_median'], ' mm')} / "
-        f"{fmt(s['shown_error_mm_p95'], ' mm')} | - |",
-        "",
-        "Errors are residuals at the iso-center against each frame's truth (in-plane for one plane, total for "
-        "two); an estimate is right when < 1 mm and < 3 degrees. Precision: applied estimates that are right; "
-        "recall: right estimates that were applied.",
-        "",
-    ]
+    lines = _summary_lines(study)
     for case in study["cases"]:
         cs = case["summary"]
         lines += [
