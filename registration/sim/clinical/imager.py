@@ -25,7 +25,7 @@ from registration.core.volume import Volume
 from registration.sim.clinical.anatomy import bent_volume, patient_only, table_phantom, with_bone_contrast
 from registration.sim.clinical.detector import DetectorEffects
 from registration.sim.clinical.display import display_pixels, jpeg_bytes, overlay_mask, text_mask
-from registration.sim.clinical.effects import ClinicalEffects
+from registration.sim.clinical.effects import ClinicalEffects, Display
 from registration.sim.volume_xray import VolumeAttenuator, catheter_devices, default_catheter_path
 from registration.sim.xray import simulate_xray
 
@@ -48,6 +48,22 @@ class _StaticPlus:
         return self.patient.line_integrals(sources_mm, targets_mm, motion) + self.static.line_integrals(
             sources_mm, targets_mm, None
         )
+
+
+def _display_tags(ds: Any, d: Display | None) -> None:
+    """The display chain's tags: the intensity relationship (DISP, LOG, or none) and its sign (or none)."""
+    if d is None:
+        ds.PixelIntensityRelationship = "LOG"
+        return
+    if d.relationship is None:
+        del ds.PixelIntensityRelationship
+    else:
+        ds.PixelIntensityRelationship = d.relationship
+    if d.sign_tag:
+        ds.PixelIntensityRelationshipSign = 1 if d.polarity == "bone_dark" else -1
+    else:
+        del ds.PixelIntensityRelationshipSign
+    ds.ImageComments = "display-processed fluoroscopy (clinical simulation)"
 
 
 @dataclass(frozen=True)
@@ -81,6 +97,41 @@ class ClinicalImage:
         graphics (for comparisons; a system sends :meth:`write_dicom`'s file)."""
         return XRayImage(self.attenuation, self.circle, self.geometry, self.kind, dict(self.meta))
 
+    def _shutter_tags(self, ds: Any) -> None:
+        """The rectangular blades in the shutter module, when the effect says the system writes them
+        (and they are not rotated)."""
+        b = self.effects.blades
+        rect = (self.meta.get("blade_edges") or {}).get("rectangle")
+        if b is None or not b.shutter_tags or rect is None or abs(rect["rotation_deg"]) >= 1e-9:
+            return
+        g = self.geometry
+        cr, cc = (g.rows - 1) / 2.0, (g.cols - 1) / 2.0
+        ds.ShutterShape = "CIRCULAR\\RECTANGULAR"
+        ds.ShutterLeftVerticalEdge = int(np.ceil(cc + rect["left"])) + 1
+        ds.ShutterRightVerticalEdge = int(np.floor(cc + rect["right"])) + 1
+        ds.ShutterUpperHorizontalEdge = int(np.ceil(cr + rect["top"])) + 1
+        ds.ShutterLowerHorizontalEdge = int(np.floor(cr + rect["bottom"])) + 1
+
+    def _overlay_plane(self, ds: Any, stored: np.ndarray, embedded: bool) -> np.ndarray:
+        """Overlay plane 6000: in the pixels' unused high bits (``embedded``) or as OverlayData;
+        returns the stored pixels (with the overlay bits when embedded)."""
+        import pydicom
+
+        assert self.overlay is not None
+        ds.add_new(0x60000010, "US", self.geometry.rows)
+        ds.add_new(0x60000011, "US", self.geometry.cols)
+        ds.add_new(0x60000040, "CS", "G")
+        ds.add_new(0x60000050, "SS", [1, 1])
+        ds.add_new(0x60000022, "LO", "annotations")
+        if embedded:
+            ds.add_new(0x60000100, "US", 16)
+            ds.add_new(0x60000102, "US", self.bits)
+            return stored | (self.overlay.astype(np.uint16) << self.bits)
+        ds.add_new(0x60000100, "US", 1)
+        ds.add_new(0x60000102, "US", 0)
+        ds.add_new(0x60003000, "OW", pydicom.pixels.pack_bits(self.overlay.ravel(), pad=True))
+        return stored
+
     def write_dicom(self, path: str | os.PathLike[str], *, acquired_at: Any = None, plane: str | None = None) -> Path:
         """The XA file a system would send: geometry tags as :func:`registration.io.dicom.write_xray`
         writes them, the stored pixels, the display chain's tags (DISP or no relationship, the
@@ -106,46 +157,14 @@ class ClinicalImage:
         allocated = 8 if bits <= 8 and not embedded else 16
         ds.BitsAllocated, ds.BitsStored, ds.HighBit = allocated, bits, bits - 1
         ds.PixelRepresentation = 0
-        if d is None:
-            ds.PixelIntensityRelationship = "LOG"
-        elif d.relationship is None:
-            del ds.PixelIntensityRelationship
-        else:
-            ds.PixelIntensityRelationship = d.relationship
-        if d is not None:
-            if d.sign_tag:
-                ds.PixelIntensityRelationshipSign = 1 if d.polarity == "bone_dark" else -1
-            else:
-                del ds.PixelIntensityRelationshipSign
-            ds.ImageComments = "display-processed fluoroscopy (clinical simulation)"
+        _display_tags(ds, d)
         ds.WindowCenter = (1 << bits) // 2
         ds.WindowWidth = 1 << bits
         if self.effects.text is not None:
             ds.BurnedInAnnotation = "YES"
-        b = self.effects.blades
-        rect = (self.meta.get("blade_edges") or {}).get("rectangle")
-        if b is not None and b.shutter_tags and rect is not None and abs(rect["rotation_deg"]) < 1e-9:
-            g = self.geometry
-            cr, cc = (g.rows - 1) / 2.0, (g.cols - 1) / 2.0
-            ds.ShutterShape = "CIRCULAR\\RECTANGULAR"
-            ds.ShutterLeftVerticalEdge = int(np.ceil(cc + rect["left"])) + 1
-            ds.ShutterRightVerticalEdge = int(np.floor(cc + rect["right"])) + 1
-            ds.ShutterUpperHorizontalEdge = int(np.ceil(cr + rect["top"])) + 1
-            ds.ShutterLowerHorizontalEdge = int(np.floor(cr + rect["bottom"])) + 1
+        self._shutter_tags(ds)
         if self.overlay is not None:
-            ds.add_new(0x60000010, "US", self.geometry.rows)
-            ds.add_new(0x60000011, "US", self.geometry.cols)
-            ds.add_new(0x60000040, "CS", "G")
-            ds.add_new(0x60000050, "SS", [1, 1])
-            ds.add_new(0x60000022, "LO", "annotations")
-            if embedded:
-                ds.add_new(0x60000100, "US", 16)
-                ds.add_new(0x60000102, "US", bits)
-                stored = stored | (self.overlay.astype(np.uint16) << bits)
-            else:
-                ds.add_new(0x60000100, "US", 1)
-                ds.add_new(0x60000102, "US", 0)
-                ds.add_new(0x60003000, "OW", pydicom.pixels.pack_bits(self.overlay.ravel(), pad=True))
+            stored = self._overlay_plane(ds, stored, embedded)
         jpeg = d is not None and d.jpeg_quality is not None
         if jpeg:
             ds.LossyImageCompression = "01"
