@@ -334,7 +334,8 @@ def run_volume_validation(args: VolumeStudy) -> int:
     import warnings
 
     from registration.io.isocenter import resolve_isocenter
-    from registration.studies.volume import SUMMARY_KEYS, VolumeStudyConfig, report_markdown, run_volume_study
+    from registration.studies.volume import SUMMARY_KEYS, VolumeStudyConfig, run_volume_study
+    from registration.studies.volume_report import report_markdown
 
     try:
         strengths = tuple(float(x) for x in str(args.strengths).split(",") if x.strip())

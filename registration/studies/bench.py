@@ -151,7 +151,7 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
         "biplane": biplane,
         "tracking": bench_tracking(seed=seed),
     }
-    from registration.studies.volume import bench_real_volume
+    from registration.studies.volume_bench import bench_real_volume
 
     say("registration on the real head CT (../shared) ...")
     out["real_volume"] = bench_real_volume(

@@ -37,6 +37,7 @@ from registration.core.volume import Volume
 from registration.sim.volume_xray import IMAGES_FROM_VOLUME, VolumeAttenuator, catheter_devices, default_catheter_path
 from registration.sim.xray import simulate_xray
 from registration.studies.runs import axis_angle_matrix, random_unit_vector
+from registration.studies.volume_report import write_outputs
 
 #: Summary keys of ``--json`` (the issue's contract), in order.
 SUMMARY_KEYS = (
@@ -257,6 +258,33 @@ class ClinicalViews:
         return out, notes
 
 
+def _case_images(
+    imager: VolumeImager | ClinicalViews, geometries: list[CArm], truth: np.ndarray, kind: str, seed: int
+) -> tuple[list[XRayImage], dict]:
+    """The case's image per view (clinical: written as XA files and read back, with the reader's notes)."""
+    if isinstance(imager, ClinicalViews):
+        return imager.views(geometries, truth, kind=kind, seed=seed)
+    return [imager.image(g, truth, kind=kind, seed=seed + n) for n, g in enumerate(geometries)], {}
+
+
+def _case_offsets(case: VolumeCase, geometries: list[CArm]) -> dict:
+    """The case's view and offset, split into plane A's in-plane and out-of-plane parts."""
+    g = geometries[0]
+    t = np.asarray(case.translation_mm)
+    t_out = float(t @ g.direction)
+    return {
+        "case": case.number,
+        "primary_deg": case.primary_deg,
+        "secondary_deg": case.secondary_deg,
+        "views": len(geometries),
+        "offset_translation_mm": float(np.linalg.norm(t)),
+        "offset_inplane_mm": float(np.linalg.norm(t - t_out * g.direction)),
+        "offset_outofplane_mm": abs(t_out),
+        "offset_rotation_deg": case.rotation_deg,
+        "seed": case.seed,
+    }
+
+
 def run_volume_case(
     volume: Volume,
     imager: VolumeImager,
@@ -274,12 +302,8 @@ def run_volume_case(
     geometries = _views(config, case, isocenter_mm)
     truth = case_motion(case, isocenter_mm)
     t0 = time.perf_counter()
-    notes: dict = {}
-    if isinstance(imager, ClinicalViews):
-        images, notes = imager.views(geometries, truth, kind=config.kind, seed=case.seed)
-        geometries = [im.geometry for im in images]
-    else:
-        images = [imager.image(g, truth, kind=config.kind, seed=case.seed + n) for n, g in enumerate(geometries)]
+    images, notes = _case_images(imager, geometries, truth, config.kind, case.seed)
+    geometries = [im.geometry for im in images]
     image_s = time.perf_counter() - t0
     # the volume prepared as `roadmap3d register` prepares it (crop, body, mm levels)
     preparation = Preparation.of(volume, images, options=options)
@@ -289,9 +313,6 @@ def run_volume_case(
     samples = [b - a for a, b in zip(samples_before, prepared.renderer.samples_per_level, strict=True)]
     res = result.residual
     assert res is not None
-    g = geometries[0]
-    t = np.asarray(case.translation_mm)
-    t_out = float(t @ g.direction)
     inplane_ok = res.inplane_mm < SUCCESS_TRANSLATION_MM and res.rotation_deg < SUCCESS_ROTATION_DEG
     assessed: dict = {}
     if confidence:  # as `register --confidence` decides (at the search bounds: withheld)
@@ -300,19 +321,12 @@ def run_volume_case(
 
         found = assessment_fields(assess(result, images, preparation))
         assessed = {k: found[k] for k in ("confidence", "applied", "withheld_reason", "confidence_evidence")}
+    offsets = _case_offsets(case, geometries)
     return (
         assessed
         | notes
+        | offsets
         | {
-            "case": case.number,
-            "primary_deg": case.primary_deg,
-            "secondary_deg": case.secondary_deg,
-            "views": len(geometries),
-            "offset_translation_mm": float(np.linalg.norm(t)),
-            "offset_inplane_mm": float(np.linalg.norm(t - t_out * g.direction)),
-            "offset_outofplane_mm": abs(t_out),
-            "offset_rotation_deg": case.rotation_deg,
-            "seed": case.seed,
             "translation_residual_mm": res.translation_mm,
             "inplane_residual_mm": res.inplane_mm,
             "outofplane_residual_mm": res.outofplane_mm,
@@ -470,82 +484,6 @@ def run_volume_study(
     return records, summary
 
 
-def write_outputs(out: Path, records: list[dict], summary: dict) -> None:
-    """results.jsonl, summary.json and report.md in ``out`` (written whole, then renamed)."""
-    out.mkdir(parents=True, exist_ok=True)
-    files = {
-        "results.jsonl": "".join(json.dumps(r) + "\n" for r in records),
-        "summary.json": json.dumps(summary, indent=1) + "\n",
-        "report.md": report_markdown(records, summary),
-    }
-    for name, text in files.items():
-        tmp = out / f".{name}.tmp"
-        tmp.write_text(text)
-        tmp.replace(out / name)
-
-
-def report_markdown(records: list[dict], summary: dict) -> str:
-    cfg = summary["config"]
-    lines = [
-        "# Registration on a user's volume (`roadmap3d validate volume`)",
-        "",
-        f"**Best case**: {summary['images']}.",
-        "",
-        f"Volume: {summary['volume']} ({' x '.join(map(str, summary['volume_shape']))} voxels of "
-        f"{' x '.join(f'{s:.3g}' for s in summary['volume_spacing_mm'])} mm), iso-center "
-        f"({', '.join(f'{c:.1f}' for c in summary['isocenter_mm'])}) mm. {cfg['cases']} cases, seed {cfg['seed']}, "
-        f"{'biplane' if cfg['biplane'] else 'single plane'}, {cfg['pixels']}-px {cfg['kind']} images of a "
-        f"{cfg['image_format_cm']:g} cm format, offsets <= {cfg['max_mm']:g} mm / {cfg['max_deg']:g} deg; "
-        f"realism {cfg.get('realism', 'clean')}, strengths {', '.join(f'{x:g}' for x in cfg.get('strengths', [1.0]))}; "
-        f"roadmap3d {summary['version']}, revision {summary['revision']}.",
-        "",
-        f"Success ({summary['success_criterion']}): **{100 * summary['success_rate']:.1f} %** of {summary['runs']}; "
-        f"median in-plane residual {summary['inplane_residual_mm_median']:.2f} mm, rotation "
-        f"{summary['rotation_residual_deg_median']:.2f} deg, out of plane "
-        f"{summary['outofplane_residual_mm_median']:.2f} mm; "
-        f"median {summary['seconds_median']:.2f} s a registration with the volume prepared, "
-        f"{summary['prepare_seconds']:.2f} s preparing it for a view.",
-        "",
-    ]
-    arms = summary.get("arms") or []
-    if len(arms) > 1 or any(a["effects"] for a in arms):
-        pct = lambda v: "-" if v is None else f"{100 * v:.0f} %"  # noqa: E731
-        lines += [
-            "Per arm (effects of `registration.sim.clinical` at the strength given; precision: applied estimates "
-            "that are right; recall: right estimates that were applied):",
-            "",
-            "| arm | strength | runs | success | applied | precision | recall | worst applied mm | median mm "
-            "| worst mm | field from |",
-            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
-        ]
-        for a in arms:
-            worst_applied = "-" if a["max_applied_error_mm"] is None else f"{a['max_applied_error_mm']:.2f}"
-            lines.append(
-                f"| {a['arm']} | {a['strength']:g} | {a['runs']} | {pct(a['success_rate'])} | "
-                f"{'-' if a['applied'] is None else a['applied']} | {pct(a['applied_precision'])} | "
-                f"{pct(a['applied_recall'])} | {worst_applied} | {a['residual_mm_median']:.2f} | "
-                f"{a['worst_residual_mm']:.2f} | {', '.join(a['mask_from']) or '-'} |"
-            )
-        lines.append("")
-    lines += [
-        "| arm | case | LAO/RAO | CRAN/CAUD | offset mm (in-plane / out) | offset deg | in-plane mm | 3-D mm "
-        "| rot deg | s | ok | decision |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :-: | --- |",
-    ]
-    for r in records:
-        decision = (
-            "-" if "applied" not in r else ("applied" if r["applied"] else f"withheld: {r.get('withheld_reason')}")
-        )
-        arm = r.get("arm", "clean") + ("" if not r.get("effects") else f" @ {r.get('strength', 1.0):g}")
-        lines.append(
-            f"| {arm} | {r['case']} | {r['primary_deg']:+.1f} | {r['secondary_deg']:+.1f} | "
-            f"{r['offset_inplane_mm']:.1f} / {r['offset_outofplane_mm']:.1f} | {r['offset_rotation_deg']:.1f} | "
-            f"{r['inplane_residual_mm']:.2f} | {r['translation_residual_mm']:.2f} | {r['rotation_residual_deg']:.2f} | "
-            f"{r['seconds']:.2f} | {'yes' if r['success'] else 'NO'} | {decision} |"
-        )
-    return "\n".join(lines) + "\n"
-
-
 #: Where the project finds the shared real head CT (outside the repository, see its README).
 REAL_CT_RELATIVE = Path("..") / "shared" / "data" / "real-ct" / "head-neck-ct"
 
@@ -553,7 +491,6 @@ REAL_CT_RELATIVE = Path("..") / "shared" / "data" / "real-ct" / "head-neck-ct"
 def find_real_ct() -> Path | None:
     """The shared real head CT folder (``../shared/data/real-ct/head-neck-ct`` beside the project,
     or ``ROADMAP3D_REAL_CT``), None when absent (a user's fresh clone has no ``../shared``)."""
-    import os
 
     env = os.environ.get("ROADMAP3D_REAL_CT")
     root = Path(__file__).resolve().parents[2]
@@ -561,113 +498,3 @@ def find_real_ct() -> Path | None:
         if candidate.is_dir() and any(candidate.glob("*.dcm")):
             return candidate
     return None
-
-
-def bench_real_volume(
-    *,
-    seed: int = 0,
-    cases: int = 3,
-    log: Callable[[str], None] | None = None,
-    phantom_seconds: float | None = None,
-    command_line: bool = True,
-) -> dict:
-    """Registration on the real head CT: 384-px fluoro images of a 27 cm format at random angles
-    and offsets <= 25 mm / 10 deg, the volume prepared per view (``prepare_seconds``), one
-    registration end to end in this process (reading the DICOM series, preparing, registering)
-    and (``command_line``) ``roadmap3d register --verbose`` in a new process on an XA formed from
-    the CT (start-up, imports and numba's cache included). ``phantom_seconds``: the phantom's
-    registration median of the same run, for the ratio. ``{"skipped": reason}`` when the CT is
-    absent."""
-    from registration.io import dicom
-
-    path = find_real_ct()
-    if path is None:
-        return {"skipped": f"no real CT at {REAL_CT_RELATIVE} (or ROADMAP3D_REAL_CT)"}
-    say = log or (lambda _msg: None)
-    t0 = time.perf_counter()
-    volume = dicom.read_volume(path)
-    read_s = time.perf_counter() - t0
-    iso = head_isocenter_mm(volume)
-    config = VolumeStudyConfig(cases=cases, seed=seed)
-    imager = VolumeImager(volume, iso)
-    records = []
-    for case in volume_cases(config):
-        say(f"real CT case {case.number + 1}/{cases} ...")
-        records.append(run_volume_case(volume, imager, case, config, iso))
-    end_to_end = read_s + records[0]["prepare_seconds"] + records[0]["seconds"]
-    seconds = float(np.median([r["seconds"] for r in records]))
-    cli = _command_line_register(volume, imager, config, iso, path, log=say) if command_line else None
-    return {
-        "seconds_median": seconds,
-        "seconds_ratio_to_phantom": None if not phantom_seconds else seconds / phantom_seconds,
-        "drr_samples_median": float(np.median([r["drr_samples"] for r in records])),
-        "drr_samples_per_level": records[0]["drr_samples_per_level"],
-        "drr_count_median": float(np.median([r["drr_count"] for r in records])),
-        "prepare_seconds": float(np.median([r["prepare_seconds"] for r in records])),
-        # the first case's preparation: the view-independent part built (later cases reuse it)
-        "prepare_seconds_first": records[0]["prepare_seconds"],
-        "voxels_per_level": records[0]["voxels_per_level"],
-        "spacing_mm": records[0]["spacing_mm"],
-        "source_voxels": int(np.prod(volume.shape)),
-        "read_seconds": read_s,
-        "register_end_to_end_seconds": end_to_end,
-        "command_line": cli,
-        "success_rate": float(np.mean([r["success"] for r in records])),
-        "runs": [
-            {k: r[k] for k in ("seconds", "prepare_seconds", "inplane_residual_mm", "rotation_residual_deg", "success")}
-            for r in records
-        ],
-        "volume": str(path),
-        "isocenter_mm": list(iso),
-        "images": IMAGES_FROM_VOLUME,
-    }
-
-
-def _command_line_register(
-    volume: Volume,
-    imager: VolumeImager,
-    config: VolumeStudyConfig,
-    isocenter_mm: tuple[float, float, float],
-    series: Path,
-    *,
-    log: Callable[[str], None],
-) -> dict:
-    """``roadmap3d register --verbose`` in a new process: the series against an XA of case 0
-    formed from it (and its truth), wall seconds and the command's own breakdown."""
-    import subprocess
-    import sys
-    import tempfile
-
-    from registration.io import dicom
-
-    case = volume_cases(replace(config, cases=1))[0]
-    geometry = _views(config, case, isocenter_mm)[0]
-    truth = case_motion(case, isocenter_mm)
-    image = imager.image(geometry, truth, kind=config.kind, seed=case.seed)
-    with tempfile.TemporaryDirectory(prefix="roadmap3d-bench-") as tmp:
-        xa, truth_json = Path(tmp) / "xa.dcm", Path(tmp) / "truth.json"
-        dicom.write_xray(image, xa, description=f"fluoro formed from {volume.label or 'the CT'} (bench, case 0)")
-        truth_json.write_text(json.dumps({"patient_motion": truth.tolist()}))
-        iso = ",".join(f"{c:.6g}" for c in isocenter_mm)
-        argv = [sys.executable, "-c", "from app.cli import main; main()", "register", "--volume", str(series),
-                "--image", str(xa), "--truth", str(truth_json), "--isocenter", iso, "--verbose"]  # fmt: skip
-        # a cache folder of its own: the first run prepares from scratch (cold), the second finds the
-        # view-independent part of the preparation on disk (warm: a later registration on this CT)
-        env = os.environ | {"ROADMAP3D_CACHE": str(Path(tmp) / "cache")}
-        env.pop("ROADMAP3D_NO_CACHE", None)
-        runs = []
-        # cold, warm, then warm with --confidence (the estimate assessed on the prepared levels)
-        for what, extra in (("cold", []), ("warm", []), ("warm, --confidence", ["--confidence"])):
-            log(f"roadmap3d register on the real CT in a new process ({what} cache) ...")
-            start = time.perf_counter()
-            done = subprocess.run(argv + extra, capture_output=True, text=True, timeout=600, check=False, env=env)
-            wall = time.perf_counter() - start
-            timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
-            runs.append({"wall_seconds": wall, "exit_code": done.returncode, "timing": timing,
-                         "success": "-> success" in done.stdout})  # fmt: skip
-    # the cold run's keys as before, the warm runs beside them
-    return runs[0] | {
-        "warm": runs[1],
-        "warm_confidence": runs[2],
-        "command": "roadmap3d register --volume CT --image XA --truth JSON --isocenter ISO --verbose",
-    }

@@ -73,7 +73,7 @@ def test_head_isocenter_is_the_middle_of_the_head() -> None:
 
 
 def test_bench_skips_the_real_ct_with_a_note_when_absent(monkeypatch: pytest.MonkeyPatch) -> None:
-    import registration.studies.volume as study
+    import registration.studies.volume_bench as study
 
     monkeypatch.setattr(study, "find_real_ct", lambda: None)
     out = study.bench_real_volume(cases=1)

@@ -1,0 +1,140 @@
+"""The real CT's registration timed as the bench reports it: in this process on the shipped path,
+and as ``roadmap3d register`` end to end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from registration.core.volume import Volume
+from registration.sim.volume_xray import IMAGES_FROM_VOLUME
+from registration.studies.volume import (
+    REAL_CT_RELATIVE,
+    VolumeImager,
+    VolumeStudyConfig,
+    _views,
+    case_motion,
+    find_real_ct,
+    head_isocenter_mm,
+    run_volume_case,
+    volume_cases,
+)
+
+#: Summary keys of ``--json`` (the issue's contract), in order.
+
+
+def bench_real_volume(
+    *,
+    seed: int = 0,
+    cases: int = 3,
+    log: Callable[[str], None] | None = None,
+    phantom_seconds: float | None = None,
+    command_line: bool = True,
+) -> dict:
+    """Registration on the real head CT: 384-px fluoro images of a 27 cm format at random angles
+    and offsets <= 25 mm / 10 deg, the volume prepared per view (``prepare_seconds``), one
+    registration end to end in this process (reading the DICOM series, preparing, registering)
+    and (``command_line``) ``roadmap3d register --verbose`` in a new process on an XA formed from
+    the CT (start-up, imports and numba's cache included). ``phantom_seconds``: the phantom's
+    registration median of the same run, for the ratio. ``{"skipped": reason}`` when the CT is
+    absent."""
+    from registration.io import dicom
+
+    path = find_real_ct()
+    if path is None:
+        return {"skipped": f"no real CT at {REAL_CT_RELATIVE} (or ROADMAP3D_REAL_CT)"}
+    say = log or (lambda _msg: None)
+    t0 = time.perf_counter()
+    volume = dicom.read_volume(path)
+    read_s = time.perf_counter() - t0
+    iso = head_isocenter_mm(volume)
+    config = VolumeStudyConfig(cases=cases, seed=seed)
+    imager = VolumeImager(volume, iso)
+    records = []
+    for case in volume_cases(config):
+        say(f"real CT case {case.number + 1}/{cases} ...")
+        records.append(run_volume_case(volume, imager, case, config, iso))
+    end_to_end = read_s + records[0]["prepare_seconds"] + records[0]["seconds"]
+    seconds = float(np.median([r["seconds"] for r in records]))
+    cli = _command_line_register(volume, imager, config, iso, path, log=say) if command_line else None
+    return {
+        "seconds_median": seconds,
+        "seconds_ratio_to_phantom": None if not phantom_seconds else seconds / phantom_seconds,
+        "drr_samples_median": float(np.median([r["drr_samples"] for r in records])),
+        "drr_samples_per_level": records[0]["drr_samples_per_level"],
+        "drr_count_median": float(np.median([r["drr_count"] for r in records])),
+        "prepare_seconds": float(np.median([r["prepare_seconds"] for r in records])),
+        # the first case's preparation: the view-independent part built (later cases reuse it)
+        "prepare_seconds_first": records[0]["prepare_seconds"],
+        "voxels_per_level": records[0]["voxels_per_level"],
+        "spacing_mm": records[0]["spacing_mm"],
+        "source_voxels": int(np.prod(volume.shape)),
+        "read_seconds": read_s,
+        "register_end_to_end_seconds": end_to_end,
+        "command_line": cli,
+        "success_rate": float(np.mean([r["success"] for r in records])),
+        "runs": [
+            {k: r[k] for k in ("seconds", "prepare_seconds", "inplane_residual_mm", "rotation_residual_deg", "success")}
+            for r in records
+        ],
+        "volume": str(path),
+        "isocenter_mm": list(iso),
+        "images": IMAGES_FROM_VOLUME,
+    }
+
+
+def _command_line_register(
+    volume: Volume,
+    imager: VolumeImager,
+    config: VolumeStudyConfig,
+    isocenter_mm: tuple[float, float, float],
+    series: Path,
+    *,
+    log: Callable[[str], None],
+) -> dict:
+    """``roadmap3d register --verbose`` in a new process: the series against an XA of case 0
+    formed from it (and its truth), wall seconds and the command's own breakdown."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from registration.io import dicom
+
+    case = volume_cases(replace(config, cases=1))[0]
+    geometry = _views(config, case, isocenter_mm)[0]
+    truth = case_motion(case, isocenter_mm)
+    image = imager.image(geometry, truth, kind=config.kind, seed=case.seed)
+    with tempfile.TemporaryDirectory(prefix="roadmap3d-bench-") as tmp:
+        xa, truth_json = Path(tmp) / "xa.dcm", Path(tmp) / "truth.json"
+        dicom.write_xray(image, xa, description=f"fluoro formed from {volume.label or 'the CT'} (bench, case 0)")
+        truth_json.write_text(json.dumps({"patient_motion": truth.tolist()}))
+        iso = ",".join(f"{c:.6g}" for c in isocenter_mm)
+        argv = [sys.executable, "-c", "from app.cli import main; main()", "register", "--volume", str(series),
+                "--image", str(xa), "--truth", str(truth_json), "--isocenter", iso, "--verbose"]  # fmt: skip
+        # a cache folder of its own: the first run prepares from scratch (cold), the second finds the
+        # view-independent part of the preparation on disk (warm: a later registration on this CT)
+        env = os.environ | {"ROADMAP3D_CACHE": str(Path(tmp) / "cache")}
+        env.pop("ROADMAP3D_NO_CACHE", None)
+        runs = []
+        # cold, warm, then warm with --confidence (the estimate assessed on the prepared levels)
+        for what, extra in (("cold", []), ("warm", []), ("warm, --confidence", ["--confidence"])):
+            log(f"roadmap3d register on the real CT in a new process ({what} cache) ...")
+            start = time.perf_counter()
+            done = subprocess.run(argv + extra, capture_output=True, text=True, timeout=600, check=False, env=env)
+            wall = time.perf_counter() - start
+            timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
+            runs.append({"wall_seconds": wall, "exit_code": done.returncode, "timing": timing,
+                         "success": "-> success" in done.stdout})  # fmt: skip
+    # the cold run's keys as before, the warm runs beside them
+    return runs[0] | {
+        "warm": runs[1],
+        "warm_confidence": runs[2],
+        "command": "roadmap3d register --volume CT --image XA --truth JSON --isocenter ISO --verbose",
+    }
