@@ -10,7 +10,7 @@ from pathlib import Path
 
 from app.cli.options import CaptureStudy
 from app.cli.study_commands import ct_folder, registrations_flag
-from registration.studies import capture, runs
+from registration.studies import capture, execution
 
 
 def _stderr(message: str) -> None:
@@ -39,7 +39,7 @@ def run_capture_study(args: CaptureStudy) -> int:
     config = capture_config(args)
     tasks = capture.capture_tasks(config)
     log = None if args.json else _stderr
-    records, wall = runs.run_study(tasks, args.out, n_jobs=args.jobs, scheduler=args.scheduler, log=log)
+    records, wall = execution.run_study(tasks, args.out, n_jobs=args.jobs, scheduler=args.scheduler, log=log)
     summary = capture.capture_summary(records, config=asdict(config), wall_seconds=wall)
     capture.write_capture_report(records, summary, Path(args.out))
     if args.json:

@@ -29,7 +29,7 @@ from app.cli.options import (
 )
 from registration import __version__
 from registration.sim.calibration import ERROR_REGION_RADIUS_MM, calibration_study
-from registration.studies import bench, runs
+from registration.studies import bench, execution, runs
 from registration.studies.cases import format_table, run_case, summarize, table1_cases
 from registration.studies.runs import ClinicalConfig, PhantomConfig
 
@@ -76,6 +76,12 @@ def _stderr(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+def _run_tasks(tasks: list, args: PhantomStudy | ClinicalStudy | BiplaneStudy) -> tuple[list[dict], float]:
+    """The study's tasks run (resumably) into ``args.out``, progress on stderr unless ``--json``."""
+    log = None if args.json else _stderr
+    return execution.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
+
+
 def _check_jobs(jobs: int | None) -> int | None:
     if jobs is not None and jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
@@ -90,8 +96,7 @@ def run_phantom_study(args: PhantomStudy) -> int:
     if getattr(args, "volume_source", None):
         config = replace(config, volume_source=args.volume_source)
     tasks = runs.phantom_tasks(config)
-    log = None if args.json else _stderr
-    records, wall = runs.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
+    records, wall = _run_tasks(tasks, args)
     summary = phantom_summary(records, config=asdict(config), wall_seconds=wall)
     write_phantom_report(records, summary, Path(args.out))
     _print_summary(summary, args.json, Path(args.out))
@@ -108,8 +113,7 @@ def run_clinical_study(args: ClinicalStudy) -> int:
             raise ValueError(f"--registrations must be >= 1, got {args.registrations}")
         config = replace(config, registrations_per_patient=int(args.registrations))
     tasks = runs.clinical_tasks(config)
-    log = None if args.json else _stderr
-    records, wall = runs.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
+    records, wall = _run_tasks(tasks, args)
     summary = clinical_summary(records, config=asdict(config), wall_seconds=wall)
     write_clinical_report(records, summary, Path(args.out))
     _print_summary(summary, args.json, Path(args.out))
@@ -145,8 +149,7 @@ def run_biplane_study(args: BiplaneStudy) -> int:
     if registrations_flag(args.registrations) is not None:
         config = replace(config, registrations_per_patient=args.registrations)
     tasks = biplane.biplane_tasks(config)
-    log = None if args.json else _stderr
-    records, wall = runs.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
+    records, wall = _run_tasks(tasks, args)
     summary = biplane.biplane_summary(records, config=asdict(config), wall_seconds=wall)
     biplane.write_biplane_report(records, summary, Path(args.out))
     if args.json:

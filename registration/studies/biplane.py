@@ -13,7 +13,7 @@ that same CT with detector noise; the records say so).
 
 Success is the 3-D criterion (total translational residual at the iso-center < 1 mm and
 rotation < 3 degrees) for both; single-plane is also scored by the paper's in-plane criterion.
-Tasks run through :func:`registration.studies.runs.run_study` (resumable ``results.jsonl``).
+Tasks run through :func:`registration.studies.execution.run_study` (resumable ``results.jsonl``).
 """
 
 from __future__ import annotations

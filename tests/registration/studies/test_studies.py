@@ -15,14 +15,13 @@ from registration import __version__
 from registration.core.anneal import Schedule
 from registration.core.register import Level, RegistrationOptions
 from registration.studies import runs as studies
+from registration.studies.execution import ResultsLog, run_study
 from registration.studies.runs import (
     ClinicalConfig,
     PhantomConfig,
-    ResultsLog,
     clinical_tasks,
     clinically_relevant,
     phantom_tasks,
-    run_study,
 )
 
 #: Just enough search to register a 64-px image (the tests check plumbing, not accuracy).
