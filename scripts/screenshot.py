@@ -22,6 +22,7 @@ import re
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -29,6 +30,52 @@ ROOT = Path(__file__).resolve().parent.parent
 def dismiss_notifications(page) -> None:
     """Hide viser's notices (headless Chromium gets "Software WebGL rendering detected")."""
     page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
+
+
+def _calibration_view(page: Any, path: Path) -> None:
+    """The Calibration tab with the simulated rotational run's first frame."""
+    page.get_by_role("tab", name="Calibration").click()
+    page.get_by_text("Show the calibration").click()
+    page.get_by_text(re.compile(r"Calibration error: [0-9.]+ mm")).wait_for(timeout=60_000)
+    page.get_by_role("button", name=re.compile("Simulate the rotational run|Simulated")).click()
+    page.get_by_text(re.compile(r"Frame 1 of \d+")).wait_for(timeout=180_000)
+    time.sleep(2.0)
+    page.screenshot(path=str(path), timeout=180_000)
+
+
+def _playback_view(page: Any, path: Path, seconds: float) -> None:
+    """The Play run tab after ``seconds`` of the phantom's run."""
+    page.get_by_role("tab", name="Play run").click()
+    page.get_by_role("button", name="Play", exact=True).click()
+    try:
+        page.get_by_text(re.compile(r"motion corrected")).first.wait_for(timeout=180_000)
+    except Exception:  # noqa: BLE001 - no correction yet: take the picture anyway
+        pass
+    time.sleep(seconds)
+    dismiss_notifications(page)
+    page.screenshot(path=str(path), timeout=180_000)
+    print(f"wrote {path}")
+
+
+def _biplane_view(page: Any, app: Any, path: Path) -> None:
+    """Biplane mode registered from T4's offsets plus 10 mm along plane A's beam."""
+    page.get_by_text("Biplane", exact=True).click(force=True)
+    page.get_by_role("tab", name="C-arm").click(force=True)
+    page.get_by_text(re.compile(r"out-of-plane [0-9.]+ mm")).wait_for(timeout=120_000)
+    app.session.stop_registration(wait=True)
+    app.offset_sliders[2].value = 10.0  # T4's offsets plus 10 mm along plane A's beam
+    deadline = time.monotonic() + 120
+    while app.presenter.shown_version != app.session.version and time.monotonic() < deadline:
+        time.sleep(0.2)
+    page.get_by_role("button", name="Register").click(force=True)
+    deadline = time.monotonic() + 60
+    while not app.session.running and time.monotonic() < deadline:
+        time.sleep(0.1)
+    app.session.wait(240)
+    time.sleep(3.0)  # the presenter's last frame and the 3D view settle
+    dismiss_notifications(page)
+    page.screenshot(path=str(path), timeout=180_000)
+    print(f"wrote {path}")
 
 
 def main() -> int:
@@ -73,42 +120,11 @@ def main() -> int:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(args.out), timeout=180_000)
             if args.calibration is not None:
-                page.get_by_role("tab", name="Calibration").click()
-                page.get_by_text("Show the calibration").click()
-                page.get_by_text(re.compile(r"Calibration error: [0-9.]+ mm")).wait_for(timeout=60_000)
-                page.get_by_role("button", name=re.compile("Simulate the rotational run|Simulated")).click()
-                page.get_by_text(re.compile(r"Frame 1 of \d+")).wait_for(timeout=180_000)
-                time.sleep(2.0)
-                page.screenshot(path=str(args.calibration), timeout=180_000)
+                _calibration_view(page, args.calibration)
             if args.playback is not None:
-                page.get_by_role("tab", name="Play run").click()
-                page.get_by_role("button", name="Play", exact=True).click()
-                try:
-                    page.get_by_text(re.compile(r"motion corrected")).first.wait_for(timeout=180_000)
-                except Exception:  # noqa: BLE001 - no correction yet: take the picture anyway
-                    pass
-                time.sleep(args.playback_seconds)
-                dismiss_notifications(page)
-                page.screenshot(path=str(args.playback), timeout=180_000)
-                print(f"wrote {args.playback}")
+                _playback_view(page, args.playback, args.playback_seconds)
             if args.biplane is not None:
-                page.get_by_text("Biplane", exact=True).click(force=True)
-                page.get_by_role("tab", name="C-arm").click(force=True)
-                page.get_by_text(re.compile(r"out-of-plane [0-9.]+ mm")).wait_for(timeout=120_000)
-                app.session.stop_registration(wait=True)
-                app.offset_sliders[2].value = 10.0  # T4's offsets plus 10 mm along plane A's beam
-                deadline = time.monotonic() + 120
-                while app.presenter.shown_version != app.session.version and time.monotonic() < deadline:
-                    time.sleep(0.2)
-                page.get_by_role("button", name="Register").click(force=True)
-                deadline = time.monotonic() + 60
-                while not app.session.running and time.monotonic() < deadline:
-                    time.sleep(0.1)
-                app.session.wait(240)
-                time.sleep(3.0)  # the presenter's last frame and the 3D view settle
-                dismiss_notifications(page)
-                page.screenshot(path=str(args.biplane), timeout=180_000)
-                print(f"wrote {args.biplane}")
+                _biplane_view(page, app, args.biplane)
             browser.close()
     finally:
         app.close()
