@@ -10,7 +10,6 @@ from typing import Any
 
 import numpy as np
 
-from registration import __version__
 from registration.studies.report import TARGETS, applied_summary, confidence_section, failures_by_offset
 from registration.studies.report_kit import (
     ROTATION_BINS_DEG,
@@ -23,7 +22,7 @@ from registration.studies.report_kit import (
     provenance,
     pyplot,
     rate,
-    records_revision,
+    run_facts,
     stamp,
     stats,
     write_report,
@@ -100,15 +99,7 @@ def clinical_summary(records: Sequence[dict], *, config: dict, wall_seconds: flo
     ]
     out.update(
         {
-            "seconds_median": float(np.median([r["seconds"] for r in records])) if records else None,
-            "seconds_total": float(sum(r["seconds"] for r in records)),
-            "drr_count_median": float(np.median([r["drr_count"] for r in records])) if records else None,
-            "wall_seconds": wall_seconds,
-            "volume_label": records[0]["volume_label"] if records else "",
-            "config": config,
-            "seed": config.get("seed"),
-            "version": __version__,
-            "revision": records_revision(records),
+            **run_facts(records, config, wall_seconds),
             "paper": PAPER_CLINICAL,
             "targets": {"translation_success_rate": TARGETS["clinical_success_rate"], "rotation_success_rate": 0.95},
         }

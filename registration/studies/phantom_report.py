@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-from registration import __version__
 from registration.studies.report import TARGETS, applied_summary, confidence_section
 from registration.studies.report_kit import (
     TRANSLATION_BINS_MM,
@@ -19,7 +18,7 @@ from registration.studies.report_kit import (
     provenance,
     pyplot,
     rate,
-    records_revision,
+    run_facts,
     stamp,
     stats,
     write_report,
@@ -114,15 +113,7 @@ def phantom_summary(records: Sequence[dict], *, config: dict, wall_seconds: floa
             {k: r.get(k) for k in ("case_id", "inplane_residual_mm", "rotation_residual_deg", "outofplane_residual_mm")}
             for r in failures
         ],
-        "seconds_median": float(np.median([r["seconds"] for r in records])) if records else None,
-        "seconds_total": float(sum(r["seconds"] for r in records)),
-        "drr_count_median": float(np.median([r["drr_count"] for r in records])) if records else None,
-        "wall_seconds": wall_seconds,
-        "volume_label": records[0]["volume_label"] if records else "",
-        "config": config,
-        "seed": config.get("seed"),
-        "version": __version__,
-        "revision": records_revision(records),
+        **run_facts(records, config, wall_seconds),
         "paper": {k: v for k, v in PAPER_PHANTOM.items() if k != "table3"},
         "targets": {k: TARGETS[k] for k in ("success_rate_clinically_relevant", "success_rate")},
     }

@@ -247,3 +247,19 @@ def roc_plot(confidence: list[float], right: list[bool], threshold: float, path:
 
 def fmt_mm(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f} mm"
+
+
+def run_facts(records: Sequence[dict], config: dict, wall_seconds: float) -> dict:
+    """What a study's summary says of its run: registration seconds and DRRs (median), wall time,
+    the volume, the configuration and seed, the version and the revision the records came from."""
+    return {
+        "seconds_median": float(np.median([r["seconds"] for r in records])) if records else None,
+        "seconds_total": float(sum(r["seconds"] for r in records)),
+        "drr_count_median": float(np.median([r["drr_count"] for r in records])) if records else None,
+        "wall_seconds": wall_seconds,
+        "volume_label": records[0]["volume_label"] if records else "",
+        "config": config,
+        "seed": config.get("seed"),
+        "version": __version__,
+        "revision": records_revision(records),
+    }
