@@ -223,8 +223,8 @@ class Presenter:
         self.tick(now, self.shown_version == s.version)
 
     def _show_anatomy(self, data: DataSource, volume_format_cm: float) -> None:
-        mesh_key = (id(data), volume_format_cm)
-        if mesh_key != self._mesh_key:
+        shown = self._mesh_key
+        if shown is None or shown[0] is not data or shown[1] != volume_format_cm:
             before = self.layout.status.content
             self.message("Loading the volume and its surfaces…")
             meshes = data.meshes(volume_format_cm)
@@ -236,7 +236,7 @@ class Presenter:
             )
             if self.layout.status.content.startswith("Loading the volume"):
                 self.layout.status.content = before  # the status stayed on "Loading…" after an upload
-            self._mesh_key = mesh_key
+            self._mesh_key = (data, volume_format_cm)  # the data object itself: an id could be reused
             self.show_source()
 
     def _show_followed(self, followed: FollowedPose) -> None:

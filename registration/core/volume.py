@@ -18,7 +18,7 @@ from registration.core.geometry import default_system
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Volume:
     """A 3-D image in HU with its ``index_to_world`` affine.
 

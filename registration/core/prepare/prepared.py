@@ -187,7 +187,7 @@ class _Digest:
 
 
 def _probe(volume: Volume, body: bool, store: PreparationStore | None, remember: bool, digest: _Digest) -> ProbeBlocks:
-    key = (id(volume), body)
+    key = (weakref.ref(volume), body)
     blocks = _recall(_BLOCKS, key, volume) if remember else None
     if blocks is not None:
         return blocks
@@ -208,7 +208,7 @@ def _base(
     store: PreparationStore | None, remember: bool, digest: _Digest,
 ) -> PreparedBase:  # fmt: skip
     """The base levels of ``targets``: remembered, stored, or built over the needed tissue's box."""
-    key = (id(volume), body, tuple(sorted(targets.items())), round(margin_mm, 9))
+    key = (weakref.ref(volume), body, tuple(sorted(targets.items())), round(margin_mm, 9))
     base = _recall(_BASES, key, volume) if remember else None
     if base is not None:
         return PreparedBase(base.blocks, base.levels, base.box_lo, base.box_hi, source="memory")
@@ -398,7 +398,7 @@ def prepare_volume(
     if not levels_t or levels_t[0] < 0:
         raise ValueError(f"levels must be integers >= 0, got {list(levels)}")
     reach = reach or Reach.of_search(30.0, 15.0)
-    key = (id(volume), tuple(_field_key(g) for g in views), levels_t, bool(body))
+    key = (weakref.ref(volume), tuple(_field_key(g) for g in views), levels_t, bool(body))
     if cache:
         with _CACHE_LOCK:
             hit = _CACHE.get(key)
