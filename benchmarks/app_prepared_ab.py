@@ -52,6 +52,15 @@ def _moved(t_mm: list[float], axis: list[float], deg: float) -> np.ndarray:
     )
 
 
+def _ratios(v: dict[str, list[float]]) -> dict[str, float]:
+    """The old and new medians and the median of their per-round ratio."""
+    return {
+        "old_median": float(np.median(v["old"])),
+        "new_median": float(np.median(v["new"])),
+        "new_over_old_median": float(np.median(np.asarray(v["new"]) / np.asarray(v["old"]))),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
@@ -103,19 +112,9 @@ def main() -> None:
                 "track_statuses": [f.status for f in tracked.frames],
                 "track_last_shown_inplane_mm": shown.inplane_mm,
             }
-    out = {
-        k: {
-            "old_median": float(np.median(v["old"])),
-            "new_median": float(np.median(v["new"])),
-            "new_over_old_median": float(np.median(np.asarray(v["new"]) / np.asarray(v["old"]))),
-        }
-        for k, v in rows.items()
-    }
-    print(
-        json.dumps(
-            {"repeats": args.repeats, "volume_voxels": int(np.prod(volume.shape)), **out, "last": last}, indent=1
-        )
-    )
+    out = {k: _ratios(v) for k, v in rows.items()}
+    print(json.dumps({"repeats": args.repeats, "volume_voxels": int(np.prod(volume.shape)), **out, "last": last},
+                     indent=1))  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -259,6 +259,25 @@ def track_files(options: Track) -> int:
     return 0
 
 
+def _write_run_export(out: Path, options: PhantomRun, volume: Any, description: str, runs: list, truth: dict) -> None:
+    """The export folder, whole or not at all: the 3DRA series, each plane's run and the truth."""
+    seed, seconds, pixels, image_format, biplane = (options.seed, options.seconds, options.pixels,
+                                                   options.image_format, options.biplane)  # fmt: skip
+    uid_seed = f"roadmap3d phantom run {seed} {seconds} {pixels} {image_format} {biplane}"
+    study_uid = str(dicom.make_uid(uid_seed, "study"))
+    with dicom.atomic_folder(out) as tmp:
+        dicom.write_series(volume, tmp / RUN_VOLUME_DIR, description=description, study_uid=study_uid,
+                           uid_seed=uid_seed)  # fmt: skip
+        names = [RUN_FILE, RUN_B_FILE]
+        for p, r in enumerate(runs):
+            dicom.write_xray_run(
+                list(r), tmp / names[p], times_s=r.times_s, plane=r.plane if biplane else None,
+                study_uid=study_uid, uid_seed=f"{uid_seed} plane {p}",
+                description=f"roadmap3d fluoro run{' ' + r.plane if biplane else ''}",
+            )  # fmt: skip
+        dicom.write_text_atomic(tmp / RUN_TRUTH, dicom.json_dumps(truth))
+
+
 def run_phantom_run_export(options: PhantomRun) -> int:
     """Write a simulated fluoroscopy run of the phantom (multi-frame XA with its frame times),
     its per-frame truth, and the 3DRA series to track it with."""
@@ -304,19 +323,7 @@ def run_phantom_run_export(options: PhantomRun) -> int:
         "images": "the analytic phantom moved by patient_motion (honest image model), not the 3DRA",
         "conventions": "shared/CONVENTIONS.md §4, §7: anatomy the volume shows at X is at M @ X in frame n",
     }
-    uid_seed = f"roadmap3d phantom run {seed} {seconds} {pixels} {image_format} {biplane}"
-    study_uid = str(dicom.make_uid(uid_seed, "study"))
-    with dicom.atomic_folder(out) as tmp:
-        dicom.write_series(volume, tmp / RUN_VOLUME_DIR, description=description, study_uid=study_uid,
-                           uid_seed=uid_seed)  # fmt: skip
-        names = [RUN_FILE, RUN_B_FILE]
-        for p, r in enumerate(runs):
-            dicom.write_xray_run(
-                list(r), tmp / names[p], times_s=r.times_s, plane=r.plane if biplane else None,
-                study_uid=study_uid, uid_seed=f"{uid_seed} plane {p}",
-                description=f"roadmap3d fluoro run{' ' + r.plane if biplane else ''}",
-            )  # fmt: skip
-        dicom.write_text_atomic(tmp / RUN_TRUTH, dicom.json_dumps(truth))
+    _write_run_export(out, options, volume, description, runs, truth)
     _say(f"wrote {out}/ in {time.perf_counter() - start:.1f} s: {RUN_VOLUME_DIR}/ ({volume.label}), {RUN_FILE}"
          + (f", {RUN_B_FILE}" if biplane else "") + f", {RUN_TRUTH}")  # fmt: skip
     b = f" --run-b {out / RUN_B_FILE}" if biplane else ""

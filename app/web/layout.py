@@ -120,6 +120,11 @@ class Layout:
         with tabs.add_tab("Display", viser.Icon.EYE):
             self._display_tab(gui)
 
+        self._control_groups()
+
+    def _control_groups(self) -> None:
+        """The controls disabled together (during a run; the C-arm's while the user's file fixes it;
+        the iso-center's for the phantom)."""
         #: Disabled during a run, and while the user's file fixes the C-arm.
         self.carm_controls: list[Any] = [
             self.primary, self.secondary, self.sid, self.image_format, self.volume_format,

@@ -99,6 +99,18 @@ class AnnealResult:
     trace: list[float] = field(default_factory=list)
 
 
+class _Counted:
+    """The cost, its evaluations counted and a non-finite value taken as +inf."""
+
+    def __init__(self, cost: Callable[[Array], float]) -> None:
+        self.cost, self.nfev = cost, 0
+
+    def evaluate(self, p: Array) -> float:
+        self.nfev += 1
+        value = float(self.cost(p))
+        return value if math.isfinite(value) else math.inf
+
+
 def _checked(x0: ArrayLike, bounds: ArrayLike, schedule: Schedule) -> tuple[Array, Array, Array]:
     """``x0`` as a float copy, the bounds as an (n, 2) array and the schedule's first steps, checked."""
     x = np.asarray(x0, dtype=np.float64).copy()
@@ -146,20 +158,15 @@ def anneal(
     schedule = schedule or Schedule()
     x, b, step0 = _checked(x0, bounds, schedule)
     n = x.size
-    nfev = 0
-
-    def evaluate(p: Array) -> float:
-        nonlocal nfev
-        nfev += 1
-        value = float(cost(p))
-        return value if math.isfinite(value) else math.inf
+    counted = _Counted(cost)
+    evaluate = counted.evaluate
 
     def neighbour(center: Array, step: Array) -> Array:
         return np.clip(center + rng.normal(0.0, 1.0, n) * step, b[:, 0], b[:, 1])
 
     fx = evaluate(x)
     if not math.isfinite(fx):
-        return AnnealResult(x, fx, 0, nfev, False, "cost is not finite at x0")
+        return AnnealResult(x, fx, 0, counted.nfev, False, "cost is not finite at x0")
     best_x, best_f = x.copy(), fx
 
     # Initial temperature from the typical uphill change of random moves.
@@ -187,7 +194,7 @@ def anneal(
             nit += 1
             trace.append(best_f)
             if callback is not None and callback(
-                AnnealState(nit, x.copy(), fx, best_x.copy(), best_f, temperature, nfev)
+                AnnealState(nit, x.copy(), fx, best_x.copy(), best_f, temperature, counted.nfev)
             ):
                 message, stopped = "stopped by the callback", True
                 break
@@ -196,7 +203,7 @@ def anneal(
         temperature *= schedule.cooling
         # Restart each stage from the best point seen: keeps the walk near the basin.
         x, fx = best_x.copy(), best_f
-    return AnnealResult(best_x, best_f, nit, nfev, True, message, trace)
+    return AnnealResult(best_x, best_f, nit, counted.nfev, True, message, trace)
 
 
 # --------------------------------------------------------------------------------------

@@ -271,19 +271,10 @@ def _blade(
     if px.size * 2 < min_length:
         return None
     prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
-    near_cols = (offsets >= 3) & (offsets <= 8)
-    far_cols = (offsets <= -3) & (offsets >= -8)
-    valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
-    if valid.sum() * 2 < min_length:
+    found = _step_along(prof, ok, offsets, span, min_length)
+    if found is None:
         return None
-    step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
-    run = _longest_run(step > BLADE_MIN_STEP)
-    if run.stop - run.start < max(0.5 * min_length, BLADE_RUN_FRACTION * valid.sum()):
-        return None  # the edge must run along most of the line's chord through the field
-    piece = np.flatnonzero(valid)[run]
-    step = step[run]
-    if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION:
-        return None
+    piece, step = found
     filter_edge = bool(np.median(step) < BLADE_MEDIAN_STEP)
     if filter_edge and not _sharp_step(prof[piece], ok[piece], offsets):
         return None  # a weak step: only a sharp straight edge counts (a semi-transparent filter's)
@@ -314,6 +305,27 @@ def _blade(
         "step": round(float(np.median(step)), 3),
         "length_px": int(step.size * 2),
     }
+
+
+def _step_along(
+    prof: NDArray[np.float64], ok: NDArray[np.bool_], offsets: NDArray[np.float64], span: float, min_length: float
+) -> tuple[NDArray[np.intp], NDArray[np.float64]] | None:
+    """The profiles (their indices) where one step to less signal runs along most of the line's
+    chord through the field, and the steps there (fractions of the field's range); None when it
+    does not."""
+    near_cols = (offsets >= 3) & (offsets <= 8)
+    far_cols = (offsets <= -3) & (offsets >= -8)
+    valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
+    if valid.sum() * 2 < min_length:
+        return None
+    step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
+    run = _longest_run(step > BLADE_MIN_STEP)
+    if run.stop - run.start < max(0.5 * min_length, BLADE_RUN_FRACTION * valid.sum()):
+        return None  # the edge must run along most of the line's chord through the field
+    step = step[run]
+    if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION:
+        return None
+    return np.flatnonzero(valid)[run], step
 
 
 def _structure_behind(

@@ -217,6 +217,18 @@ def read_image_mask(path: str | os.PathLike[str], shape: tuple[int, int]) -> NDA
     return mask
 
 
+def _field(pixels: np.ndarray, base: Path, geo: dict[str, Any]) -> tuple[np.ndarray, str]:
+    """The image's usable field: the side file's mask file, else a constant border; and its source."""
+    if geo.get("mask"):
+        mask_path = base / geo["mask"]
+        mask = read_pixels(mask_path) != 0
+        if mask.shape != pixels.shape:
+            raise ImageFileError(mask_path, f"mask shape {mask.shape} differs from the image's {pixels.shape}")
+        return mask, f"mask file {mask_path.name}"
+    mask = _border_field(pixels)
+    return mask, "constant border" if not mask.all() else "whole image"
+
+
 def read_image_file(
     path: str | os.PathLike[str],
     *,
@@ -238,15 +250,7 @@ def read_image_file(
     base = Path(geo_source).parent if not isinstance(geo_source, dict) else path.parent
     pixels = read_pixels(path)
     rows, cols = pixels.shape
-    if geo.get("mask"):
-        mask_path = base / geo["mask"]
-        mask = read_pixels(mask_path) != 0
-        if mask.shape != pixels.shape:
-            raise ImageFileError(mask_path, f"mask shape {mask.shape} differs from the image's {pixels.shape}")
-        mask_from = f"mask file {mask_path.name}"
-    else:
-        mask = _border_field(pixels)
-        mask_from = "constant border" if not mask.all() else "whole image"
+    mask, mask_from = _field(pixels, base, geo)
     cx, cy = geo.get("principal_point_px") or ((cols - 1) / 2.0, (rows - 1) / 2.0)
     if geo["flip_horizontal"]:
         pixels, mask, cx = pixels[:, ::-1], mask[:, ::-1], cols - 1 - cx

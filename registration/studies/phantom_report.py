@@ -119,13 +119,34 @@ def phantom_summary(records: Sequence[dict], *, config: dict, wall_seconds: floa
     }
 
 
+def _heat_cell(ax, xi: int, y: int, r: dict | None, variant: str, vol: float, img: float) -> None:  # noqa: ANN001
+    """One cell of Table II: green / red by success with the in-plane residual (and the rotation
+    when it alone fails), grey when not run, hatched blue when not clinically relevant."""
+    from matplotlib.patches import Rectangle
+
+    green, red, grey = "#5cb85c", "#d9534f", "#dddddd"
+    color = grey if r is None else (green if r["success"] else red)
+    ax.add_patch(Rectangle((xi, y), 1, 1, facecolor=color, edgecolor="white", lw=0.8))
+    if r is None:
+        ax.text(xi + 0.5, y + 0.5, "not run", ha="center", va="center", fontsize=6, color="#777777")
+        return
+    txt = f"{r['inplane_residual_mm']:.2f}"
+    if not r["success"] and r["inplane_residual_mm"] < 1.0:
+        txt += f"\n{r['rotation_residual_deg']:.1f}°"
+    ax.text(xi + 0.5, y + 0.5, txt, ha="center", va="center", fontsize=6.5)
+    relevant = variant == "standard" and _relevant(vol, img)
+    if variant == "facial":
+        relevant = _relevant(vol, img)
+    if not relevant:
+        ax.add_patch(Rectangle((xi, y), 1, 1, facecolor="#337ab7", alpha=0.28, hatch="///", edgecolor="#1f4e79", lw=0))
+
+
 def heatmap(records: Sequence[dict], kind: str, path: Path, *, title_extra: str = "") -> Path | None:
     """Table II for one image kind: rows volume format x offset, columns image format."""
     rows_rec = [r for r in records if r["image_kind"] == kind]
     if not rows_rec:
         return None
     plt = pyplot()
-    from matplotlib.patches import Rectangle
 
     offsets = sorted({r["offset"] for r in rows_rec})
     images = sorted({r["image_format_cm"] for r in rows_rec})
@@ -139,31 +160,11 @@ def heatmap(records: Sequence[dict], kind: str, path: Path, *, title_extra: str 
     }
     n_rows = len(blocks) * len(offsets)
     fig, ax = plt.subplots(figsize=(max(5.0, 1.0 + 1.05 * len(images)), 1.8 + 0.3 * n_rows))
-    green, red, grey = "#5cb85c", "#d9534f", "#dddddd"
     for bi, (variant, vol) in enumerate(blocks):
         for oi, off in enumerate(offsets):
             y = bi * len(offsets) + oi
             for xi, img in enumerate(images):
-                r = cell.get((variant, vol, off, img))
-                color = grey if r is None else (green if r["success"] else red)
-                ax.add_patch(Rectangle((xi, y), 1, 1, facecolor=color, edgecolor="white", lw=0.8))
-                if r is None:
-                    ax.text(xi + 0.5, y + 0.5, "not run", ha="center", va="center", fontsize=6, color="#777777")
-                    continue
-                if r is not None:
-                    txt = f"{r['inplane_residual_mm']:.2f}"
-                    if not r["success"] and r["inplane_residual_mm"] < 1.0:
-                        txt += f"\n{r['rotation_residual_deg']:.1f}°"
-                    ax.text(xi + 0.5, y + 0.5, txt, ha="center", va="center", fontsize=6.5)
-                relevant = variant == "standard" and _relevant(vol, img)
-                if variant == "facial":
-                    relevant = _relevant(vol, img)
-                if not relevant:
-                    ax.add_patch(
-                        Rectangle(
-                            (xi, y), 1, 1, facecolor="#337ab7", alpha=0.28, hatch="///", edgecolor="#1f4e79", lw=0
-                        )
-                    )
+                _heat_cell(ax, xi, y, cell.get((variant, vol, off, img)), variant, vol, img)
         ax.axhline(bi * len(offsets), color="black", lw=1.2)
     ax.set_xlim(0, len(images))
     ax.set_ylim(n_rows, 0)

@@ -317,17 +317,9 @@ def patient_data(
     from registration.sim.reconstruct import RECONSTRUCTION_LABEL, reconstruct_run
     from registration.sim.rotational_run import rotational_run
 
-    params = {
-        "phantom_model": PHANTOM_MODEL_VERSION,
-        "phantom_seed": int(phantom_seed),
-        "volume_format_cm": float(volume_format_cm),
-        "contrast": bool(contrast),
-        "projections": int(projections),
-        "arc_deg": float(arc_deg),
-        "pixels": int(pixels),
-        "voxels": int(voxels),
-        "kind": "exposure",
-    }
+    params = {"phantom_model": PHANTOM_MODEL_VERSION, "phantom_seed": int(phantom_seed),
+              "volume_format_cm": float(volume_format_cm), "contrast": bool(contrast), "projections": int(projections),
+              "arc_deg": float(arc_deg), "pixels": int(pixels), "voxels": int(voxels), "kind": "exposure"}  # fmt: skip
 
     def run_with(imager: Any = None) -> Any:
         return rotational_run(
@@ -344,12 +336,7 @@ def patient_data(
     def build() -> dict[str, np.ndarray]:
         run = run_with()
         vol = reconstruct_run(run, volume_format_cm=volume_format_cm, voxels=voxels)
-        return {
-            "images": run.images,
-            "masks": run.masks,
-            "volume": vol.data,
-            "index_to_world": vol.index_to_world,
-        }
+        return {"images": run.images, "masks": run.masks, "volume": vol.data, "index_to_world": vol.index_to_world}
 
     arrays = cached_arrays("clinical-patient", params, build)
 
@@ -489,5 +476,3 @@ def depth_fields(confidence: dict, truth: NDArray[np.float64], geometry: CArm) -
         "depth_rotation_residual_deg": r.rotation_deg,
         "depth_success": bool(r.inplane_mm < 1.0 and r.rotation_deg < 3.0),
     }
-
-

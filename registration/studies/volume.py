@@ -285,6 +285,16 @@ def _case_offsets(case: VolumeCase, geometries: list[CArm]) -> dict:
     }
 
 
+def _assessed(result: object, images: list[XRayImage], preparation: Preparation) -> dict:
+    """The estimate's confidence and decision as ``register --confidence`` gives them (at the
+    search bounds: withheld)."""
+    from registration.core.assess import assess
+    from registration.studies.cases import assessment_fields
+
+    found = assessment_fields(assess(result, images, preparation))  # type: ignore[arg-type]
+    return {k: found[k] for k in ("confidence", "applied", "withheld_reason", "confidence_evidence")}
+
+
 def run_volume_case(
     volume: Volume,
     imager: VolumeImager,
@@ -314,13 +324,7 @@ def run_volume_case(
     res = result.residual
     assert res is not None
     inplane_ok = res.inplane_mm < SUCCESS_TRANSLATION_MM and res.rotation_deg < SUCCESS_ROTATION_DEG
-    assessed: dict = {}
-    if confidence:  # as `register --confidence` decides (at the search bounds: withheld)
-        from registration.core.assess import assess
-        from registration.studies.cases import assessment_fields
-
-        found = assessment_fields(assess(result, images, preparation))
-        assessed = {k: found[k] for k in ("confidence", "applied", "withheld_reason", "confidence_evidence")}
+    assessed = _assessed(result, images, preparation) if confidence else {}
     offsets = _case_offsets(case, geometries)
     return (
         assessed

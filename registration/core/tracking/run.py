@@ -1,5 +1,4 @@
-"""A run replayed at its frame times: frames that arrive while the tracker is busy are skipped.
-"""
+"""A run replayed at its frame times: frames that arrive while the tracker is busy are skipped."""
 
 from __future__ import annotations
 

@@ -218,14 +218,8 @@ class Tracker:
         """Decide for one frame (one image per plane, taken at the same moment)."""
         start = time.perf_counter()
         self._cpu_start = time.process_time()
-        views = [views] if isinstance(views, XRayImage) else list(views)
-        if not 1 <= len(views) <= 2:
-            raise ValueError(f"one or two views per frame, got {len(views)}")
+        views = self._take_frame(views)
         o = self.options
-        swapped = self._crop_watch.take()
-        if swapped is not None:  # the crop prepared around the applied pose: from this frame on
-            self.renderer = swapped.renderer
-        self._frame_views = views
         drrs0 = self.renderer.count
         levels = self._levels(views)
         f0_planes = self._per_plane(levels, self.pose)
@@ -265,13 +259,9 @@ class Tracker:
             if first:
                 self.level = max(self.level, f_est)
                 scale = self._scale()
-        evidence = Evidence(
-            deficit=float(self._deficit(levels, estimate, f_est, path, scale)),
-            margin=float(margin),
-            agreement=agreement,
-            edges=float(np.mean([edge_fraction(lv.image, lv.mask) for lv in levels])),
-            plane_disagreement_mm=None,
-        )
+        edges = float(np.mean([edge_fraction(lv.image, lv.mask) for lv in levels]))
+        evidence = Evidence(deficit=float(self._deficit(levels, estimate, f_est, path, scale)), margin=float(margin),
+                            agreement=agreement, edges=edges, plane_disagreement_mm=None)  # fmt: skip
         assessment: Assessment = o.rule.assess(evidence)
         status = "withheld"
         if assessment.applied:
@@ -281,6 +271,18 @@ class Tracker:
             frame, t_s, status, estimate, path, assessment.confidence, assessment.reason, start, f_est, drop, drrs0,
             evidence.to_dict(),
         )  # fmt: skip
+
+    def _take_frame(self, views: XRayImage | Sequence[XRayImage]) -> list[XRayImage]:
+        """The frame's views (one or two), checked; a crop prepared around the applied pose is
+        swapped in from this frame on."""
+        views = [views] if isinstance(views, XRayImage) else list(views)
+        if not 1 <= len(views) <= 2:
+            raise ValueError(f"one or two views per frame, got {len(views)}")
+        swapped = self._crop_watch.take()
+        if swapped is not None:
+            self.renderer = swapped.renderer
+        self._frame_views = views
+        return views
 
     def _start_registered(self, levels: list, f0: float) -> float:
         """The run starts registered: the pose the tracking level prefers near the initial pose on
