@@ -20,17 +20,36 @@ from numpy.typing import ArrayLike
 
 from registration.core.confidence import DEFAULT_RULE, Assessment, ConfidenceRule, Evidence
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import apply
+from registration.core.geometry import OFFSET_NAMES, apply, offsets_to_matrix, rotation_angle_deg
 from registration.core.images import XRayImage
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationResult
 from registration.core.volume import Volume
 
+#: A single view's estimate that turns the head more than this (degrees) from where its search
+#: started is not applied automatically: the clinical offsets reach 10 deg, a right estimate
+#: there is within 3 deg of the truth, and one view sees out-of-plane turns poorly
+#: (docs/decisions/2026-12-04-single-plane-turn.md).
+SINGLE_PLANE_MAX_TURN_DEG = 13.0
+
+
+def single_plane_turn_deg(result: RegistrationResult) -> float | None:
+    """How far a single view's estimate turns the head from where the search started (degrees);
+    None for an estimate of all six parameters (two views)."""
+    parameters = tuple(getattr(result, "parameters", ()))
+    offsets = getattr(result, "offsets", None)
+    if "tz" in parameters or offsets is None or len(offsets) != len(parameters) or not parameters:
+        return None
+    found = dict(zip(parameters, np.asarray(offsets, dtype=np.float64), strict=True))
+    full = np.array([found.get(name, 0.0) for name in OFFSET_NAMES])
+    return rotation_angle_deg(offsets_to_matrix(full, result.geometry))
+
 
 def veto(result: RegistrationResult) -> str | None:
     """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
-    the search bounds (inputs without information drift there), without a finite measure, or
-    reached by walking beyond the search box (:mod:`registration.core.register.walk`)."""
+    the search bounds (inputs without information drift there), without a finite measure,
+    reached by walking beyond the search box (:mod:`registration.core.register.walk`), or one
+    view's estimate turning the head more than ``SINGLE_PLANE_MAX_TURN_DEG``."""
     at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
     if at_bounds:
         return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
@@ -47,6 +66,12 @@ def veto(result: RegistrationResult) -> str | None:
         return (
             f"the estimate lies beyond the search box around the machine-based pose (the search walked "
             f"{hops} time{'s' if hops > 1 else ''} from the bounds): check it by eye before applying it"
+        )
+    turn = single_plane_turn_deg(result)
+    if turn is not None and turn > SINGLE_PLANE_MAX_TURN_DEG:
+        return (
+            f"one view's estimate turns the head {turn:.0f} deg from where the search started, more than one view "
+            "can confirm: check it by eye before applying it"
         )
     return None
 
