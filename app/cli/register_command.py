@@ -34,12 +34,13 @@ from app.cli.configs import Register
 from app.cli.errors import UserError
 from registration.io import dicom
 from registration.io.isocenter import VOLUME_CENTER, resolve_isocenter
+from registration.io.pacs_settings import ENV_URL
 from registration.io.transforms import ITK_SUFFIXES, write_itk_transform
 
 
 def run_register(options: Register) -> int:
     """``roadmap3d register``: from files, or with ``--pacs`` from a PACS."""
-    if options.pacs is not None or _pacs_from_environment() and (options.study or options.store):
+    if options.pacs is not None or os.environ.get(ENV_URL) and (options.study or options.store):
         if options.confidence or options.report is not None:
             raise UserError("--confidence and --report work on files only (not with --pacs) for now")
         if len(options.image) != 1:
@@ -54,10 +55,6 @@ def run_register(options: Register) -> int:
             f"--image takes one X-ray file, or two (plane A and plane B of one moment); got {len(options.image)}"
         )
     return register_files(options)
-
-
-def _pacs_from_environment() -> bool:
-    return bool(os.environ.get("ROADMAP3D_PACS_URL"))
 
 
 def check_options(options: Register) -> None:

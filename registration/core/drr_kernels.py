@@ -13,12 +13,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.core.geometry import CArm, check_rigid
 
-FloatImage = NDArray[np.float32]
-
-#: Default sampling step of the reference renderer, in voxels (of the smallest spacing).
-REFERENCE_STEP_VOXELS = 0.5
-
-
 #: Image rows per work item of the parallel loop (small: balances threads when the machine
 #: is shared and the mask or the clipped volume makes some rows cheaper than others).
 _ROW_CHUNK = 4

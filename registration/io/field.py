@@ -238,9 +238,10 @@ def find_blades(
         hspace, thetas, dists, num_peaks=max_lines, threshold=int(0.5 * min_length), min_distance=7, min_angle=6
     )
     grad = ndimage.gaussian_gradient_magnitude(signal, 2.0)
+    center = ndimage.center_of_mass(field_mask)
     found: list[dict[str, Any]] = []
     for _, theta, rho in zip(*peaks, strict=True):
-        blade = _blade(signal, smooth, grad, field_mask, inside, span, float(theta), float(rho), min_length)
+        blade = _blade(signal, smooth, grad, field_mask, inside, center, span, float(theta), float(rho), min_length)
         if blade is not None:
             found.append(blade)
     return found
@@ -252,6 +253,7 @@ def _blade(
     grad: NDArray[np.float64],
     field_mask: NDArray[np.bool_],
     inside: NDArray[np.bool_],
+    center: tuple[float, float],
     span: float,
     theta: float,
     rho: float,
@@ -261,7 +263,7 @@ def _blade(
     the line is not one: too short, no step along most of its chord, neither a persisting shadow
     nor a sharp edge, or closing too much of the field."""
     rows, cols = signal.shape
-    cy, cx = ndimage.center_of_mass(field_mask)
+    cy, cx = center  # the field's centre of mass (row, column)
     offsets = np.arange(-40.0, 41.0)
     center_side = cx * math.cos(theta) + cy * math.sin(theta) - rho
     if abs(center_side) < 5:

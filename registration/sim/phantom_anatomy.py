@@ -16,9 +16,6 @@ from registration.sim.phantom_kernels import (
 )
 from registration.sim.phantom_shapes import Float, HeadPhantom, PhantomBuilder, _euler, _resample_polyline, _rot_to
 
-#: Bump when the anatomy changes (it is part of every cache key).
-
-
 #: Length of the straight pieces that make up an artery (mm). Neighbouring pieces meet on
 #: their bisecting plane (a mitre joint), which joins tubes of one radius without gap or
 #: overlap; the arteries bend by at most ~45 degrees per joint.

@@ -24,9 +24,6 @@ from registration.sim.phantom_kernels import (
 )
 
 #: Most quadrics and half-spaces one primitive may intersect.
-
-
-#: Most quadrics and half-spaces one primitive may intersect.
 MAX_QUADRICS = 6
 
 

@@ -22,8 +22,6 @@ from registration.studies.runs import ClinicalCase, StudyTask, patient_of, patie
 if TYPE_CHECKING:
     pass
 
-#: Image and volume formats of Table II (cm): the system's eight.
-
 
 def execute(task: StudyTask, threads: int | None = None) -> dict:
     """Run one task (in a worker) and return its record (JSON-ready)."""

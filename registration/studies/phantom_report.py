@@ -25,9 +25,6 @@ from registration.studies.report_kit import (
 )
 
 #: The paper's numbers (Homan et al., section III and Tables II-III).
-
-
-#: The paper's numbers (Homan et al., section III and Tables II-III).
 PAPER_PHANTOM = {
     "success_rate_exposure": 0.84,
     "success_rate_fluoro": 0.83,

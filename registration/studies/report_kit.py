@@ -13,9 +13,6 @@ import numpy as np
 
 from registration import __version__
 
-#: The paper's numbers (Homan et al., section III and Tables II-III).
-
-
 #: Fig. 6/7 bin edges: narrow at the left (as the paper), then a "More" bin.
 TRANSLATION_BINS_MM = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 

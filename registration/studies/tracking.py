@@ -27,6 +27,7 @@ from registration.core.preparation import Preparation
 from registration.core.tracking import TrackingOptions, TrackingRun, track_run
 from registration.sim.fluoro import FluoroRun, RunScript, simulate_biplane_run
 from registration.studies.cases import _phantom, load_volume
+from registration.studies.report_kit import fmt_pct
 
 
 @dataclass(frozen=True)
@@ -405,10 +406,6 @@ def _fmt(v: object, unit: str = "", digits: int = 2) -> str:
     return f"{v}{unit}"
 
 
-def _pct(v: float | None) -> str:
-    return "-" if v is None else f"{100 * v:.1f} %"
-
-
 def _summary_lines(study: dict) -> list[str]:
     """The report's opening: how the runs were made and replayed, and the numbers beside the targets."""
     s = study["summary"]
@@ -442,7 +439,7 @@ def _summary_lines(study: dict) -> list[str]:
         f"{_fmt(s['roadmap_error_mm_p95_all_frames'], ' mm')} | - |",
         f"| tracking error of applied frames, median | {_fmt(s['tracking_error_mm_median'], ' mm')} | <= 0.5 mm |",
         f"| worst applied estimate | {_fmt(s['max_error_applied_mm'], ' mm')} | < 2 mm |",
-        f"| applied precision / recall | {_pct(s['applied_precision'])} / {_pct(s['applied_recall'])} | "
+        f"| applied precision / recall | {fmt_pct(s['applied_precision'])} / {fmt_pct(s['applied_recall'])} | "
         ">= 99 % / >= 90 % |",
         f"| estimates applied / withheld / frames unchanged | {s['applied']} / {s['withheld']} / "
         f"{s['unchanged']} | - |",

@@ -27,8 +27,6 @@ from registration.studies.volume import (
     volume_cases,
 )
 
-#: Summary keys of ``--json`` (the issue's contract), in order.
-
 
 def bench_real_volume(
     *,

@@ -7,8 +7,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-#: Summary keys of ``--json`` (the issue's contract), in order.
-
 
 def write_outputs(out: Path, records: list[dict], summary: dict) -> None:
     """results.jsonl, summary.json and report.md in ``out`` (written whole, then renamed)."""

@@ -22,9 +22,6 @@ from registration.io.dicom._common import (
     tag_name,
 )
 
-#: Plane Identification (0018,9457) values (CONVENTIONS §6).
-PLANES = ("MONOPLANE", "PLANE A", "PLANE B")
-
 if TYPE_CHECKING:
     pass
 
