@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: Live updates during a run (the issue asks for at least 5 per second).
+#: Live updates during a run (at least 5 per second).
 LIVE_HZ = 10.0
 
 

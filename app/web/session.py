@@ -38,7 +38,7 @@ Array = np.ndarray
 #: Slider ranges of the six patient-motion offsets (mm, deg).
 TRANSLATION_RANGE_MM = 30.0
 ROTATION_RANGE_DEG = 15.0
-#: How long Stop waits for the optimizer to notice before the run is let go (the issue: 0.5 s).
+#: How long Stop waits for the optimizer to notice before the run is let go (within the 0.5 s Stop promises).
 STOP_GRACE_S = 0.3
 #: The ``Random`` button's offsets: translation up to 25 mm, rotation up to 10 degrees.
 RANDOM_MAX_MM = 25.0

@@ -28,7 +28,7 @@ TARGETS = {
 
 def applied_summary(records: Sequence[dict]) -> dict:
     """Applied precision (applied estimates that succeeded) and recall (successes that were
-    applied), over the records that carry a decision (CONVENTIONS §7, issue 13)."""
+    applied), over the records that carry a decision (CONVENTIONS §7)."""
     decided = [r for r in records if "applied" in r]
     applied = [r for r in decided if r["applied"]]
     right = [r for r in decided if r["success"]]

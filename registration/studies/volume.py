@@ -39,7 +39,7 @@ from registration.sim.xray import simulate_xray
 from registration.studies.runs import axis_angle_matrix, random_unit_vector
 from registration.studies.volume_report import write_outputs
 
-#: Summary keys of ``--json`` (the issue's contract), in order.
+#: Summary keys of ``--json`` (the study's JSON contract), in order.
 SUMMARY_KEYS = (
     "runs",
     "success_rate",
