@@ -48,15 +48,17 @@ def single_plane_turn_deg(result: RegistrationResult) -> float | None:
 def veto(result: RegistrationResult) -> str | None:
     """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
     the search bounds (inputs without information drift there), without a finite measure,
-    reached by walking beyond the search box (:mod:`registration.core.register.walk`), or one
-    view's estimate turning the head more than ``SINGLE_PLANE_MAX_TURN_DEG``."""
+    started from the image shift (:mod:`registration.core.register.shift_start`) and ending
+    beyond the search box around the machine-based pose, reached by walking beyond that box
+    (:mod:`registration.core.register.walk`), or one view's estimate turning the head more than
+    ``SINGLE_PLANE_MAX_TURN_DEG``."""
     at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
     if at_bounds:
         return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
     if not math.isfinite(getattr(result, "similarity", 0.0)):
         return "no usable overlap between the DRR and the image"
     shift = getattr(result, "start_shift_mm", 0.0)
-    if shift:
+    if shift and getattr(result, "beyond_box", True):
         return (
             f"the search started {shift:.0f} mm from the machine-based pose, where the image shift put the "
             "patient: check the estimate by eye before applying it"

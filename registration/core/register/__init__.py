@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike
 
 from registration.core.checks import check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
+from registration.core.geometry import invert_rigid, matrix_to_offsets
 from registration.core.images import XRayImage
 from registration.core.intensity import match_views
 from registration.core.metrics import residuals
@@ -58,7 +59,7 @@ from registration.core.register.options import (
 from registration.core.register.plan import Plan, Run, State
 from registration.core.register.result import Progress, RegistrationResult, RotationCheck, StageCost
 from registration.core.register.rotation_check import RIVAL_DISTINCT_DEG, rotation_check
-from registration.core.register.shift_start import shifted_start
+from registration.core.register.shift_start import look_again, shifted_start
 from registration.core.register.walk import walk_from_bounds
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
@@ -142,12 +143,25 @@ def register(
         state = build_plan(inputs, options).run(State(run, space.start(), space))
         return _result(state, vessel_points_mm, time.perf_counter() - start)
 
-    shift_mm = 0.0
-    if options.start.enabled:
-        inputs, shift_mm = shifted_start(inputs, options)
-    result = walk_from_bounds(once, inputs, options) if options.start.enabled else once(inputs)
-    result.intensity, result.start_shift_mm = intensity, shift_mm
+    if not options.start.enabled:
+        result = once(inputs)
+    else:
+        machine = inputs
+        inputs, shift_mm = shifted_start(machine, options)
+        result = walk_from_bounds(once, inputs, options)
+        result.start_shift_mm = shift_mm
+        result = look_again(lambda i: walk_from_bounds(once, i, options), machine, result, options)
+        result.beyond_box = beyond_box(result, machine.initial_motion, options)
+    result.intensity = intensity
     return result
+
+
+def beyond_box(result: RegistrationResult, machine_motion: np.ndarray, options: RegistrationOptions) -> bool:
+    """Whether ``result``'s estimate lies beyond the search box around the machine-based pose
+    (its searched translations beyond ``bound_mm`` or a rotation beyond ``bound_deg``)."""
+    offsets = matrix_to_offsets(np.asarray(result.patient_motion) @ invert_rigid(machine_motion), result.geometry)
+    searched = [i for i, name in enumerate(("tx", "ty", "tz")) if name in result.parameters]
+    return bool(np.any(np.abs(offsets[searched]) > options.bound_mm) or np.any(np.abs(offsets[3:]) > options.bound_deg))
 
 
 def _matched_intensities(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs, tuple[dict | None, ...]]:

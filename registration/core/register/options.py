@@ -214,10 +214,14 @@ class StartOptions:
     #: Start from the image shift found by phase correlation when it moves the start by at least
     #: this much, mm (default 25.0, > 0; None: never; :mod:`registration.core.register.shift_start`).
     shift_mm: float | None = 25.0
+    #: Search again from the image shift when the first estimate leaves the anatomy at least this
+    #: far from where the image shows it, mm, and keep the better measure (default 5.0, > 0;
+    #: None: never; :func:`registration.core.register.shift_start.look_again`).
+    recheck_mm: float | None = 5.0
 
     def __post_init__(self) -> None:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
-        _positive("StartOptions", shift_mm=self.shift_mm)
+        _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm)
 
 
 def _check_level(level: Level) -> None:

@@ -93,6 +93,12 @@ class RegistrationResult:
     #: How far the search's start was moved from the machine-based pose by the image shift
     #: (:mod:`registration.core.register.shift_start`), mm; 0.0: not moved.
     start_shift_mm: float = 0.0
+    #: The image shift left at the first estimate when it made the search run again from the
+    #: image shift (:func:`registration.core.register.shift_start.look_again`), mm; 0.0: not run.
+    recheck_shift_mm: float = 0.0
+    #: Whether the estimate lies beyond the search box around the machine-based pose (its
+    #: offsets from that pose exceed ``bound_mm`` / ``bound_deg``).
+    beyond_box: bool = False
     #: Each stage that ran, in order, with its cost (a walk's restarts follow the first search's).
     stages: tuple[StageCost, ...] = ()
 
@@ -130,6 +136,10 @@ class RegistrationResult:
             out["walk_hops"] = self.walk_hops
         if self.start_shift_mm:
             out["start_shift_mm"] = self.start_shift_mm
+        if self.recheck_shift_mm:
+            out["recheck_shift_mm"] = self.recheck_shift_mm
+        if self.beyond_box:
+            out["beyond_box"] = True
         if self.stages:
             out["stages"] = [c.to_dict() for c in self.stages]
         return out

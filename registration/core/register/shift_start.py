@@ -19,6 +19,7 @@ runs from it, its box centred there; its estimate lies outside the box around th
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -30,6 +31,7 @@ from registration.core.geometry import rigid
 from registration.core.images import XRayImage
 from registration.core.register.inputs import Inputs, coarse_level, prepared_renderer
 from registration.core.register.options import RegistrationOptions
+from registration.core.register.result import RegistrationResult
 from registration.core.similarity import gradient_difference, sobel_gradients
 
 #: The images compared are block-averaged to about this many pixels across.
@@ -96,10 +98,13 @@ def _score(
     return scores
 
 
-def shifted_start(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs, float]:
+def shifted_start(
+    inputs: Inputs, options: RegistrationOptions, *, threshold_mm: float | None = None
+) -> tuple[Inputs, float]:
     """``inputs`` started from the shifted start when one is taken (see the module), with its
-    renderer prepared around it, and the shift's length (mm; 0.0 when none is taken)."""
-    threshold = options.start.shift_mm
+    renderer prepared around it, and the shift's length (mm; 0.0 when none is taken);
+    ``threshold_mm``: the least shift taken (default :attr:`StartOptions.shift_mm`)."""
+    threshold = options.start.shift_mm if threshold_mm is None else threshold_mm
     if threshold is None:
         return inputs, 0.0
     renderer, views = inputs.renderer, tuple(inputs.views)
@@ -122,3 +127,45 @@ def shifted_start(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs,
         return inputs, 0.0
     shifted = replace(inputs, initial_motion=best, renderer=prepared_renderer(inputs.volume, views, best, options))
     return shifted, float(np.linalg.norm(best[:3, 3] - start[:3, 3]))
+
+
+def shift_left_mm(inputs: Inputs, result: RegistrationResult, options: RegistrationOptions) -> float:
+    """How far the image shift still moves the anatomy at ``result``'s estimate (mm at the
+    iso-center; one DRR per view): about 0 when the estimate is right (within 0.4 mm on the
+    shared real CT's draws), several mm when the search settled in a wrong minimum."""
+    renderer, views = inputs.renderer, tuple(inputs.views)
+    level = coarse_level(renderer, options)
+    motion = np.asarray(result.patient_motion, dtype=np.float64)
+    shifts = [view_shift_mm(renderer, v, motion, level) for v in views]
+    left = shifts[0] if len(views) == 1 else _combined(views, shifts)
+    return float(np.linalg.norm(left))
+
+
+def look_again(
+    register_once: Callable[[Inputs], RegistrationResult],
+    inputs: Inputs,
+    result: RegistrationResult,
+    options: RegistrationOptions,
+) -> RegistrationResult:
+    """A second search from the image shift when the first estimate leaves the anatomy at least
+    :attr:`StartOptions.recheck_mm` from where the image shows it; the estimate with the better
+    measure is kept. Runs only after a search from the machine-based pose that ended inside its
+    box; the result carries the shift left (``recheck_shift_mm``) and both searches' costs."""
+    threshold = options.start.recheck_mm
+    if threshold is None or result.stopped or result.at_bounds or result.walk_hops or result.start_shift_mm:
+        return result
+    left = shift_left_mm(inputs, result, options)
+    if left < threshold:
+        return result
+    shifted, shift_mm = shifted_start(inputs, options, threshold_mm=threshold)
+    if not shift_mm:
+        result.recheck_shift_mm = left
+        return result
+    second = register_once(shifted)
+    second.start_shift_mm = shift_mm
+    kept = second if second.similarity > result.similarity else result
+    kept.recheck_shift_mm = left
+    kept.drr_count = result.drr_count + second.drr_count
+    kept.similarity_trace = list(result.similarity_trace) + list(second.similarity_trace)
+    kept.stages = result.stages + tuple(replace(c, stage=f"second search: {c.stage}") for c in second.stages)
+    return kept
