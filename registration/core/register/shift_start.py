@@ -149,10 +149,10 @@ def look_again(
 ) -> RegistrationResult:
     """A second search from the image shift when the first estimate leaves the anatomy at least
     :attr:`StartOptions.recheck_mm` from where the image shows it; the estimate with the better
-    measure is kept. Runs only after a search from the machine-based pose that ended inside its
-    box; the result carries the shift left (``recheck_shift_mm``) and both searches' costs."""
+    measure is kept. Runs only after a search that started from the machine-based pose (walked
+    or not); the result carries the shift left (``recheck_shift_mm``) and both searches' costs."""
     threshold = options.start.recheck_mm
-    if threshold is None or result.stopped or result.at_bounds or result.walk_hops or result.start_shift_mm:
+    if threshold is None or result.stopped or result.start_shift_mm:
         return result
     left = shift_left_mm(inputs, result, options)
     if left < threshold:

@@ -46,9 +46,17 @@ def test_a_patient_beyond_the_box_registers_from_the_shift_and_is_withheld(scene
     assert result.start_shift_mm > 25.0 and result.to_dict()["start_shift_mm"] == result.start_shift_mm
     assert result.residual.success, result.residual  # the paper's in-plane criterion (measured 0.11 mm)
     assert "image shift" in veto(result)  # beyond the box around the machine-based pose: a look first
-    # without it the search misses (measured 39.4 mm in-plane and 21 deg off after one walk)
-    off = register(volume, xray, truth=truth, seed=0, options=RegistrationOptions(start=StartOptions(shift_mm=None)))
+    # without it and without the second search the search misses (measured 39.4 mm in-plane and
+    # 21 deg off after one walk)
+    never = StartOptions(shift_mm=None, recheck_mm=None)
+    off = register(volume, xray, truth=truth, seed=0, options=RegistrationOptions(start=never))
     assert not off.residual.success and off.start_shift_mm == 0.0
+    # without the shifted start, the image shift left at that wrong estimate starts a second search
+    # from the shift, whose better measure is kept
+    again = register(volume, xray, truth=truth, seed=0, options=RegistrationOptions(start=StartOptions(shift_mm=None)))
+    assert again.recheck_shift_mm > 5.0 and again.start_shift_mm > 25.0 and again.residual.success, again.residual
+    assert again.drr_count > off.drr_count  # both searches' DRRs are counted
+    assert "image shift" in veto(again)  # still beyond the box around the machine-based pose
 
 
 def test_within_the_clinical_offsets_the_start_is_the_machine_pose(scene) -> None:
