@@ -91,6 +91,7 @@ __all__ = [
     "RegistrationResult",
     "RotationCheck",
     "RotationCheckOptions",
+    "beyond_box",
     "check_inputs",
     "combine_plane_estimates",
     "depth_resolvable",

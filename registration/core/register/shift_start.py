@@ -13,8 +13,14 @@ spacing over magnification); with two views, each plane's translation and the tw
 start by at least :attr:`StartOptions.shift_mm` (within the paper's clinical offsets the search
 needs no help, so their registrations are unchanged) and the views' gradient difference (their
 sum, the biplane measure) is better there than at the machine-based pose. The registration then
-runs from it, its box centred there; its estimate lies outside the box around the machine-based pose, so
-:func:`registration.core.assess.veto` withholds it for a look.
+runs from it, its box centred there; when its estimate lies beyond the box around the
+machine-based pose, :func:`registration.core.assess.veto` withholds it for a look.
+
+The same shift checks an estimate afterwards (:func:`look_again`): at a right estimate the DRR
+and the image line up (the shift left is under a coarse pixel); a search that settled in a wrong
+minimum inside its box leaves the anatomy several mm away. Then the search runs again from the
+shifted start (any shift of at least :attr:`StartOptions.recheck_mm`) and the estimate with the
+better measure is kept. A registration whose first estimate is right costs one DRR per view more.
 """
 
 from __future__ import annotations
