@@ -263,7 +263,7 @@ def _estimate_geometry(result: Any, views: list, renderer: Any, inputs: Inputs) 
 
 def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Outcome:
     """Prepare the volume for the views (cached), register, and run what was asked after it."""
-    from registration.core.register import register, registration_plan
+    from registration.core.register import RegistrationOptions, register, registration_plan
 
     compiling = kernels_to_compile()
     clock.lap("loading the engine")
@@ -278,7 +278,7 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
     if options.explain:
         plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer)
-        _say("plan:\n" + plan.describe())
+        _say("plan:\n" + plan.describe() + "\naround it:\n" + RegistrationOptions().start.describe())
     result = register(vol, views, initial_motion=m_init, seed=options.seed, truth=inputs.truth,
                       vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer)  # fmt: skip
     if store is not None:

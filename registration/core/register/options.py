@@ -223,6 +223,20 @@ class StartOptions:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
         _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm)
 
+    def describe(self) -> str:
+        """One line per rule that moves the search's start (what ``register --explain`` prints
+        after the plan)."""
+        if not self.enabled:
+            return "the search starts at the machine-based pose and stays in its box"
+        lines = []
+        if self.shift_mm is not None:
+            lines.append(f"start from the image shift when it moves the patient {self.shift_mm:g} mm or more")
+        lines.append(f"the box walks from an estimate on its bounds, up to {self.walk_hops} times")
+        if self.recheck_mm is not None:
+            lines.append(f"a second search from the image shift when the estimate leaves the anatomy "
+                         f"{self.recheck_mm:g} mm or more from where the image shows it (the better fit kept)")  # fmt: skip
+        return "\n".join(lines)
+
 
 def _check_level(level: Level) -> None:
     if level.image_px < 16:

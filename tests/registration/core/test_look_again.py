@@ -127,3 +127,10 @@ def test_the_shift_left_is_near_zero_at_a_right_estimate_and_measures_a_wrong_on
     # 17 mm across the beam: the shift found is short of it (measured 15.0 mm: the gradient
     # magnitudes' correlation peak is broad at the coarse level) but three times the 5 mm trigger
     assert 10.0 < shift_module.shift_left_mm(inputs, wrong, options) < 19.0
+
+
+def test_explain_names_the_start_rules_with_their_thresholds() -> None:
+    lines = StartOptions(shift_mm=25.0, walk_hops=3, recheck_mm=5.0).describe().splitlines()
+    assert len(lines) == 3 and "25 mm" in lines[0] and "3 times" in lines[1] and "5 mm" in lines[2]
+    assert len(StartOptions(shift_mm=None, recheck_mm=None).describe().splitlines()) == 1  # the walk only
+    assert "stays in its box" in StartOptions(enabled=False).describe()
