@@ -233,8 +233,10 @@ class StartOptions:
             lines.append(f"start from the image shift when it moves the patient {self.shift_mm:g} mm or more")
         lines.append(f"the box walks from an estimate on its bounds, up to {self.walk_hops} times")
         if self.recheck_mm is not None:
-            lines.append(f"a second search from the image shift when the estimate leaves the anatomy "
-                         f"{self.recheck_mm:g} mm or more from where the image shows it (the better fit kept)")  # fmt: skip
+            lines.append(
+                f"a second search from the image shift when the estimate leaves the anatomy {self.recheck_mm:g} mm "
+                "or more from where the image shows it (the better fit kept)"
+            )
         return "\n".join(lines)
 
 
