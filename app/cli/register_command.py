@@ -324,11 +324,8 @@ def say_result(result: Any, planes: int) -> None:
             f"{r.outofplane_mm:.2f} mm out-of-plane of plane A), {r.rotation_deg:.2f} deg{mtre} -> {verdict} "
             f"({criterion} criterion)"
         )
-    if result.recheck_shift_mm:
-        _say(
-            f"the first estimate left the anatomy {result.recheck_shift_mm:.0f} mm from where the image shows it: "
-            "the search ran again from the image shift and kept the better fit"
-        )
+    if result.second_search:
+        _say(f"{result.second_search}: the search ran again from the image shift and kept the better fit")
     if result.start_shift_mm:
         look = "; check the estimate by eye" if result.beyond_box else ""
         _say(

@@ -414,8 +414,7 @@ class Presenter:
             )
         elif result is not None:
             how = "stopped" if result.stopped else "done"
-            again = getattr(result, "recheck_shift_mm", 0.0)
-            twice = f" · searched again from the image shift ({again:.0f} mm off at first)" if again else ""
+            twice = " · searched again from the image shift" if getattr(result, "second_search", "") else ""
             lines.append(f"Time {result.seconds:.2f} s · {result.drr_count} DRRs · {how}{twice}")
             if assessment is not None and assessment["applied"]:
                 lines.append(f"Confidence {assessment['confidence']:.2f}: applied")

@@ -20,29 +20,12 @@ from numpy.typing import ArrayLike
 
 from registration.core.confidence import DEFAULT_RULE, Assessment, ConfidenceRule, Evidence
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import OFFSET_NAMES, apply, offsets_to_matrix, rotation_angle_deg
+from registration.core.geometry import apply
 from registration.core.images import XRayImage
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationResult
+from registration.core.register.result import SINGLE_PLANE_MAX_TURN_DEG, single_plane_turn_deg
 from registration.core.volume import Volume
-
-#: A single view's estimate that turns the head more than this (degrees) from where its search
-#: started is not applied automatically: the clinical offsets reach 10 deg, a right estimate
-#: there is within 3 deg of the truth, and one view sees out-of-plane turns poorly
-#: (docs/decisions/2026-12-04-single-plane-turn.md).
-SINGLE_PLANE_MAX_TURN_DEG = 13.0
-
-
-def single_plane_turn_deg(result: RegistrationResult) -> float | None:
-    """How far a single view's estimate turns the head from where the search started (degrees);
-    None for an estimate of all six parameters (two views)."""
-    parameters = tuple(getattr(result, "parameters", ()))
-    offsets = getattr(result, "offsets", None)
-    if "tz" in parameters or offsets is None or len(offsets) != len(parameters) or not parameters:
-        return None
-    found = dict(zip(parameters, np.asarray(offsets, dtype=np.float64), strict=True))
-    full = np.array([found.get(name, 0.0) for name in OFFSET_NAMES])
-    return rotation_angle_deg(offsets_to_matrix(full, result.geometry))
 
 
 def veto(result: RegistrationResult) -> str | None:

@@ -7,11 +7,30 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.core.geometry import CArm
+from registration.core.geometry import OFFSET_NAMES, CArm, offsets_to_matrix, rotation_angle_deg
 from registration.core.metrics import Residual
 from registration.core.search import FIVE_PARAMETERS
 
 Array = NDArray[np.float64]
+
+
+#: A single view's estimate that turns the head more than this (degrees) from where its search
+#: started is not applied automatically: the clinical offsets reach 10 deg, a right estimate
+#: there is within 3 deg of the truth, and one view sees out-of-plane turns poorly
+#: (docs/decisions/2026-12-04-single-plane-turn.md).
+SINGLE_PLANE_MAX_TURN_DEG = 13.0
+
+
+def single_plane_turn_deg(result: RegistrationResult) -> float | None:
+    """How far a single view's estimate turns the head from where the search started (degrees);
+    None for an estimate of all six parameters (two views)."""
+    parameters = tuple(getattr(result, "parameters", ()))
+    offsets = getattr(result, "offsets", None)
+    if "tz" in parameters or offsets is None or len(offsets) != len(parameters) or not parameters:
+        return None
+    found = dict(zip(parameters, np.asarray(offsets, dtype=np.float64), strict=True))
+    full = np.array([found.get(name, 0.0) for name in OFFSET_NAMES])
+    return rotation_angle_deg(offsets_to_matrix(full, result.geometry))
 
 
 @dataclass(frozen=True)
@@ -93,9 +112,11 @@ class RegistrationResult:
     #: How far the search's start was moved from the machine-based pose by the image shift
     #: (:mod:`registration.core.register.shift_start`), mm; 0.0: not moved.
     start_shift_mm: float = 0.0
-    #: The image shift left at the first estimate when it made the search run again from the
-    #: image shift (:func:`registration.core.register.shift_start.look_again`), mm; 0.0: not run.
+    #: The image shift left at the first estimate when the search ran again from the image shift
+    #: (:func:`registration.core.register.shift_start.look_again`), mm; 0.0: it did not.
     recheck_shift_mm: float = 0.0
+    #: Why the search ran again from the image shift ("": it did not).
+    second_search: str = ""
     #: Whether the estimate lies beyond the search box around the machine-based pose (its
     #: offsets from that pose exceed ``bound_mm`` / ``bound_deg``).
     beyond_box: bool = False
@@ -136,7 +157,8 @@ class RegistrationResult:
             out["walk_hops"] = self.walk_hops
         if self.start_shift_mm:
             out["start_shift_mm"] = self.start_shift_mm
-        if self.recheck_shift_mm:
+        if self.second_search:
+            out["second_search"] = self.second_search
             out["recheck_shift_mm"] = self.recheck_shift_mm
         if self.beyond_box:
             out["beyond_box"] = True

@@ -37,7 +37,7 @@ from registration.core.geometry import rigid
 from registration.core.images import XRayImage
 from registration.core.register.inputs import Inputs, coarse_level, prepared_renderer
 from registration.core.register.options import RegistrationOptions
-from registration.core.register.result import RegistrationResult
+from registration.core.register.result import SINGLE_PLANE_MAX_TURN_DEG, RegistrationResult, single_plane_turn_deg
 from registration.core.similarity import gradient_difference, sobel_gradients
 
 #: The images compared are block-averaged to about this many pixels across.
@@ -154,23 +154,29 @@ def look_again(
     options: RegistrationOptions,
 ) -> RegistrationResult:
     """A second search from the image shift when the first estimate leaves the anatomy at least
-    :attr:`StartOptions.recheck_mm` from where the image shows it; the estimate with the better
-    measure is kept. Runs only after a search that started from the machine-based pose (walked
-    or not); the result carries the shift left (``recheck_shift_mm``) and both searches' costs."""
+    :attr:`StartOptions.recheck_mm` from where the image shows it, or when one view's estimate
+    turns the head more than ``SINGLE_PLANE_MAX_TURN_DEG`` (it would be withheld); the estimate
+    with the better measure is kept. Runs only after a search that started from the machine-based
+    pose (walked or not); the result carries why (``second_search``), the shift left
+    (``recheck_shift_mm``) and both searches' costs."""
     threshold = options.start.recheck_mm
     if threshold is None or result.stopped or result.start_shift_mm:
         return result
     left = shift_left_mm(inputs, result, options)
-    if left < threshold:
+    turn = single_plane_turn_deg(result)
+    if left >= threshold:
+        why = f"the first estimate left the anatomy {left:.0f} mm from where the image shows it"
+    elif turn is not None and turn > SINGLE_PLANE_MAX_TURN_DEG:
+        why = f"the first estimate turned the head {turn:.0f} deg, more than one view can confirm"
+    else:
         return result
     shifted, shift_mm = shifted_start(inputs, options, threshold_mm=threshold)
-    if not shift_mm:
-        result.recheck_shift_mm = left
+    if not shift_mm:  # no shift of the anatomy to start from
         return result
     second = register_once(shifted)
     second.start_shift_mm = shift_mm
     kept = second if second.similarity > result.similarity else result
-    kept.recheck_shift_mm = left
+    kept.recheck_shift_mm, kept.second_search = left, why
     kept.drr_count = result.drr_count + second.drr_count
     kept.similarity_trace = list(result.similarity_trace) + list(second.similarity_trace)
     kept.stages = result.stages + tuple(replace(c, stage=f"second search: {c.stage}") for c in second.stages)

@@ -28,6 +28,7 @@ class _Result:
     walk_hops: int = 0
     start_shift_mm: float = 0.0
     recheck_shift_mm: float = 0.0
+    second_search: str = ""
     beyond_box: bool = False
     stages: tuple = ()
     parameters: tuple[str, ...] = ("tx", "ty", "rx", "ry", "rz")
@@ -57,11 +58,12 @@ def test_the_second_search_runs_from_the_shift_and_the_better_measure_is_kept(st
     kept = shift_module.look_again(once, "machine", first, RegistrationOptions())
     assert calls == ["shifted"]  # started from the shifted start
     assert kept.similarity == 1.9 and kept.start_shift_mm == 18.0 and kept.recheck_shift_mm == 9.0
+    assert kept.second_search == "the first estimate left the anatomy 9 mm from where the image shows it"
     assert kept.drr_count == 17 and len(kept.similarity_trace) == 2  # both searches are counted
     # a worse second search leaves the first estimate, which still says the search ran again
     worse = shift_module.look_again(lambda i: _Result(similarity=1.2), "machine", _Result(similarity=1.5),
                                     RegistrationOptions())  # fmt: skip
-    assert worse.similarity == 1.5 and worse.start_shift_mm == 0.0 and worse.recheck_shift_mm == 9.0
+    assert worse.similarity == 1.5 and worse.start_shift_mm == 0.0 and worse.second_search.startswith("the first")
 
 
 def test_no_second_search_when_the_estimate_sits_where_the_image_shows_it(stand_ins) -> None:
@@ -80,6 +82,17 @@ def test_no_second_search_when_the_estimate_sits_where_the_image_shows_it(stand_
     shift_module.look_again(once, "machine", _Result(similarity=1.0, stopped=True), RegistrationOptions())
     with pytest.raises(ValueError, match="recheck_mm must be a positive number"):
         StartOptions(recheck_mm=0.0)
+
+
+def test_a_single_view_estimate_turned_beyond_confirmation_searches_again(stand_ins) -> None:
+    # the shift left says nothing (a tilted head can line up with the image's edges), the turn does
+    stand_ins["left"] = 0.8
+    turned = _Result(similarity=1.5, offsets=(1.2, -8.0, -13.2, -11.6, 1.5))  # a 17.5 deg turn
+    kept = shift_module.look_again(lambda i: _Result(similarity=1.9), "machine", turned, RegistrationOptions())
+    assert kept.similarity == 1.9 and kept.second_search.startswith("the first estimate turned the head 18 deg")
+    # two views: all six offsets are searched and the turn is theirs to confirm
+    six = replace(turned, parameters=("tx", "ty", "tz", "rx", "ry", "rz"), offsets=(0, 0, 0, -13.2, -11.6, 1.5))
+    assert shift_module.look_again(lambda i: _Result(similarity=1.9), "machine", six, RegistrationOptions()) is six
 
 
 def test_a_shifted_start_is_withheld_only_beyond_the_box() -> None:
