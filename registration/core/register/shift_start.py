@@ -18,9 +18,11 @@ machine-based pose, :func:`registration.core.assess.veto` withholds it for a loo
 
 The same shift checks an estimate afterwards (:func:`look_again`): at a right estimate the DRR
 and the image line up (the shift left is under a coarse pixel); a search that settled in a wrong
-minimum inside its box leaves the anatomy several mm away. Then the search runs again from the
-shifted start (any shift of at least :attr:`StartOptions.recheck_mm`) and the estimate with the
-better measure is kept. A registration whose first estimate is right costs one DRR per view more.
+minimum inside its box leaves the anatomy several mm away. Then, or when one view's estimate
+turns the head more than one view can confirm (a tilted head can line up with the image's edges),
+the search runs again from the shifted start (any shift of at least
+:attr:`StartOptions.recheck_mm`) and the estimate with the better measure is kept. A
+registration whose first estimate is right costs one DRR per view more.
 """
 
 from __future__ import annotations
