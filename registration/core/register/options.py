@@ -16,6 +16,7 @@ from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import Any
 
 from registration.core.anneal import Schedule
+from registration.core.register.result import SINGLE_PLANE_MAX_TURN_DEG
 
 
 @dataclass(frozen=True)
@@ -235,7 +236,8 @@ class StartOptions:
         if self.recheck_mm is not None:
             lines.append(
                 f"a second search from the image shift when the estimate leaves the anatomy {self.recheck_mm:g} mm "
-                "or more from where the image shows it (the better fit kept)"
+                f"or more from where the image shows it, or one view's estimate turns the head more than "
+                f"{SINGLE_PLANE_MAX_TURN_DEG:g} deg (the better fit kept)"
             )
         return "\n".join(lines)
 
