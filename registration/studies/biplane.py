@@ -279,6 +279,8 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
         **_scores("", both),
         **_scores("single_", single),
         "single_success_inplane": bool(single.residual.success),
+        # plane A's estimate as offsets from the start (tx, ty, rx, ry, rz in its view frame)
+        "single_offsets": dict(zip(single.parameters, np.asarray(single.offsets).tolist(), strict=True)),
         "prepare_seconds": pair.seconds,
         "volume_label": volume.label,
         "image_source": image_source,
