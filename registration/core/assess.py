@@ -27,12 +27,19 @@ from registration.core.register import RegistrationResult
 from registration.core.register.result import SINGLE_PLANE_MAX_TURN_DEG, single_plane_turn_deg
 from registration.core.volume import Volume
 
+#: A single view's estimate whose search started this far (mm) from the machine-based pose, where
+#: the image shift put the patient, is not applied automatically: beyond the clinical offsets the
+#: depth along the beam may lie beyond the depth correction's reach, and one view cannot confirm it
+#: (docs/decisions/2026-12-04-second-search.md).
+SINGLE_PLANE_MAX_SHIFT_MM = 25.0
+
 
 def veto(result: RegistrationResult) -> str | None:
     """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
     the search bounds (inputs without information drift there), without a finite measure,
     started from the image shift (:mod:`registration.core.register.shift_start`) and ending
-    beyond the search box around the machine-based pose, reached by walking beyond that box
+    beyond the search box around the machine-based pose (one view: or started from a shift of
+    ``SINGLE_PLANE_MAX_SHIFT_MM`` or more), reached by walking beyond that box
     (:mod:`registration.core.register.walk`), or one view's estimate turning the head more than
     ``SINGLE_PLANE_MAX_TURN_DEG``."""
     at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
@@ -41,7 +48,9 @@ def veto(result: RegistrationResult) -> str | None:
     if not math.isfinite(getattr(result, "similarity", 0.0)):
         return "no usable overlap between the DRR and the image"
     shift = getattr(result, "start_shift_mm", 0.0)
-    if shift and getattr(result, "beyond_box", True):
+    one_view = "tz" not in tuple(getattr(result, "parameters", ("tz",)))  # one view does not search the depth
+    one_view_far = one_view and shift >= SINGLE_PLANE_MAX_SHIFT_MM
+    if shift and (getattr(result, "beyond_box", True) or one_view_far):
         return (
             f"the search started {shift:.0f} mm from the machine-based pose, where the image shift put the "
             "patient: check the estimate by eye before applying it"

@@ -108,8 +108,15 @@ def test_a_shifted_start_is_withheld_only_beyond_the_box() -> None:
     assert found == [False, True, True, False, True]
     inside.start_shift_mm, inside.beyond_box = 26.0, False
     outside.start_shift_mm, outside.beyond_box = 40.0, True
-    assert veto(inside) is None  # assessed like any estimate inside the box
     assert "image shift" in veto(outside)
+    # inside the box: two views (which see the depth) are assessed, and one view from a shift
+    # under 25 mm; one view from 25 mm or more may have its depth beyond the correction's reach
+    both = replace(inside, parameters=("tx", "ty", "tz", "rx", "ry", "rz"), offsets=(0.0,) * 6)
+    assert veto(both) is None
+    inside.start_shift_mm = 18.0
+    assert veto(inside) is None
+    inside.start_shift_mm = 26.0
+    assert "image shift" in veto(inside)
 
 
 @pytest.fixture(scope="module")
