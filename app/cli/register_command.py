@@ -311,6 +311,8 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
 
 def say_result(result: Any, planes: int) -> None:
     """The intensities assumed, the residual against the truth, and where the search had to go."""
+    from registration.core.assess import shifted_start_withheld
+
     for assumed in result.intensity:
         if assumed is not None:
             _say(assumed["note"])
@@ -327,7 +329,7 @@ def say_result(result: Any, planes: int) -> None:
     if result.second_search:
         _say(f"{result.second_search}: the search ran again from the image shift and kept the better fit")
     if result.start_shift_mm:
-        look = "; check the estimate by eye" if result.beyond_box else ""
+        look = "; check the estimate by eye" if shifted_start_withheld(result) else ""
         _say(
             f"the image shows the patient {result.start_shift_mm:.0f} mm from the machine-based pose: the search "
             f"started there{look}"

@@ -34,6 +34,15 @@ from registration.core.volume import Volume
 SINGLE_PLANE_MAX_SHIFT_MM = 25.0
 
 
+def shifted_start_withheld(result: RegistrationResult) -> bool:
+    """Whether ``result`` started from the image shift where its estimate cannot be confirmed:
+    beyond the search box around the machine-based pose, or one view from a shift of
+    ``SINGLE_PLANE_MAX_SHIFT_MM`` or more."""
+    shift = getattr(result, "start_shift_mm", 0.0)
+    one_view = "tz" not in tuple(getattr(result, "parameters", ("tz",)))  # one view does not search the depth
+    return bool(shift) and (getattr(result, "beyond_box", True) or (one_view and shift >= SINGLE_PLANE_MAX_SHIFT_MM))
+
+
 def veto(result: RegistrationResult) -> str | None:
     """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
     the search bounds (inputs without information drift there), without a finite measure,
@@ -48,9 +57,7 @@ def veto(result: RegistrationResult) -> str | None:
     if not math.isfinite(getattr(result, "similarity", 0.0)):
         return "no usable overlap between the DRR and the image"
     shift = getattr(result, "start_shift_mm", 0.0)
-    one_view = "tz" not in tuple(getattr(result, "parameters", ("tz",)))  # one view does not search the depth
-    one_view_far = one_view and shift >= SINGLE_PLANE_MAX_SHIFT_MM
-    if shift and (getattr(result, "beyond_box", True) or one_view_far):
+    if shifted_start_withheld(result):
         return (
             f"the search started {shift:.0f} mm from the machine-based pose, where the image shift put the "
             "patient: check the estimate by eye before applying it"
