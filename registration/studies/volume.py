@@ -350,6 +350,7 @@ def run_volume_case(
             "voxels_per_level": prepared.voxels_per_level,
             "spacing_mm": list(prepared.spacing_mm),
             "parameters": list(result.parameters),
+            "offsets": np.asarray(result.offsets).tolist(),
             # where the search started (mm from the machine-based pose) and why it searched again
             "start_shift_mm": result.start_shift_mm,
             "second_search": result.second_search,
