@@ -45,10 +45,9 @@ def shifted_start_withheld(result: RegistrationResult) -> bool:
 
 def veto(result: RegistrationResult) -> str | None:
     """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
-    the search bounds (inputs without information drift there), without a finite measure,
-    started from the image shift (:mod:`registration.core.register.shift_start`) and ending
-    beyond the search box around the machine-based pose (one view: or started from a shift of
-    ``SINGLE_PLANE_MAX_SHIFT_MM`` or more), reached by walking beyond that box
+    the search bounds (inputs without information drift there), without a finite measure, one
+    view's depth correction ending at its bound, started from the image shift where it cannot be
+    confirmed (:func:`shifted_start_withheld`), reached by walking beyond the search box
     (:mod:`registration.core.register.walk`), or one view's estimate turning the head more than
     ``SINGLE_PLANE_MAX_TURN_DEG``."""
     at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
@@ -56,6 +55,11 @@ def veto(result: RegistrationResult) -> str | None:
         return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
     if not math.isfinite(getattr(result, "similarity", 0.0)):
         return "no usable overlap between the DRR and the image"
+    if getattr(result, "depth_at_bound", False):
+        return (
+            f"the depth correction ended at its bound ({result.depth_tz_mm:+.0f} mm along the beam): the patient may "
+            "lie further along the beam than one view can tell; check the estimate by eye before applying it"
+        )
     shift = getattr(result, "start_shift_mm", 0.0)
     if shifted_start_withheld(result):
         return (

@@ -217,5 +217,7 @@ def _result(state: State, vessel_points_mm: ArrayLike | None, seconds: float) ->
         at_bounds=tuple(run.space.names[i] for i in parameters_at_bounds(x, run.space.bounds)),
         depth_tz_mm=state.tz_mm,
         depth_moves_mm=state.depth_moves_mm or (),
+        depth_at_bound=state.tz_mm is not None
+        and abs(state.tz_mm) > run.options.depth.bound_mm - run.options.depth.scan_step_mm,
         rotation_check=state.check,
     )

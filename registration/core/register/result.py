@@ -96,6 +96,9 @@ class RegistrationResult:
     #: None / (): no correction ran (two views, the option off, stopped).
     depth_tz_mm: float | None = None
     depth_moves_mm: tuple[float, ...] = ()
+    #: Whether the depth correction's tz ended within a scan step of its bound (the depth may lie
+    #: beyond it, and one view cannot tell).
+    depth_at_bound: bool = False
     #: The rotation check (:attr:`RegistrationOptions.rotation_check`, one view): how many
     #: checks ran, how many moved the estimate, and the last check's ``rival_gain``
     #: (:class:`RotationCheck`: the best other optimum against the kept estimate, relative,
@@ -149,6 +152,8 @@ class RegistrationResult:
         if self.depth_tz_mm is not None:
             out["depth_tz_mm"] = self.depth_tz_mm
             out["depth_moves_mm"] = list(self.depth_moves_mm)
+            if self.depth_at_bound:
+                out["depth_at_bound"] = True
         if self.rotation_check is not None:
             out["rotation_check"] = self.rotation_check.to_dict()
         if self.intensity:

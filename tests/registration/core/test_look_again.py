@@ -155,3 +155,21 @@ def test_explain_names_the_start_rules_with_their_thresholds() -> None:
     assert "5 mm" in lines[2] and "13 deg" in lines[2]
     assert len(StartOptions(shift_mm=None, recheck_mm=None).describe().splitlines()) == 1  # the walk only
     assert "stays in its box" in StartOptions(enabled=False).describe()
+
+
+def test_one_views_depth_at_its_bound_is_withheld(scene) -> None:
+    """A patient 40 mm along the beam, beyond the depth correction's 25 mm: the depth ends at its
+    bound and the estimate is withheld; Table I's T4 (0 mm along the beam) is not concerned."""
+    from registration.sim.phantom import make_head_phantom
+    from registration.sim.xray import simulate_xray
+
+    volume, renderer, geometry = scene
+    truth = offsets_to_matrix((6.0, -4.0, 40.0, 0.0, 0.0, 0.0), geometry)
+    xray = simulate_xray(make_head_phantom(seed=0, contrast=False), geometry, motion=truth, kind="exposure", seed=1)
+    far = register(volume, xray, truth=truth, seed=0, renderer=renderer)
+    assert far.depth_at_bound and abs(far.depth_tz_mm) > 23.0, far.depth_tz_mm
+    assert "depth correction ended at its bound" in veto(far) and far.to_dict()["depth_at_bound"] is True
+    t4 = offsets_to_matrix((4.0, 4.0, 0.0, 2.0, 3.0, 4.0), geometry)
+    near = simulate_xray(make_head_phantom(seed=0, contrast=False), geometry, motion=t4, kind="exposure", seed=1)
+    right = register(volume, near, truth=t4, seed=0, renderer=renderer)
+    assert not right.depth_at_bound and abs(right.depth_tz_mm) < 5.0 and veto(right) is None
