@@ -180,6 +180,7 @@ def look_again(
     kept = second if second.similarity > result.similarity else result
     kept.recheck_shift_mm, kept.second_search = left, why
     kept.drr_count = result.drr_count + second.drr_count
+    kept.seconds = max(result.seconds, second.seconds)  # both timed from the registration's start
     kept.similarity_trace = list(result.similarity_trace) + list(second.similarity_trace)
     kept.stages = result.stages + tuple(replace(c, stage=f"second search: {c.stage}") for c in second.stages)
     return kept

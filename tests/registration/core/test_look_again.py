@@ -23,6 +23,7 @@ class _Result:
     patient_motion: np.ndarray = field(default_factory=lambda: np.eye(4))
     drr_count: int = 10
     similarity_trace: list[float] = field(default_factory=lambda: [1.0])
+    seconds: float = 1.0
     stopped: bool = False
     at_bounds: tuple[str, ...] = ()
     walk_hops: int = 0
@@ -52,14 +53,15 @@ def test_the_second_search_runs_from_the_shift_and_the_better_measure_is_kept(st
 
     def once(inputs):
         calls.append(inputs)
-        return _Result(similarity=1.9, drr_count=7)
+        return _Result(similarity=1.9, drr_count=7, seconds=3.0)
 
-    first = _Result(similarity=1.5)
+    first = _Result(similarity=1.5, seconds=1.0)
     kept = shift_module.look_again(once, "machine", first, RegistrationOptions())
     assert calls == ["shifted"]  # started from the shifted start
     assert kept.similarity == 1.9 and kept.start_shift_mm == 18.0 and kept.recheck_shift_mm == 9.0
     assert kept.second_search == "the first estimate left the anatomy 9 mm from where the image shows it"
     assert kept.drr_count == 17 and len(kept.similarity_trace) == 2  # both searches are counted
+    assert kept.seconds == 3.0  # the second search's clock runs from the registration's start
     # a worse second search leaves the first estimate, which still says the search ran again
     worse = shift_module.look_again(lambda i: _Result(similarity=1.2), "machine", _Result(similarity=1.5),
                                     RegistrationOptions())  # fmt: skip
