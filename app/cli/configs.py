@@ -117,7 +117,7 @@ class Info:
     X-ray image how its usable field was found and which intensity relationship was assumed)."""
 
     path: tyro.conf.Positional[Path]
-    """DICOM file, DICOM series folder or .npz volume."""
+    """DICOM file or series folder, a volume (NIfTI, NRRD, MetaImage, the project's .npz) or an X-ray (TIFF, PNG)."""
     json: bool = False
     """Print the report as one JSON object."""
     sid_mm: float | None = None
@@ -163,7 +163,7 @@ class Mesh:
     """Write the vessel and bone surfaces of a volume (STL, PLY or GLB by the file extension)."""
 
     volume: Path
-    """DICOM series folder, enhanced multi-frame file, or the project's .npz."""
+    """DICOM series folder, enhanced multi-frame file, NIfTI, NRRD, MetaImage or the project's .npz."""
     out: Path
     """Output mesh file (.stl, .ply or .glb)."""
     vessel_hu: float | None = None
@@ -289,7 +289,7 @@ class Track:
     """Follow patient motion over a fluoroscopy run at its frame times (CONVENTIONS §7)."""
 
     volume: Path
-    """DICOM series folder, enhanced multi-frame file, or the project's .npz."""
+    """DICOM series folder, enhanced multi-frame file, NIfTI, NRRD, MetaImage or the project's .npz."""
     run: Path
     """Multi-frame XA/RF run with its frame times (plane A for a biplane pair)."""
     run_b: Path | None = None

@@ -45,6 +45,7 @@ from registration.core.register.biplane import (
 )
 from registration.core.register.build import build_plan
 from registration.core.register.depth import depth_resolvable
+from registration.core.register.fine_polish import fine_polish
 from registration.core.register.inputs import Inputs, check_inputs, coarse_level, prepared_renderer, prepared_volume
 from registration.core.register.monitor import Monitor
 from registration.core.register.options import (
@@ -152,6 +153,8 @@ def register(
         result = walk_from_bounds(once, inputs, options)
         result.start_shift_mm = shift_mm
         result = look_again(lambda i: walk_from_bounds(once, i, options), machine, result, options)
+        result = fine_polish(machine, result, options, callback=callback, start_s=start,
+                             vessel_points_mm=vessel_points_mm)  # fmt: skip
         result.beyond_box = beyond_box(result, machine.initial_motion, options)
     result.intensity = intensity
     return result

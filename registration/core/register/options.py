@@ -219,10 +219,25 @@ class StartOptions:
     #: far from where the image shows it, mm, and keep the better measure (default 5.0, > 0;
     #: None: never; :func:`registration.core.register.shift_start.look_again`).
     recheck_mm: float | None = 5.0
+    #: Two views' estimate whose search started away from the machine-based pose (image shift or
+    #: walk) is polished once more on the views' full images and the volume's level 0
+    #: (:mod:`registration.core.register.fine_polish`): evaluations (default 100, >= 0; 0: never).
+    fine_polish_evaluations: int = 100
+    #: Its image size, pixels across (default 256, >= 16).
+    fine_polish_px: int = 256
+    #: Its reach either side of the estimate, mm and degrees (default 3.0 and 2.0, > 0).
+    fine_polish_reach_mm: float = 3.0
+    fine_polish_reach_deg: float = 2.0
+    #: Powell's tolerance of that polish (default 0.05, > 0).
+    fine_polish_xtol: float = 0.05
 
     def __post_init__(self) -> None:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
-        _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm)
+        _at_least("StartOptions", 0, fine_polish_evaluations=self.fine_polish_evaluations)
+        _at_least("StartOptions", 16, fine_polish_px=self.fine_polish_px)
+        _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm,
+                  fine_polish_reach_mm=self.fine_polish_reach_mm, fine_polish_reach_deg=self.fine_polish_reach_deg,
+                  fine_polish_xtol=self.fine_polish_xtol)  # fmt: skip
 
     def describe(self) -> str:
         """One line per rule that moves the search's start (what ``register --explain`` prints
@@ -238,6 +253,12 @@ class StartOptions:
                 f"a second search from the image shift when the estimate leaves the anatomy {self.recheck_mm:g} mm "
                 f"or more from where the image shows it, or one view's estimate turns the head more than "
                 f"{SINGLE_PLANE_MAX_TURN_DEG:g} deg (the better fit kept)"
+            )
+        if self.fine_polish_evaluations:
+            lines.append(
+                f"two views' estimate from a start away from the machine-based pose: a fine polish at "
+                f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "
+                f"+-{self.fine_polish_reach_mm:g} mm / {self.fine_polish_reach_deg:g} deg"
             )
         return "\n".join(lines)
 

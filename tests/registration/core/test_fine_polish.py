@@ -1,0 +1,67 @@
+"""The fine polish (registration.core.register.fine_polish): two views' estimate found away from the
+machine-based pose is polished once more on the full images and the volume's own grid."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from registration.core.geometry import CArm, offsets_to_matrix
+from registration.core.metrics import residuals
+from registration.core.register import RegistrationOptions, StartOptions, register
+from registration.core.register.fine_polish import fine_polish, started_away
+from registration.core.register.inputs import check_inputs
+
+
+@pytest.fixture(scope="module")
+def pair():
+    from registration.sim.phantom import make_head_phantom, registration_volume
+    from registration.sim.xray import simulate_xray
+
+    volume = registration_volume(make_head_phantom(seed=0, contrast=True), 27.0, voxels=128)
+    views = [CArm.for_format(27.0, pixels=256, primary_deg=20.0), CArm.for_format(27.0, pixels=192, primary_deg=-70.0)]
+    truth = offsets_to_matrix((4.0, 4.0, -3.0, 2.0, 3.0, 4.0), views[0])
+    phantom = make_head_phantom(seed=0, contrast=False)
+    xrays = [simulate_xray(phantom, g, motion=truth, kind="exposure", seed=1 + n) for n, g in enumerate(views)]
+    options = RegistrationOptions()
+    right = register(volume, xrays, truth=truth, seed=0, options=options)
+    return volume, xrays, truth, options, right
+
+
+def test_an_estimate_from_far_away_is_polished_onto_the_truth(pair) -> None:
+    volume, xrays, truth, options, right = pair
+    assert right.residual.success and not started_away(right)  # started at the machine-based pose
+    inputs = check_inputs(volume, xrays, None, truth, None, options)
+    # the estimate a search from the image shift might leave: 1.2 mm and 0.8 deg off the truth
+    off = offsets_to_matrix((0.8, -0.6, 0.7, 0.5, -0.4, 0.3), right.geometry) @ truth
+    before = residuals(off, truth, right.geometry, optimizes_tz=True)
+    far = replace(right, patient_motion=off, start_shift_mm=40.0)
+    polished = fine_polish(inputs, far, options, callback=None, start_s=time.perf_counter())
+    # the phantom's own volume at level 0 (1.4 mm voxels), 256-px images (1 mm pixels at the
+    # iso-center): a polish from 1.2 mm ends within a few tenths of the truth
+    assert before.translation_mm > 1.0 and polished.residual.translation_mm < 0.4, polished.residual
+    assert polished.residual.rotation_deg < before.rotation_deg
+    assert polished.stages[-1].stage.startswith("fine polish at 256 px, volume level 0")
+    assert polished.drr_count == far.drr_count + polished.stages[-1].drrs > far.drr_count
+    # the offsets stay relative to the search's own start: they move by the polish's correction
+    moved = np.abs(np.asarray(polished.offsets) - np.asarray(far.offsets))
+    assert np.all(moved < 1.6) and moved.max() > 0.1
+
+
+def test_the_polish_runs_only_after_a_start_away_with_two_views(pair) -> None:
+    volume, xrays, truth, options, right = pair
+    inputs = check_inputs(volume, xrays, None, truth, None, options)
+    now = time.perf_counter()
+    assert fine_polish(inputs, right, options, callback=None, start_s=now) is right  # machine-based start
+    walked = replace(right, walk_hops=1)
+    off = RegistrationOptions(start=StartOptions(fine_polish_evaluations=0))
+    assert fine_polish(inputs, walked, off, callback=None, start_s=now) is walked
+    stopped = replace(walked, stopped=True)
+    assert fine_polish(inputs, stopped, options, callback=None, start_s=now) is stopped
+    one = check_inputs(volume, xrays[:1], None, truth, None, options)
+    assert fine_polish(one, walked, options, callback=None, start_s=now) is walked
+    with pytest.raises(ValueError, match="fine_polish_px must be >= 16"):
+        StartOptions(fine_polish_px=8)
