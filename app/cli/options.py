@@ -159,7 +159,8 @@ class VolumeStudy:
     from the volume (a best case: the images come from the same volume)."""
 
     volume: Path
-    """The CT or 3DRA: DICOM series folder, enhanced multi-frame file, NIfTI, NRRD, MetaImage or the project's .npz (--pacs: a series UID)."""
+    """The CT or 3DRA: DICOM series folder, enhanced multi-frame file, NIfTI, NRRD, MetaImage or the
+    project's .npz (--pacs: a series UID)."""
     pacs: str | None = None
     """DICOMweb base URL of a PACS (credentials: ROADMAP3D_PACS_USERNAME/_PASSWORD or the config file)."""
     study: str | None = None

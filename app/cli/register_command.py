@@ -334,6 +334,10 @@ def say_result(result: Any, planes: int) -> None:
             f"the image shows the patient {result.start_shift_mm:.0f} mm from the machine-based pose: the search "
             f"started there{look}"
         )
+    if getattr(result, "fine_polished", False):
+        _say(
+            "far from the machine-based pose, the estimate was polished on the full images and the finest volume level"
+        )
     if result.walk_hops:
         _say(
             f"the search walked {result.walk_hops} time{'s' if result.walk_hops > 1 else ''} beyond its box around the "

@@ -1,13 +1,13 @@
 """A last polish at full resolution for two views' estimate found away from the machine-based pose.
 
-The polish that ends every search compares 128-pixel images with the volume's 1.4 mm level. Near
-the machine-based pose its optimum lies within a few tenths of a millimetre of the truth; when the
-patient moved further (the search started from the image shift, walked, or searched again) that
-optimum drifts by a millimetre and more at the iso-center: on the capture study's 50 mm moments a
-search started at the true pose ends 1.1-1.35 mm off, and a polish on the full images and the
-volume's own grid ends 0.6 mm off. This stage runs that polish, on a level-0 preparation made
-for it, only after such a search: the registrations that start and stay in the box around the
-machine-based pose are untouched and cost nothing more. Decision record:
+The polish that ends every search compares 128-pixel images with the volume's level 1 (2.8 mm
+voxels on a 128^3 3DRA of 1.4 mm). Near the machine-based pose its optimum lies within a few
+tenths of a millimetre of the truth; when the patient moved further (the search started from the
+image shift or walked) that optimum can drift by a millimetre and more at the iso-center: on the
+capture study's 50 mm moments a search started at the true pose ends 1.1-1.35 mm off, and a
+polish on the full images and the volume's own grid ends 0.6 mm off. This stage runs that
+polish, on a level-0 preparation made for it, only after such a search: the registrations that
+start and stay in the box around the machine-based pose are untouched and cost nothing more. Decision record:
 ``docs/decisions/2026-12-04-fine-polish.md``.
 """
 
@@ -96,6 +96,7 @@ def fine_polish(
         seconds=time.perf_counter() - start_s,
         offsets=offsets,
         stages=result.stages + (cost,),
+        fine_polished=True,
     )
     if inputs.truth is not None:
         out.residual = residuals(polished, inputs.truth, result.geometry, vessel_points_mm, optimizes_tz=True)

@@ -123,6 +123,9 @@ class RegistrationResult:
     #: Whether the estimate lies beyond the search box around the machine-based pose (its
     #: offsets from that pose exceed ``bound_mm`` / ``bound_deg``).
     beyond_box: bool = False
+    #: Whether two views' estimate from a start away from the machine-based pose was polished on
+    #: the full images and the volume's level 0 (:mod:`registration.core.register.fine_polish`).
+    fine_polished: bool = False
     #: Each stage that ran, in order, with its cost (a walk's restarts follow the first search's).
     stages: tuple[StageCost, ...] = ()
 
@@ -167,6 +170,8 @@ class RegistrationResult:
             out["recheck_shift_mm"] = self.recheck_shift_mm
         if self.beyond_box:
             out["beyond_box"] = True
+        if self.fine_polished:
+            out["fine_polished"] = True
         if self.stages:
             out["stages"] = [c.to_dict() for c in self.stages]
         return out

@@ -44,6 +44,7 @@ def test_an_estimate_from_far_away_is_polished_onto_the_truth(pair) -> None:
     # iso-center): a polish from 1.2 mm ends within a few tenths of the truth
     assert before.translation_mm > 1.0 and polished.residual.translation_mm < 0.4, polished.residual
     assert polished.residual.rotation_deg < before.rotation_deg
+    assert polished.fine_polished and polished.to_dict()["fine_polished"] is True
     assert polished.stages[-1].stage.startswith("fine polish at 256 px, volume level 0")
     assert polished.drr_count == far.drr_count + polished.stages[-1].drrs > far.drr_count
     # the offsets stay relative to the search's own start: they move by the polish's correction
