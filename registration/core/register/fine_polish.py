@@ -41,7 +41,7 @@ def started_away(result: RegistrationResult) -> bool:
 def fine_polish_stage(options: RegistrationOptions) -> Polish:
     f = options.start
     budget = PolishBudget(f.fine_polish_evaluations, f.fine_polish_reach_mm, f.fine_polish_reach_deg,
-                          f.fine_polish_xtol, options.polish.step_mm / 2, options.polish.step_deg / 2)  # fmt: skip
+                          f.fine_polish_xtol, options.polish.step_mm, options.polish.step_deg, "cobyqa")  # fmt: skip
     return Polish("fine polish", f.fine_polish_px, 0, options.margin_mm(len(options.levels)), budget)
 
 

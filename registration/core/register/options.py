@@ -221,14 +221,15 @@ class StartOptions:
     recheck_mm: float | None = 5.0
     #: Two views' estimate whose search started away from the machine-based pose (image shift or
     #: walk) is polished once more on the views' full images and the volume's level 0
-    #: (:mod:`registration.core.register.fine_polish`): evaluations (default 100, >= 0; 0: never).
-    fine_polish_evaluations: int = 100
+    #: (:mod:`registration.core.register.fine_polish`, COBYQA): evaluations (default 60, >= 0;
+    #: 0: never).
+    fine_polish_evaluations: int = 60
     #: Its image size, pixels across (default 256, >= 16).
     fine_polish_px: int = 256
     #: Its reach either side of the estimate, mm and degrees (default 3.0 and 2.0, > 0).
     fine_polish_reach_mm: float = 3.0
     fine_polish_reach_deg: float = 2.0
-    #: Powell's tolerance of that polish (default 0.05, > 0).
+    #: Its final trust-region radius, in first steps (0.5 mm, 0.3 deg) (default 0.05, > 0).
     fine_polish_xtol: float = 0.05
 
     def __post_init__(self) -> None:
@@ -258,7 +259,7 @@ class StartOptions:
             lines.append(
                 f"two views' estimate from a start away from the machine-based pose: a fine polish at "
                 f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "
-                f"+-{self.fine_polish_reach_mm:g} mm / {self.fine_polish_reach_deg:g} deg"
+                f"+-{self.fine_polish_reach_mm:g} mm / {self.fine_polish_reach_deg:g} deg (COBYQA)"
             )
         return "\n".join(lines)
 

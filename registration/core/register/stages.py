@@ -22,7 +22,8 @@ Array = NDArray[np.float64]
 @dataclass(frozen=True)
 class PolishBudget:
     """One polish's budget: evaluations, reach either side of its start (mm, deg; None: the
-    search range), Powell's tolerance and first steps (mm, deg)."""
+    search range), the tolerance and first steps (mm, deg), and the method (``"powell"`` or
+    ``"cobyqa"``, :func:`registration.core.anneal.polish`)."""
 
     evaluations: int
     reach_mm: float | None
@@ -30,10 +31,12 @@ class PolishBudget:
     xtol: float
     step_mm: float
     step_deg: float
+    method: str = "powell"
 
     def describe(self) -> str:
         reach = "the search range" if self.reach_mm is None else f"+-{self.reach_mm:g} mm / {self.reach_deg:g} deg"
-        return f"{self.evaluations} evaluations over {reach}"
+        how = " (COBYQA)" if self.method == "cobyqa" else ""
+        return f"{self.evaluations} evaluations over {reach}{how}"
 
 
 def anneal_level(
@@ -86,7 +89,7 @@ def run_polish(
         bounds = np.stack([np.maximum(bounds[:, 0], x0 - half), np.minimum(bounds[:, 1], x0 + half)], axis=1)
     cost = cost_function(problem, space, monitor, None)
     return polish(cost, x_start, bounds, step=step, max_evaluations=budget.evaluations, callback=on_evaluation,
-                  xtol=budget.xtol)  # fmt: skip
+                  xtol=budget.xtol, method=budget.method)  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -137,6 +137,24 @@ def test_polish_keeps_its_budget_and_stops_without_exceptions():
     assert stopped.fun == min(float(np.sum((c - 0.3) ** 2)) for c in calls)
 
 
+def test_cobyqa_polish_stays_in_its_bounds_and_budget_and_finds_a_bowls_minimum():
+    calls = []
+
+    def bowl(x):
+        calls.append(x.copy())
+        return float(np.sum((x - np.array([0.3, -0.4, 0.2, 0.1, -0.2])) ** 2 * np.array([1, 1, 4, 4, 4])))
+
+    bounds = np.array([[-1.0, 1.0]] * 5)
+    bounds[1] = [-0.3, 1.0]  # the minimum's -0.4 lies beyond: the polish ends on the bound
+    result = polish(bowl, np.zeros(5), bounds, step=[0.5] * 5, max_evaluations=40, xtol=0.01, method="cobyqa")
+    assert len(calls) <= 41 and result.nfev == len(calls)  # x0, then at most the budget
+    assert all(np.all(c >= bounds[:, 0]) and np.all(c <= bounds[:, 1]) for c in calls)
+    # a quadratic in five parameters: COBYQA's models are exact after ~21 points
+    np.testing.assert_allclose(result.x, [0.3, -0.3, 0.2, 0.1, -0.2], atol=0.01)
+    with pytest.raises(ValueError, match="method must be"):
+        polish(bowl, np.zeros(5), bounds, step=[0.5] * 5, max_evaluations=5, method="bfgs")
+
+
 def test_pair_polish_searches_near_its_start_and_a_range_wide_polish_does_not():
     from registration.core import register as reg
     from registration.core.register.build import polish_stages
