@@ -12,6 +12,7 @@ Methods: ``powell`` (the project's polish: bounded line searches, ``registration
 polish's first steps), ``nelder-mead`` (scipy, the same scaling).
 
 python scripts/local_search_study.py --seed 0 --starts 4 --out local-search.jsonl
+python scripts/local_search_study.py --summarize local-search.jsonl --figure local-search.png
 """
 
 from __future__ import annotations
@@ -109,13 +110,72 @@ def run_method(method: str, cost, x0: np.ndarray, bounds: np.ndarray, step: np.n
     return x, f, seen["n"]
 
 
+def summarize(records: list[dict], figure: Path | None) -> str:
+    """A markdown table (median over cases and starts) and, given ``figure``, its plot: the
+    relative gap to the best measure any run found from that start, against the budget."""
+    best: dict[tuple, float] = {}
+    for r in records:
+        key = (r["case"], r["start"])
+        best[key] = min(best.get(key, np.inf), r["cost"])
+    kinds = {"phantom": "phantom, one view", "single": "real CT, one view", "biplane": "real CT, two views"}
+
+    def kind(case: str) -> str:
+        return "phantom" if case.startswith("phantom") else ("biplane" if case.endswith("biplane") else "single")
+
+    rows, curves = [], {}
+    for k in kinds:
+        for method in ("powell", "cobyqa", "nelder-mead"):
+            for budget in BUDGETS:
+                g = [r for r in records if kind(r["case"]) == k and r["method"] == method and r["budget"] == budget]
+                if not g:
+                    continue
+                gap = [(r["cost"] - best[(r["case"], r["start"])]) / abs(best[(r["case"], r["start"])]) for r in g]
+                row = (kinds[k], method, budget, len(g), float(np.median([r["evaluations"] for r in g])),
+                       float(np.median(gap)), float(np.median([r["criterion_mm"] for r in g])),
+                       float(np.median([r["rotation_deg"] for r in g])))  # fmt: skip
+                rows.append(row)
+                curves.setdefault((k, method), []).append((budget, row[5]))
+    lines = ["| images | method | budget | runs | evaluations | measure's gap to the best | mm (criterion) | deg |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
+    lines += [f"| {a} | {m} | {b} | {n} | {e:.0f} | {g:.4f} | {mm:.3f} | {d:.2f} |" for a, m, b, n, e, g, mm, d in rows]
+    if figure is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, len(kinds), figsize=(13, 3.8), sharey=True)
+        for ax, k in zip(axes, kinds, strict=True):
+            for method, color in (("powell", "#4c72b0"), ("cobyqa", "#dd8452"), ("nelder-mead", "#999999")):
+                pts = curves.get((k, method))
+                if pts:
+                    ax.plot([p[0] for p in pts], [max(p[1], 1e-5) for p in pts], "o-", color=color, label=method)
+            ax.set_yscale("log")
+            ax.set_title(kinds[k])
+            ax.set_xlabel("evaluations allowed")
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel("median relative gap of the measure\nto the best found from that start")
+        axes[0].legend()
+        fig.suptitle("The polish's local search: how close each method gets within a budget")
+        fig.tight_layout()
+        fig.savefig(figure, dpi=110)
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--summarize", type=Path, help="print the table of a records file (and --figure) and stop")
+    ap.add_argument("--figure", type=Path)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--starts", type=int, default=4, help="random starts per case")
     ap.add_argument("--ct-cases", type=int, default=3)
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    if args.summarize is not None:
+        print(summarize([json.loads(line) for line in args.summarize.open()], args.figure))
+        return 0
+    if args.out is None:
+        ap.error("--out is required (or --summarize)")
     options = RegistrationOptions()
     rng = np.random.default_rng(args.seed)
     with args.out.open("w") as fh:
