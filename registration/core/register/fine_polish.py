@@ -6,8 +6,9 @@ tenths of a millimetre of the truth; when the patient moved further (the search 
 image shift or walked) that optimum can drift by a millimetre and more at the iso-center: on the
 capture study's 50 mm moments a search started at the true pose ends 1.1-1.35 mm off, and a
 polish on the full images and the volume's own grid ends 0.6 mm off. This stage runs that
-polish, on a level-0 preparation made for it, only after such a search: the registrations that
-start and stay in the box around the machine-based pose are untouched and cost nothing more. Decision record:
+polish (COBYQA, the local search that needs the fewest of these dear level-0 DRRs), on a level-0
+preparation made for it, only after such a search: registrations that start and stay in the box
+around the machine-based pose are untouched and cost nothing more. Decision record:
 ``docs/decisions/2026-12-04-fine-polish.md``.
 """
 
