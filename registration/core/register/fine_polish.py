@@ -27,8 +27,8 @@ from registration.core.prepare import Reach, prepare_volume
 from registration.core.register.inputs import Inputs
 from registration.core.register.monitor import Monitor
 from registration.core.register.options import RegistrationOptions
-from registration.core.register.plan import Run, State
-from registration.core.register.result import Progress, RegistrationResult, StageCost
+from registration.core.register.plan import Plan, Run, State
+from registration.core.register.result import Progress, RegistrationResult
 from registration.core.register.stages import Polish, PolishBudget
 from registration.core.search import SearchSpace
 
@@ -76,11 +76,8 @@ def fine_polish(
     monitor = Monitor(space, callback, start_s)
     run = Run(replace(inputs, initial_motion=estimate, renderer=prepared.renderer), options, space,
               np.random.default_rng(0), monitor)  # fmt: skip
-    stage = fine_polish_stage(options)
-    drrs, rays, began = monitor.drr_count, monitor.ray_count, time.perf_counter()
-    state = stage.run(State(run, space.start(), space, number=len(result.stages)))
-    cost = StageCost(stage.describe(), monitor.drr_count - drrs, monitor.ray_count - rays, time.perf_counter() - began)
-    if monitor.stopped:
+    state = Plan((fine_polish_stage(options),)).run(State(run, space.start(), space))
+    if monitor.stopped or not monitor.stages:
         return result
     polished = state.motion
     # the estimate's offsets stay relative to its own search's start
@@ -96,7 +93,7 @@ def fine_polish(
         drr_count=result.drr_count + monitor.drr_count,
         seconds=time.perf_counter() - start_s,
         offsets=offsets,
-        stages=result.stages + (cost,),
+        stages=result.stages + tuple(monitor.stages),
         fine_polished=True,
     )
     if inputs.truth is not None:
