@@ -13,12 +13,26 @@ from __future__ import annotations
 import importlib
 import os
 import sys
-from typing import Annotated, NoReturn
+from typing import Annotated
 
 import tyro
 
 from app.cli._perf import exit_code, exit_without_teardown, read_ahead_for_register, small_pages
-from app.cli.configs import App, Audit, Bench, Demo, Info, Listen, Mesh, Password, Phantom, PhantomRun, Register, Track
+from app.cli.configs import (
+    App,
+    Audit,
+    Bench,
+    Demo,
+    Info,
+    Listen,
+    Mesh,
+    Password,
+    Phantom,
+    PhantomRun,
+    Register,
+    Serve,
+    Track,
+)
 from app.cli.errors import UserError
 from app.cli.options import (
     BiplaneStudy,
@@ -65,6 +79,7 @@ COMMANDS: dict[str, object] = {
     "password": Password,
     "track": Track,
     "phantom-run": PhantomRun,
+    "serve": Serve,
 }
 
 #: Each command's runner, ``(module, function)`` taking its options: imported when it runs, so that
@@ -74,6 +89,7 @@ RUNNERS: dict[type, tuple[str, str]] = {
     App: ("app.cli.web_commands", "run_app"),
     Bench: ("app.cli.study_commands", "run_bench"),
     Register: ("app.cli.register_command", "run_register"),
+    Serve: ("app.cli.worker", "run_serve"),
     Info: ("app.cli.commands", "run_info"),
     Phantom: ("app.cli.phantom_commands", "run_phantom_export"),
     Mesh: ("app.cli.commands", "run_mesh"),
@@ -94,49 +110,55 @@ RUNNERS: dict[type, tuple[str, str]] = {
 }
 
 
-def run(options: object) -> int:
+def run(options: object, *, in_worker: bool = False) -> int:
     """Run the command whose options these are."""
     module, function = RUNNERS[type(options)]
-    if isinstance(options, Register):
+    if isinstance(options, Register) and not in_worker:
         small_pages()
         if options.pacs is None and options.image:
             read_ahead_for_register(options.volume, options.image)  # read in while the engine is imported
     return int(getattr(importlib.import_module(module), function)(options) or 0)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of the ``roadmap3d`` console script."""
+def execute(argv: list[str], *, in_worker: bool = False) -> int:
+    """Parse ``argv`` (the arguments after ``roadmap3d``), run the command and return its exit code;
+    errors meant for users are printed as ``error: ...`` and give 2 (``ROADMAP3D_DEBUG=1`` raises
+    them instead). ``in_worker``: run inside ``roadmap3d serve`` (no per-process start-up tweaks)."""
     debug = os.environ.get("ROADMAP3D_DEBUG") == "1"
-    if argv is None:  # the console script: the process ends after its exit handlers, without teardown
-        exit_without_teardown()
-
-    def finish(code: int) -> NoReturn:
-        sys.exit(exit_code(code) if argv is None else code)
-
     try:
         options = tyro.extras.subcommand_cli_from_dict(
             COMMANDS, args=argv, config=(tyro.conf.OmitArgPrefixes,), prog="roadmap3d"
         )
-        code = run(options)
+        return run(options, in_worker=in_worker)
+    except SystemExit as exc:  # tyro's --help and usage errors
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        sys.exit(130)
+        return 130
     except (UserError, ValueError, OSError) as exc:
         if debug:
             raise
         print(f"error: {exc}", file=sys.stderr)
-        finish(2)
+        return 2
     except (ArithmeticError, RecursionError, MemoryError, LookupError, TypeError) as exc:
         # Reachable only from a value no check caught (a file or an option): still a message, exit 2.
         if debug:
             raise
         what = str(exc).strip()[:200] or "no details"
-        given = " ".join(sys.argv[1:] if argv is None else argv)
+        given = " ".join(argv)
         given = given if len(given) <= 300 else given[:297] + "..."
         print(f"error: {type(exc).__name__} ({what}) on the input of: roadmap3d {given}; rerun with "
               "ROADMAP3D_DEBUG=1 to see where", file=sys.stderr)  # fmt: skip
-        finish(2)
-    finish(int(code or 0))
+        return 2
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``roadmap3d`` console script (:func:`app.launch.main` first offers a
+    ``register`` to a running worker)."""
+    if argv is None:  # the console script: the process ends after its exit handlers, without teardown
+        exit_without_teardown()
+    code = execute(sys.argv[1:] if argv is None else list(argv))
+    sys.exit(exit_code(code) if argv is None else code)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from app.cli.configs import Info, Mesh
+from app.launch import process_age_s
 from registration.core.geometry import TABLE_I, CArm, check_rigid, matrix_to_offsets
 from registration.io import dicom
 from registration.io.isocenter import resolve_isocenter
@@ -45,21 +46,23 @@ def _say(text: str = "", *, stream: TextIO | None = None) -> None:
     print(text, file=stream or sys.stdout)
 
 
-def _process_age_s() -> float | None:
-    """Seconds since this process started (Linux: /proc), None where that is not known."""
-    try:
-        ticks = os.sysconf("SC_CLK_TCK")
-        start = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19]) / ticks
-        return float(Path("/proc/uptime").read_text().split()[0]) - start
-    except (OSError, ValueError, IndexError):
-        return None
+#: The client's start-up (seconds) while a worker runs its command (:mod:`app.cli.worker`).
+_client_startup: list[float | None] = []
+
+
+def client_startup(seconds: float | None) -> None:
+    """While a worker runs a client's command: the client's start-up, which the command's
+    stopwatch reports instead of the worker's age (None: back to this process's own)."""
+    _client_startup[:] = [] if seconds is None else [seconds]
 
 
 class _Stopwatch:
     """Where a command's time went: the start-up before it (interpreter, imports) and its laps."""
 
     def __init__(self) -> None:
-        self.startup_s = _process_age_s()
+        self.startup_s = _client_startup[0] if _client_startup else process_age_s()
+        self.startup_name = "start-up (client; the worker's engine was warm)" if _client_startup else (
+            "start-up (interpreter, imports)")
         self.laps: list[tuple[str, float]] = []
         self._last = time.perf_counter()
 
@@ -69,7 +72,7 @@ class _Stopwatch:
         self._last = now
 
     def report(self) -> str:
-        parts = ([] if self.startup_s is None else [("start-up (interpreter, imports)", self.startup_s)]) + self.laps
+        parts = ([] if self.startup_s is None else [(self.startup_name, self.startup_s)]) + self.laps
         total = sum(s for _, s in parts)
         return "time: " + ", ".join(f"{name} {s:.2f} s" for name, s in parts) + f"; total {total:.2f} s"
 

@@ -197,6 +197,20 @@ class Listen:
 
 
 @dataclass(frozen=True)
+class Serve:
+    """Keep the engine warm for this user's `roadmap3d register`: kernels loaded, volumes read and prepared kept,
+    answering on a private local socket until Ctrl-C."""
+
+    socket: Path | None = None
+    """The socket to listen on (default: $XDG_RUNTIME_DIR/roadmap3d/worker.sock, else /tmp/roadmap3d-UID/worker.sock;
+    clients find another one by ROADMAP3D_WORKER_SOCKET)."""
+    keep: int = 2
+    """Volumes kept in memory with their preparations (the least recently used is let go first)."""
+    verbose: bool = False
+    """Print a line per command served."""
+
+
+@dataclass(frozen=True)
 class Audit:
     """Print the audit trail: registrations, corrections, Stop, uploads, PACS loads and stores, DICOM associations
     and sign-ins, one line each (time, client, action, result, UIDs)."""

@@ -108,6 +108,15 @@ class Inputs:
     vessel_points: np.ndarray | None = None
 
 
+#: How ``register`` reads a volume (a worker reads through its memory of recent volumes).
+_volume_reader: list[Any] = [dicom.read_volume]
+
+
+def use_volume_reader(read: Any) -> None:
+    """Have ``register`` read volumes with ``read`` (a path -> a volume, as :func:`dicom.read_volume`)."""
+    _volume_reader[:] = [read]
+
+
 def _region_of_interest(vol: Any, roi: str, roi_mask: Path | None) -> Any:
     """The region the registration follows (None: the whole volume)."""
     if roi_mask is not None:
@@ -155,7 +164,7 @@ def read_inputs(options: Register, clock: _Stopwatch) -> Inputs:
     """Read the volume, the region it follows, the views, the start and the truth."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        vol = dicom.read_volume(options.volume)
+        vol = _volume_reader[0](options.volume)
         clock.lap("reading the volume")
         region = _region_of_interest(vol, options.roi, options.roi_mask)
         iso, iso_from = resolve_isocenter(options.isocenter, vol)

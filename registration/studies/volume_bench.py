@@ -27,6 +27,9 @@ from registration.studies.volume import (
     volume_cases,
 )
 
+#: Timed runs of ``register`` through a warm worker (after one that reads the CT into it).
+WORKER_ROUNDS = 3
+
 
 def bench_real_volume(
     *,
@@ -130,9 +133,56 @@ def _command_line_register(
             timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
             runs.append({"wall_seconds": wall, "exit_code": done.returncode, "timing": timing,
                          "success": "-> success" in done.stdout})  # fmt: skip
+        worker = _on_worker(argv[3:], env, Path(tmp) / "worker", log=log)
+        if "wall_seconds_median" in worker and runs[1]["wall_seconds"] > 0:
+            worker["ratio_to_own_process_warm"] = worker["wall_seconds_median"] / runs[1]["wall_seconds"]
     # the cold run's keys as before, the warm runs beside them
     return runs[0] | {
         "warm": runs[1],
         "warm_confidence": runs[2],
+        "worker": worker,
         "command": "roadmap3d register --volume CT --image XA --truth JSON --isocenter ISO --verbose",
+    }
+
+
+def _on_worker(args: list[str], env: dict[str, str], folder: Path, *, log: Callable[[str], None]) -> dict:
+    """The same command through the console script to a warm worker (``roadmap3d serve``): the
+    first run reads the CT into the worker's memory, the next ``WORKER_ROUNDS`` are timed (wall
+    seconds of the client process, start-up included; min and median)."""
+    import subprocess
+    import sys
+
+    script = [sys.executable, "-c", "import sys; sys.argv[0] = 'roadmap3d'; from app.launch import main; main()"]
+    env = env | {"ROADMAP3D_WORKER_SOCKET": str(folder / "worker.sock")}
+    env.pop("ROADMAP3D_WORKER", None)
+    log("roadmap3d register on the real CT through a warm worker (roadmap3d serve) ...")
+    server = subprocess.Popen([*script, "serve", "--socket", env["ROADMAP3D_WORKER_SOCKET"]], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    try:
+        assert server.stdout is not None
+        ready = ""
+        for line in server.stdout:
+            if "ready in" in line or "error" in line:
+                ready = line
+                break
+        if "ready in" not in ready:
+            return {"skipped": f"the worker did not start: {ready.strip() or 'no output'}"}
+        runs = []
+        for _ in range(1 + WORKER_ROUNDS):
+            start = time.perf_counter()
+            done = subprocess.run(script + args, capture_output=True, text=True, timeout=600, check=False, env=env)
+            wall = time.perf_counter() - start
+            timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
+            runs.append({"wall_seconds": wall, "exit_code": done.returncode, "timing": timing,
+                         "success": "-> success" in done.stdout})  # fmt: skip
+    finally:
+        server.terminate()
+        server.wait(timeout=60)
+    timed = [r["wall_seconds"] for r in runs[1:]]
+    return {
+        "first": runs[0],
+        "wall_seconds_min": float(np.min(timed)),
+        "wall_seconds_median": float(np.median(timed)),
+        "rounds": WORKER_ROUNDS,
+        "runs": runs[1:],
     }
