@@ -90,7 +90,15 @@ def probe_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRenderer:
     1 and 2 are that pyramid's levels (block averages, cropped); level 0 is the volume's own grid
     over the prepared box, the body only (as in the prepared levels): needed by one plane's depth
     scan, and by the evidence of a coarse volume (128^3: level 0 is the one ~128 voxels across).
-    A CT's cropped 2 mm level is ~128 voxels or more across already."""
+    A CT's cropped 2 mm level is ~128 voxels or more across already. Built once per preparation
+    and number of planes (kept in ``prepared.derived``: a cached preparation brings it along)."""
+    key = ("probe renderer", planes)
+    if key not in prepared.derived:
+        prepared.derived[key] = _probe_renderer(prepared, planes)
+    return prepared.derived[key]
+
+
+def _probe_renderer(prepared: PreparedVolume, planes: int) -> DRRRenderer:
     renderer = prepared.renderer
     if renderer.has_level(0):
         return renderer

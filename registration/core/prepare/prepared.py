@@ -67,6 +67,8 @@ class PreparedVolume:
     base_source: str = "built"
     #: What the levels hold (:class:`Crop`; also :func:`crop_of` the renderer).
     crop: Crop | None = field(default=None, repr=False)
+    #: Renderers built on these levels and kept with them (the confidence's probe levels, by planes).
+    derived: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def voxels_per_level(self) -> list[int | None]:
