@@ -39,6 +39,7 @@ from app.cli.options import (
     CalibrationStudy,
     CaptureStudy,
     ClinicalStudy,
+    GeometryStudy,
     PhantomStudy,
     RotationalRunStudy,
     Table1,
@@ -56,6 +57,7 @@ Study = (
     | Annotated[BiplaneStudy, tyro.conf.subcommand("biplane")]
     | Annotated[VolumeStudy, tyro.conf.subcommand("volume")]
     | Annotated[CaptureStudy, tyro.conf.subcommand("capture")]
+    | Annotated[GeometryStudy, tyro.conf.subcommand("geometry")]
 )
 
 
@@ -107,6 +109,7 @@ RUNNERS: dict[type, tuple[str, str]] = {
     BiplaneStudy: ("app.cli.study_commands", "run_biplane_study"),
     VolumeStudy: ("app.cli.study_commands", "run_volume_validation"),
     CaptureStudy: ("app.cli.capture_commands", "run_capture_study"),
+    GeometryStudy: ("app.cli.study_commands", "run_geometry_study"),
 }
 
 

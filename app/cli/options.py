@@ -74,6 +74,29 @@ class BiplaneStudy:
 
 
 @dataclass
+class GeometryStudy:
+    """Registration on files whose C-arm geometry is wrong, with and without estimating it (biplane, phantom)."""
+
+    out: Path = Path("validation-geometry")
+    """Output folder (results.jsonl, report.md, summary.json); a rerun resumes."""
+    quick: bool = False
+    """The quick biplane study's 12 moments, smaller images and volume: minutes."""
+    json: bool = False
+    """Print the summary as one JSON object."""
+    seed: int = 0
+    jobs: int | None = None
+    """Parallel processes (default: all cores)."""
+    scheduler: str | None = None
+    """Run on a Dask cluster, e.g. tcp://HOST:PORT."""
+    registrations: int | None = None
+    """Moments (default: 50, quick 12)."""
+    sid_error: float = 0.05
+    """The images' source-image distance is 1 + this times the files' (0.05: the files say 5 % short)."""
+    shift_px: float = 0.0
+    """The files' principal point moved by this many pixels, in a random direction per plane."""
+
+
+@dataclass
 class CaptureStudy:
     """Capture range: success against the initial offset (translation 0-80 mm, rotation 0-40 deg)."""
 

@@ -255,10 +255,10 @@ def _skull_spine(inputs: Inputs, views: list, result: Any, *, seed: int, cache: 
 def _estimate_geometry(result: Any, views: list, renderer: Any, inputs: Inputs) -> tuple[list, Any]:
     """Each plane's source-image distance estimated with the pose (the result updated in place,
     its residual too); the views with the estimated geometry, and the estimate."""
-    from registration.core.intrinsics import refine_geometry
+    from registration.core.intrinsics import estimate_geometry
     from registration.core.metrics import residuals
 
-    estimated = refine_geometry(renderer, views, result.patient_motion, estimate=("sid",))
+    estimated = estimate_geometry(inputs.volume, renderer, views, result.patient_motion, estimate=("sid",))
     result.patient_motion = estimated.patient_motion
     result.similarity = estimated.similarity
     if inputs.truth is not None:

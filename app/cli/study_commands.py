@@ -22,6 +22,7 @@ from app.cli.options import (
     BiplaneStudy,
     CalibrationStudy,
     ClinicalStudy,
+    GeometryStudy,
     PhantomStudy,
     Table1,
     TrackingStudy,
@@ -76,7 +77,9 @@ def _stderr(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def _run_tasks(tasks: list, args: PhantomStudy | ClinicalStudy | BiplaneStudy) -> tuple[list[dict], float]:
+def _run_tasks(
+    tasks: list, args: PhantomStudy | ClinicalStudy | BiplaneStudy | GeometryStudy
+) -> tuple[list[dict], float]:
     """The study's tasks run (resumably) into ``args.out``, progress on stderr unless ``--json``."""
     log = None if args.json else _stderr
     return execution.run_study(tasks, args.out, n_jobs=_check_jobs(args.jobs), scheduler=args.scheduler, log=log)
@@ -376,4 +379,32 @@ def run_volume_validation(args: VolumeStudy) -> int:
     print(report_markdown(records, summary))
     if args.out is not None:
         print(f"written: {args.out / 'results.jsonl'}, {args.out / 'summary.json'}, {args.out / 'report.md'}")
+    return 0
+
+
+def run_geometry_study(args: GeometryStudy) -> int:
+    """``roadmap3d validate geometry``: the files' geometry wrong, estimated or not, written to ``args.out``."""
+    from registration.studies import biplane, geometry
+
+    moments = biplane.BiplaneConfig.quick_config(args.seed) if args.quick else biplane.BiplaneConfig(seed=args.seed)
+    moments = replace(moments, patients=moments.patients[:1])
+    if registrations_flag(args.registrations) is not None:
+        moments = replace(moments, registrations_per_patient=args.registrations)
+    config = geometry.GeometryConfig(moments, sid_error=args.sid_error, shift_px=args.shift_px)
+    records, wall = _run_tasks(geometry.geometry_tasks(config), args)
+    summary = geometry.geometry_summary(records, config=asdict(config), wall_seconds=wall)
+    geometry.write_geometry_report(records, summary, Path(args.out))
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    pct = lambda x: "-" if x is None else f"{100 * x:.0f} %"  # noqa: E731
+    for name, label in (("images_geometry", "the images' own geometry"), ("files_geometry", "the files' geometry"),
+                        ("estimated", "the files', distances estimated")):  # fmt: skip
+        s = summary[name]
+        line = f"{label:<32} success {pct(s['success_rate'])}, median {s['translation_residual_mm_median']:.2f} mm"
+        if name == "estimated":
+            line += (f"; distances off by {s['sid_error_percent_median']:.2f} % (median), at most "
+                     f"{s['sid_error_percent_max']:.2f} %")  # fmt: skip
+        print(line)
+    print(f"\nwritten: {Path(args.out) / 'results.jsonl'} and {Path(args.out) / 'report.md'}")
     return 0
