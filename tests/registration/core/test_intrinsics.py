@@ -69,22 +69,3 @@ def test_a_five_percent_sid_error_is_estimated_with_two_planes() -> None:
         assert view.sid_change == pytest.approx(0.05, abs=0.01)
     assert found.similarity > found.similarity_before and found.to_dict()["estimated"] == ["sid"]
 
-
-def test_the_distances_are_found_within_half_a_percent_on_the_volumes_own_grid() -> None:
-    """The geometry study's first quick moment, imaged with each plane's exact geometry, the files'
-    distances 5 % short: registered on the files it misses; the first pass (128 px) finds the
-    pose; the second, on the volume's own grid, also the distances within 0.5 % (the target)."""
-    from registration.studies.biplane import BiplaneConfig
-    from registration.studies.geometry import GeometryConfig, geometry_tasks
-
-    config = GeometryConfig(replace(BiplaneConfig.quick_config(seed=0), registrations_per_patient=1))
-    (task,) = geometry_tasks(config)
-    record = task.case.run()
-    assert record["images_geometry_success"]  # the images' own geometry: the best case
-    # 2.55 mm off at this revision: the files' distances show in the pose
-    assert not record["files_geometry_success"] and record["files_geometry_translation_residual_mm"] > 1.5
-    assert record["first_pass_success"] and record["success"]
-    # measured: first pass +0.51 % / +0.64 %, both passes +0.13 % / +0.13 %
-    assert max(abs(e) for e in record["sid_error_percent"]) <= 0.5
-    assert max(abs(e) for e in record["sid_error_percent"]) < max(abs(e) for e in record["first_pass_sid_error_percent"])
-    assert record["translation_residual_mm"] < record["first_pass_translation_residual_mm"]
