@@ -68,4 +68,3 @@ def test_a_five_percent_sid_error_is_estimated_with_two_planes() -> None:
     for view in found.intrinsics:
         assert view.sid_change == pytest.approx(0.05, abs=0.01)
     assert found.similarity > found.similarity_before and found.to_dict()["estimated"] == ["sid"]
-
