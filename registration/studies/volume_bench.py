@@ -102,7 +102,6 @@ def _command_line_register(
 ) -> dict:
     """``roadmap3d register --verbose`` in a new process: the series against an XA of case 0
     formed from it (and its truth), wall seconds and the command's own breakdown."""
-    import subprocess
     import sys
     import tempfile
 
@@ -127,12 +126,7 @@ def _command_line_register(
         # cold, warm, then warm with --confidence (the estimate assessed on the prepared levels)
         for what, extra in (("cold", []), ("warm", []), ("warm, --confidence", ["--confidence"])):
             log(f"roadmap3d register on the real CT in a new process ({what} cache) ...")
-            start = time.perf_counter()
-            done = subprocess.run(argv + extra, capture_output=True, text=True, timeout=600, check=False, env=env)
-            wall = time.perf_counter() - start
-            timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
-            runs.append({"wall_seconds": wall, "exit_code": done.returncode, "timing": timing,
-                         "success": "-> success" in done.stdout})  # fmt: skip
+            runs.append(_timed(argv + extra, env))
         worker = _on_worker(argv[3:], env, Path(tmp) / "worker", log=log)
         if "wall_seconds_median" in worker and runs[1]["wall_seconds"] > 0:
             worker["ratio_to_own_process_warm"] = worker["wall_seconds_median"] / runs[1]["wall_seconds"]
@@ -143,6 +137,18 @@ def _command_line_register(
         "worker": worker,
         "command": "roadmap3d register --volume CT --image XA --truth JSON --isocenter ISO --verbose",
     }
+
+
+def _timed(argv: list[str], env: dict[str, str]) -> dict:
+    """One ``register --verbose`` in a new process: its wall seconds, exit code, time line, success."""
+    import subprocess
+
+    start = time.perf_counter()
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=600, check=False, env=env)
+    wall = time.perf_counter() - start
+    timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
+    success = "-> success" in done.stdout
+    return {"wall_seconds": wall, "exit_code": done.returncode, "timing": timing, "success": success}
 
 
 def _on_worker(args: list[str], env: dict[str, str], folder: Path, *, log: Callable[[str], None]) -> dict:
@@ -169,12 +175,7 @@ def _on_worker(args: list[str], env: dict[str, str], folder: Path, *, log: Calla
             return {"skipped": f"the worker did not start: {ready.strip() or 'no output'}"}
         runs = []
         for _ in range(1 + WORKER_ROUNDS):
-            start = time.perf_counter()
-            done = subprocess.run(script + args, capture_output=True, text=True, timeout=600, check=False, env=env)
-            wall = time.perf_counter() - start
-            timing = next((line for line in done.stderr.splitlines() if line.startswith("time: ")), None)
-            runs.append({"wall_seconds": wall, "exit_code": done.returncode, "timing": timing,
-                         "success": "-> success" in done.stdout})  # fmt: skip
+            runs.append(_timed(script + args, env))
     finally:
         server.terminate()
         server.wait(timeout=60)
