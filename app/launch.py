@@ -84,6 +84,31 @@ def request(argv: list[str]) -> dict:
     }
 
 
+def _not_private(path: Path) -> str:
+    """Why the socket at ``path`` may be someone else's ("" when it and its folder are this
+    user's and the folder is closed to others)."""
+    try:
+        folder, sock = path.parent.stat(), path.stat()
+    except OSError as exc:
+        return exc.strerror or "unreadable"
+    if folder.st_uid != os.getuid() or sock.st_uid != os.getuid():
+        return "it belongs to another user"
+    if folder.st_mode & 0o077:
+        return "its folder is open to other users"
+    return ""
+
+
+def peer_uid(conn: socket.socket) -> int | None:
+    """The user id of the process at the other end (Linux), None where the system does not say."""
+    import struct
+
+    try:
+        creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    except (AttributeError, OSError):
+        return None
+    return struct.unpack("3i", creds)[1]
+
+
 def run_on_worker(argv: list[str], path: Path | None = None) -> int | None:
     """Run ``roadmap3d ARGV`` on the worker: its output printed here as it comes, its exit code
     returned. None when no worker took it (none answers, or it runs other code or settings): the
@@ -91,11 +116,18 @@ def run_on_worker(argv: list[str], path: Path | None = None) -> int | None:
     path = socket_path() if path is None else path
     if not path.exists():
         return None
+    doubt = _not_private(path)
+    if doubt:
+        print(f"note: {path} is not used ({doubt}): running here", file=sys.stderr)
+        return None
     conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     conn.settimeout(CONNECT_TIMEOUT_S)
     began = False
     try:
         conn.connect(str(path))
+        if peer_uid(conn) not in (None, os.getuid()):
+            print(f"note: {path} is served by another user: running here", file=sys.stderr)
+            return None
         conn.settimeout(None)
         conn.sendall(json.dumps(request(argv)).encode() + b"\n")
         for line in conn.makefile("rb"):

@@ -17,7 +17,6 @@ import json
 import os
 import signal
 import socket
-import struct
 import threading
 import time
 from collections import OrderedDict
@@ -27,7 +26,7 @@ from typing import Any
 
 from app.cli.configs import Serve
 from app.cli.errors import UserError
-from app.launch import PROTOCOL, WORKER_COMMANDS, settings, socket_path, source_fingerprint
+from app.launch import PROTOCOL, WORKER_COMMANDS, peer_uid, settings, socket_path, source_fingerprint
 
 #: The longest request line read (bytes): a command line, its folder and settings.
 MAX_REQUEST_BYTES = 1 << 20
@@ -118,15 +117,6 @@ def warm_up() -> None:
     assess(register(volume, view, renderer=prepared.renderer), [view], prepared)
 
 
-def _peer_uid(conn: socket.socket) -> int | None:
-    """The connecting process's user id (Linux), None where the system does not say."""
-    try:
-        creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    except (AttributeError, OSError):
-        return None
-    return struct.unpack("3i", creds)[1]
-
-
 @contextlib.contextmanager
 def _in_folder(folder: str) -> Iterator[None]:
     before = os.getcwd()
@@ -199,7 +189,7 @@ class Worker:
             except OSError:
                 lost.set()
 
-        uid = _peer_uid(conn)
+        uid = peer_uid(conn)
         if uid is not None and uid != os.getuid():
             send({"err": "error: this worker serves its own user only\n"})
             send({"exit": 2})

@@ -134,6 +134,21 @@ def test_no_worker_means_run_here(tmp_path: Path) -> None:
     assert run_on_worker(["register"], left) is None
 
 
+def test_a_socket_others_could_have_made_is_not_used(tmp_path: Path, capsys) -> None:
+    folder = tmp_path / "open"
+    folder.mkdir()
+    folder.chmod(0o755)
+    sock = folder / "worker.sock"
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(str(sock))
+    s.listen(1)
+    try:
+        assert run_on_worker(["register"], sock) is None  # never connected to
+    finally:
+        s.close()
+    assert "its folder is open to other users" in capsys.readouterr().err
+
+
 def test_second_worker_on_one_socket_is_refused(worker) -> None:
     sock, _, _ = worker
     with pytest.raises(UserError, match="already listens"):
