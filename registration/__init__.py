@@ -40,6 +40,7 @@ __all__ = [
     "Preparation",
     "register",
     "assess",
+    "estimate_geometry",
     "track",
     "render_drr",
     "residuals",

@@ -6,6 +6,7 @@ from registration.api import Preparation as Preparation
 from registration.api import Volume as Volume
 from registration.api import XRayImage as XRayImage
 from registration.api import assess as assess
+from registration.api import estimate_geometry as estimate_geometry
 from registration.api import load_example as load_example
 from registration.api import register as register
 from registration.api import render_drr as render_drr

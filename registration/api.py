@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from registration.core import images as _images
 from registration.core import volume as _volume
 from registration.core.geometry import CArm
+from registration.core.intrinsics import GeometryRefinement
 from registration.core.metrics import residuals
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationResult
@@ -43,6 +44,7 @@ __all__ = [
     "Preparation",
     "register",
     "assess",
+    "estimate_geometry",
     "track",
     "render_drr",
     "residuals",
@@ -251,6 +253,30 @@ def assess(
         reason=str(fields.get("withheld_reason") or ""),
         evidence=dict(fields.get("confidence_evidence") or {}),
     )
+
+
+def estimate_geometry(
+    volume: _volume.Volume,
+    images: Sequence[_images.XRayImage],
+    result: RegistrationResult,
+    *,
+    preparation: Preparation | None = None,
+) -> GeometryRefinement:
+    """Each plane's source-image distance estimated together with the pose, for files whose
+    distances are nominal (an uncalibrated C-arm): what ``register --estimate-geometry`` does.
+
+    ``images``: plane A and plane B of one moment (one view cannot tell its distance from the
+    depth: ValueError); ``result``: their registration; ``preparation``: the one it used (else
+    prepared here). Two passes, the second on the volume's own grid. The returned
+    ``patient_motion`` is the pose with the estimated geometry, ``views`` the images with it,
+    ``intrinsics`` each plane's distance (``sid_mm``, ``sid_change`` against the file's).
+    """
+    from registration.core.intrinsics import estimate_geometry as _estimate
+
+    images = tuple(images)
+    if preparation is None:
+        preparation = Preparation.of(volume, images)
+    return _estimate(volume, preparation.renderer, images, result.patient_motion)
 
 
 def track(

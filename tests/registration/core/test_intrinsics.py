@@ -68,3 +68,12 @@ def test_a_five_percent_sid_error_is_estimated_with_two_planes() -> None:
     for view in found.intrinsics:
         assert view.sid_change == pytest.approx(0.05, abs=0.01)
     assert found.similarity > found.similarity_before and found.to_dict()["estimated"] == ["sid"]
+
+
+def test_the_public_estimate_refuses_one_view_with_the_reason() -> None:
+    import registration
+
+    ex = registration.load_example(pixels=64)
+    result = registration.register(ex.volume, ex.image)
+    with pytest.raises(ValueError, match="one view cannot tell its source-image distance from the depth"):
+        registration.estimate_geometry(ex.volume, [ex.image], result)
