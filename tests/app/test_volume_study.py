@@ -125,3 +125,23 @@ def test_validate_volume_refuses_an_unknown_effect(phantom_3dra: Path, capsys: p
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and "unknown effect 'shutters'" in err and "Traceback" not in err
+
+
+def test_the_bench_resamples_a_ct_over_the_same_extent() -> None:
+    from registration.core.volume import Volume
+    from registration.studies.volume_bench import resampled
+
+    rng = np.random.default_rng(0)
+    data = rng.normal(0.0, 100.0, (6, 11, 9)).astype(np.float32)  # k, j, i
+    affine = np.diag([1.0, -1.0, 3.0, 1.0])
+    affine[:3, 3] = (5.0, 7.0, -20.0)
+    vol = Volume(data, affine, label="ct")
+    fine = resampled(vol, (0.5, 0.5, 2.5))
+    assert fine.shape == (7, 21, 17)  # (6 - 1) * 3 / 2.5 + 1, (11 - 1) / 0.5 + 1, (9 - 1) / 0.5 + 1
+    np.testing.assert_allclose(fine.spacing_mm, (0.5, 0.5, 15.0 / 6.0))
+    # the first and last voxels stay in place, with their values (linear interpolation)
+    np.testing.assert_allclose(fine.index_to_world[:3, 3], affine[:3, 3])
+    np.testing.assert_allclose(fine.index_to_world @ [16, 20, 6, 1], affine @ [8, 10, 5, 1])
+    assert fine.data[0, 0, 0] == pytest.approx(data[0, 0, 0], rel=1e-5)
+    assert fine.data[-1, -1, -1] == pytest.approx(data[-1, -1, -1], rel=1e-5)
+    assert fine.data[0, 0, 2] == pytest.approx(data[0, 0, 1], rel=1e-5)  # x index 2 of 0.5 mm is index 1 of 1 mm
