@@ -25,6 +25,7 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import check_rigid
 from registration.core.images import XRayImage
 from registration.core.prepare import PreparationStore, PreparedVolume, mask_outside_body, probe_blocks
+from registration.core.prepare.params import MIN_LEVEL0_MM
 from registration.core.volume import Volume
 
 if TYPE_CHECKING:
@@ -112,10 +113,29 @@ def _probe_renderer(prepared: PreparedVolume, planes: int) -> DRRRenderer:
     affine = volume.index_to_world.copy()
     affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
     data = np.ascontiguousarray(volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1])
-    level0 = Volume(data, affine, label=volume.label, meta=volume.meta)
+    level0 = _no_finer_than(Volume(data, affine, label=volume.label, meta=volume.meta), MIN_LEVEL0_MM)
     if prepared.body:
         level0 = mask_outside_body(level0, volume, probe_blocks(volume))
     levels = [level0] + [
         renderer.level_volume(k) if renderer.has_level(k) else None for k in range(1, renderer.n_levels)
     ]
     return DRRRenderer(volume, levels=levels)
+
+
+def _no_finer_than(volume: Volume, floor_mm: float) -> Volume:
+    """``volume`` with each axis finer than ``floor_mm`` block-averaged by the whole factor that
+    keeps it at most that coarse (a 0.5 x 0.5 x 2.5 mm grid becomes 1 x 1 x 2.5 mm, as the
+    prepared levels ignore a grid finer than the floor); itself when no axis is."""
+    factors = [max(1, int(floor_mm / s + 1e-6)) for s in volume.spacing_mm[::-1]]  # k, j, i
+    if factors == [1, 1, 1]:
+        return volume
+    n = [size // f * f for size, f in zip(volume.shape, factors, strict=True)]
+    fk, fj, fi = factors
+    blocks = volume.data[: n[0], : n[1], : n[2]].reshape(n[0] // fk, fk, n[1] // fj, fj, n[2] // fi, fi)
+    data = np.ascontiguousarray(blocks.mean(axis=(1, 3, 5), dtype=np.float32))
+    scale = np.diag([fi, fj, fk]).astype(np.float64)
+    affine = volume.index_to_world.copy()
+    affine[:3, :3] = volume.index_to_world[:3, :3] @ scale
+    # a block's centre: half a block less half a voxel from its first voxel
+    affine[:3, 3] = volume.index_to_world[:3, :3] @ ((np.array([fi, fj, fk]) - 1) / 2.0) + volume.index_to_world[:3, 3]
+    return Volume(data, affine, label=volume.label, meta=volume.meta)

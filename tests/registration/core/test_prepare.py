@@ -250,3 +250,22 @@ def test_a_finer_scanner_grid_gets_the_same_levels_and_rays() -> None:
         sizes = [LevelProblem.prepare(p.renderer, (view,), image_px=image_px, volume_level=level, motion=np.eye(4),
                                       margin_mm=None).views[0].geometry.rows for p in (a, b)]  # fmt: skip
         assert sizes[0] == sizes[1]
+
+
+def test_the_probes_level_0_is_not_finer_than_the_floor() -> None:
+    """The confidence's level 0 of a 0.5 x 0.5 x 2.5 mm grid: 1 x 1 x 2.5 mm block averages, each
+    placed at its block's centre (a ramp along x keeps its values where they were)."""
+    from registration.core.preparation import _no_finer_than
+
+    x = np.arange(9) * 0.5 + 3.0  # the ramp's value is the world x
+    data = np.broadcast_to(x, (4, 6, 9)).astype(np.float32).copy()
+    vol = Volume.from_grid(data, (0.5, 0.5, 2.5), center_mm=(5.0, 0.0, 0.0))
+    coarse = _no_finer_than(vol, 1.0)
+    np.testing.assert_allclose(coarse.spacing_mm, (1.0, 1.0, 2.5))
+    assert coarse.shape == (4, 3, 4)
+    world_x = (coarse.index_to_world @ np.stack([np.arange(4), np.zeros(4), np.zeros(4), np.ones(4)]))[0]
+    world_x_src = (vol.index_to_world @ np.stack([np.arange(9), np.zeros(9), np.zeros(9), np.ones(9)]))[0]
+    # each block's value (the mean of its two source voxels) sits at their mean position
+    np.testing.assert_allclose(coarse.data[0, 0], (data[0, 0, 0:8:2] + data[0, 0, 1:8:2]) / 2)
+    np.testing.assert_allclose(world_x, (world_x_src[0:8:2] + world_x_src[1:8:2]) / 2)
+    assert _no_finer_than(coarse, 1.0) is coarse
