@@ -89,7 +89,8 @@ def probe_renderer(prepared: PreparedVolume, *, planes: int = 1) -> DRRRenderer:
     levels=3)``): the evidence at the level nearest ``EVIDENCE_VOXELS`` voxels across, the depth
     probe at level 1, the depth scan (one plane) at level 0. On a 256^3 3DRA the prepared levels
     1 and 2 are that pyramid's levels (block averages, cropped); level 0 is the volume's own grid
-    over the prepared box, the body only (as in the prepared levels): needed by one plane's depth
+    over the prepared box (an axis finer than ``MIN_LEVEL0_MM`` block-averaged up to it), the body
+    only (as in the prepared levels): needed by one plane's depth
     scan, and by the evidence of a coarse volume (128^3: level 0 is the one ~128 voxels across).
     A CT's cropped 2 mm level is ~128 voxels or more across already. Built once per preparation
     and number of planes (kept in ``prepared.derived``: a cached preparation brings it along)."""
