@@ -162,6 +162,7 @@ def main() -> None:
     argv = sys.argv[1:]
     if (
         argv
+        and hasattr(os, "getuid")  # a POSIX system: the worker's socket and its checks exist there
         and argv[0] in WORKER_COMMANDS
         and not {"-h", "--help"} & set(argv)
         and os.environ.get("ROADMAP3D_WORKER", "").lower() not in ("off", "0", "no")
