@@ -238,6 +238,8 @@ class Worker:
 
 def run_serve(options: Serve) -> int:
     """``roadmap3d serve``: listen until Ctrl-C or SIGTERM, then remove the socket."""
+    if not hasattr(os, "getuid") or not hasattr(socket, "AF_UNIX"):
+        raise UserError("roadmap3d serve needs a POSIX system (a private Unix socket)")
     path = Path(options.socket) if options.socket is not None else socket_path()
     server = private_socket(path)
     worker = Worker(keep=options.keep)
