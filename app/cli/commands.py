@@ -61,11 +61,8 @@ class _Stopwatch:
 
     def __init__(self) -> None:
         self.startup_s = _client_startup[0] if _client_startup else process_age_s()
-        self.startup_name = (
-            "start-up (client; the worker's engine was warm)"
-            if _client_startup
-            else ("start-up (interpreter, imports)")
-        )
+        warm = "start-up (client; the worker's engine was warm)"
+        self.startup_name = warm if _client_startup else "start-up (interpreter, imports)"
         self.laps: list[tuple[str, float]] = []
         self._last = time.perf_counter()
 

@@ -17,7 +17,6 @@ import json
 import os
 import signal
 import socket
-import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
@@ -179,15 +178,16 @@ class Worker:
 
     def answer(self, conn: socket.socket) -> str:
         """Read one request from ``conn``, run it, send its output and exit code; returns what was done."""
-        lost = threading.Event()
+        lost = False
 
         def send(message: dict) -> None:
-            if lost.is_set():
+            nonlocal lost
+            if lost:
                 return
             try:
                 conn.sendall(json.dumps(message).encode() + b"\n")
             except OSError:
-                lost.set()
+                lost = True
 
         uid = peer_uid(conn)
         if uid is not None and uid != os.getuid():

@@ -127,16 +127,5 @@ def _no_finer_than(volume: Volume, floor_mm: float) -> Volume:
     """``volume`` with each axis finer than ``floor_mm`` block-averaged by the whole factor that
     keeps it at most that coarse (a 0.5 x 0.5 x 2.5 mm grid becomes 1 x 1 x 2.5 mm, as the
     prepared levels ignore a grid finer than the floor); itself when no axis is."""
-    factors = [max(1, int(floor_mm / s + 1e-6)) for s in volume.spacing_mm[::-1]]  # k, j, i
-    if factors == [1, 1, 1]:
-        return volume
-    n = [size // f * f for size, f in zip(volume.shape, factors, strict=True)]
-    fk, fj, fi = factors
-    blocks = volume.data[: n[0], : n[1], : n[2]].reshape(n[0] // fk, fk, n[1] // fj, fj, n[2] // fi, fi)
-    data = np.ascontiguousarray(blocks.mean(axis=(1, 3, 5), dtype=np.float32))
-    scale = np.diag([fi, fj, fk]).astype(np.float64)
-    affine = volume.index_to_world.copy()
-    affine[:3, :3] = volume.index_to_world[:3, :3] @ scale
-    # a block's centre: half a block less half a voxel from its first voxel
-    affine[:3, 3] = volume.index_to_world[:3, :3] @ ((np.array([fi, fj, fk]) - 1) / 2.0) + volume.index_to_world[:3, 3]
-    return Volume(data, affine, label=volume.label, meta=volume.meta)
+    fi, fj, fk = (max(1, int(floor_mm / s + 1e-6)) for s in volume.spacing_mm)
+    return volume.downsample((fi, fj, fk))

@@ -111,21 +111,24 @@ class Volume:
         return replace(self, data=np.asarray(data), label=self.label if label is None else label)
 
     # ----- resampling --------------------------------------------------------------
-    def downsample(self, factor: int = 2) -> Volume:
-        """Average ``factor``^3 blocks (a pyramid level); the affine keeps voxel centers exact."""
-        if factor == 1:
+    def downsample(self, factor: int | tuple[int, int, int] = 2) -> Volume:
+        """Average blocks of ``factor`` voxels along each axis (one number: ``factor``^3 blocks, a
+        pyramid level; three: per axis, i j k); the affine keeps voxel centers exact."""
+        fi, fj, fk = (factor,) * 3 if np.isscalar(factor) else tuple(factor)  # type: ignore[misc]
+        if (fi, fj, fk) == (1, 1, 1):
             return self
-        if factor < 1 or int(factor) != factor:
+        if min(fi, fj, fk) < 1 or any(int(f) != f for f in (fi, fj, fk)):
             raise ValueError(f"factor must be a positive integer, got {factor}")
-        nk, nj, ni = (s // factor for s in self.shape)
+        fi, fj, fk = int(fi), int(fj), int(fk)
+        nk, nj, ni = self.shape[0] // fk, self.shape[1] // fj, self.shape[2] // fi
         if min(nk, nj, ni) < 2:
             raise ValueError(f"volume {self.shape} too small to downsample by {factor}")
-        d = self.data[: nk * factor, : nj * factor, : ni * factor]
-        d = d.reshape(nk, factor, nj, factor, ni, factor).mean(axis=(1, 3, 5), dtype=np.float64)
+        d = self.data[: nk * fk, : nj * fj, : ni * fi]
+        d = d.reshape(nk, fk, nj, fj, ni, fi).mean(axis=(1, 3, 5), dtype=np.float64)
         affine = self.index_to_world.copy()
-        affine[:3, :3] = self.index_to_world[:3, :3] * factor
-        shift = (factor - 1) / 2.0
-        affine[:3, 3] = self.index_to_world[:3, :3] @ np.array([shift, shift, shift]) + self.index_to_world[:3, 3]
+        affine[:3, :3] = self.index_to_world[:3, :3] @ np.diag([fi, fj, fk]).astype(np.float64)
+        shift = (np.array([fi, fj, fk], dtype=np.float64) - 1) / 2.0
+        affine[:3, 3] = self.index_to_world[:3, :3] @ shift + self.index_to_world[:3, 3]
         return Volume(d.astype(np.float32), affine, label=self.label, meta=self.meta)
 
     def pyramid(self, levels: int) -> list[Volume]:

@@ -15,11 +15,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, check_rigid, invert_rigid
-from registration.core.prepare import params
 from registration.core.prepare.body import ProbeBlocks, _crop, mask_outside_body, needed_box, probe_blocks
 from registration.core.prepare.params import (
     CACHE_ENTRIES,
     DEFAULT_LEVELS,
+    MIN_LEVEL0_MM,
 )
 from registration.core.prepare.reach import (
     Reach,
@@ -266,7 +266,7 @@ def _prepare(
     extent = min(extent_guess, max(_anatomy_extent_mm(volume, lo, hi, g) for g in geometries))
     # level 0 never finer than the volume's own finest spacing (resampling cannot add detail)
     # nor than MIN_LEVEL0_MM (a finer scanner grid costs rays and samples, not accuracy)
-    base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()), params.MIN_LEVEL0_MM)
+    base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()), MIN_LEVEL0_MM)
     targets = {lv: base_mm * 2**lv for lv in levels}
     base = _base(volume, blocks, targets, margin, body, store, remember, digest)
     return _assemble(volume, geometries, reach, np.eye(4), levels, base, margin, lo, hi, start)
