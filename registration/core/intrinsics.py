@@ -218,30 +218,45 @@ def estimate_geometry(
     fine_evaluations: int = FINE_EVALUATIONS,
 ) -> GeometryRefinement:
     """:func:`refine_geometry` on the registration's levels (``renderer``: 128 px, level 1), then
-    again from its estimate on the volume's own grid (level 0, prepared here for the views) at
-    ``fine_image_px``, within :data:`FINE_REACH`: the first pass leaves the source-image distance
+    :func:`refine_on_own_grid` from its estimate: the first pass leaves the source-image distance
     0.2-1.8 % off (a coarse level's bias), the second 0.06-0.41 % (decision record
-    2026-12-04-geometry-estimate). The result is relative to ``views``; its evaluations and
-    seconds are both passes', its similarities the second pass's (one level)."""
+    2026-12-04-geometry-estimate). The result is relative to ``views``."""
+    coarse = refine_geometry(renderer, views, motion, estimate=estimate)
+    return refine_on_own_grid(volume, views, coarse, estimate=estimate, image_px=fine_image_px,
+                              evaluations=fine_evaluations)  # fmt: skip
+
+
+def refine_on_own_grid(
+    volume: Volume,
+    views: Sequence[XRayImage],
+    first: GeometryRefinement,
+    *,
+    estimate: Sequence[str] = ("sid",),
+    image_px: int = FINE_IMAGE_PX,
+    evaluations: int = FINE_EVALUATIONS,
+) -> GeometryRefinement:
+    """The second pass of :func:`estimate_geometry`: :func:`refine_geometry` from ``first`` (a
+    first pass on ``views``) on the volume's own grid (level 0, prepared here for the views) at
+    ``image_px``, within :data:`FINE_REACH`. The result is relative to ``views``; its
+    evaluations and seconds are both passes', its similarities the second pass's (one level)."""
     from registration.core.prepare import Reach, prepare_volume
 
     views = tuple(views)
-    coarse = refine_geometry(renderer, views, motion, estimate=estimate)
     iso = views[0].geometry.isocenter_mm
     reach_mm, reach_deg, sid_reach = FINE_REACH
-    reach = Reach.of_search(reach_mm, reach_deg, initial_motion=coarse.patient_motion, isocenter_mm=iso)
-    level0 = prepare_volume(volume, [v.geometry for v in coarse.views], reach=reach, levels=(0,))
-    fine = refine_geometry(level0.renderer, coarse.views, coarse.patient_motion, estimate=estimate,
-                           image_px=fine_image_px, volume_level=0, reach_mm=reach_mm, reach_deg=reach_deg,
-                           max_sid_change=sid_reach, evaluations=fine_evaluations)  # fmt: skip
+    reach = Reach.of_search(reach_mm, reach_deg, initial_motion=first.patient_motion, isocenter_mm=iso)
+    level0 = prepare_volume(volume, [v.geometry for v in first.views], reach=reach, levels=(0,))
+    fine = refine_geometry(level0.renderer, first.views, first.patient_motion, estimate=estimate,
+                           image_px=image_px, volume_level=0, reach_mm=reach_mm, reach_deg=reach_deg,
+                           max_sid_change=sid_reach, evaluations=evaluations)  # fmt: skip
     intrinsics = []
-    for view, first, found in zip(views, coarse.intrinsics, fine.intrinsics, strict=True):
-        shift = np.add(first.principal_point_shift_px, found.principal_point_shift_px)
+    for view, before, found in zip(views, first.intrinsics, fine.intrinsics, strict=True):
+        shift = np.add(before.principal_point_shift_px, found.principal_point_shift_px)
         intrinsics.append(ViewIntrinsics(found.sid_mm, found.sid_mm / view.geometry.sid_mm - 1.0,
                                          (float(shift[0]), float(shift[1]))))  # fmt: skip
     return replace(
         fine,
         intrinsics=tuple(intrinsics),
-        evaluations=coarse.evaluations + fine.evaluations,
-        seconds=coarse.seconds + fine.seconds,
+        evaluations=first.evaluations + fine.evaluations,
+        seconds=first.seconds + fine.seconds,
     )

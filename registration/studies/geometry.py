@@ -90,17 +90,22 @@ def _files_views(case: GeometryCase, views: list) -> tuple[list, list[list[float
 
 
 def _exact_views(case: BiplaneCase, motion: np.ndarray) -> list:
-    """Both planes imaged with exactly their views' geometry (no bending left over)."""
-    from registration.sim.biplane import simulate_biplane
+    """Both planes imaged with exactly the geometry their views carry (the machine-based one a
+    calibrated system puts in its files: no bending left over), plane A then plane B."""
+    from registration.sim.biplane import BiplaneSystem
     from registration.sim.xray import simulate_xray
     from registration.studies.cases import _phantom
 
     anatomy = _phantom(case.phantom_seed, False, True)
-    shot = simulate_biplane(anatomy, case.angles_deg, motion=motion, kind=case.kind, seed=case.seed, pixels=case.pixels)
-    return [
-        replace(v, image=simulate_xray(anatomy, v.geometry, motion=motion, kind=case.kind, seed=case.seed + k).image)
-        for k, v in enumerate(shot.views)
-    ]
+    system = BiplaneSystem()
+    views = []
+    for k, (plane, (primary, secondary), pixels) in enumerate(
+        zip(system.planes(), case.angles_deg, case.pixels, strict=True)
+    ):
+        geometry = system.calibrated_geometry(plane, plane.nominal(primary, secondary, pixels=pixels))
+        image = simulate_xray(anatomy, geometry, motion=motion, kind=case.kind, seed=case.seed + k)
+        views.append(replace(image, meta={**image.meta, "plane": plane.name}))
+    return views
 
 
 def _scores(prefix: str, residual: Any) -> dict:
@@ -114,7 +119,7 @@ def _scores(prefix: str, residual: Any) -> dict:
 def run_geometry_case(case: GeometryCase, *, options: RegistrationOptions | None = None) -> dict:
     """Register the moment with the images' geometry, the files', and the files' with the
     distances estimated (see the module)."""
-    from registration.core.intrinsics import estimate_geometry, refine_geometry
+    from registration.core.intrinsics import refine_geometry, refine_on_own_grid
     from registration.core.metrics import residuals
     from registration.core.preparation import Preparation
     from registration.core.register import register
@@ -145,7 +150,7 @@ def run_geometry_case(case: GeometryCase, *, options: RegistrationOptions | None
     frame = files[0].geometry
     coarse = refine_geometry(pair.renderer, files, plain.patient_motion, estimate=("sid",))
     record.update(_scores("first_pass_", residuals(coarse.patient_motion, truth, frame, None, optimizes_tz=True)))
-    found = estimate_geometry(volume, pair.renderer, files, plain.patient_motion, estimate=("sid",))
+    found = refine_on_own_grid(volume, files, coarse, estimate=("sid",))  # the estimate's second pass
     record.update(_scores("", residuals(found.patient_motion, truth, frame, None, optimizes_tz=True)))
     for prefix, estimate in (("first_pass_", coarse), ("", found)):
         record[f"{prefix}sid_error_percent"] = [
