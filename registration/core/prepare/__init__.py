@@ -28,9 +28,10 @@ of its pyramid. :func:`prepare_volume` makes that volume once:
    the iso-center (2.85 mm for a 27 cm format), level 1, the polish level, those of a 128-pixel
    image (1.42 mm): DRR samples as fine as the image pixels they are compared with, whatever
    grid the scanner used, but level 0 is never finer than the volume's own finest spacing
-   (resampling adds no detail; levels L then have 2**L times that) nor than ``MIN_LEVEL0_MM``
-   (1 mm: a finer grid costs samples, not accuracy): a 1 x 1 x 3 mm CT and a 0.5 x 0.5 x 2.5 mm
-   CT both get 2 and 4 mm at levels 1 and 2, a coarse 64^3 volume its own pyramid. When a
+   (resampling adds no detail; levels L then have 2**L times that) nor, on an anisotropic grid,
+   than ``MIN_LEVEL0_MM`` (1 mm: a CT's finer in-plane grid costs samples, not accuracy): a
+   1 x 1 x 3 mm CT and a 0.5 x 0.5 x 2.5 mm CT both get 2 and 4 mm at levels 1 and 2, an
+   isotropic 0.71 mm 3DRA 1.42 and 2.85 mm, a coarse 64^3 volume its own pyramid. When a
    level's spacing lies within ``SNAP_TOLERANCE`` of a power-of-two multiple of an isotropic
    volume's own spacing (a 3DRA whose format is the image format), that grid is used and made
    by block averages, exactly the volume's own pyramid.

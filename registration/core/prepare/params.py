@@ -13,8 +13,8 @@ Array = NDArray[np.float64]
 TISSUE_HU = -500.0
 #: Image pixels across the field at pyramid level 0 (level L: 256 / 2**L).
 LEVEL0_PIXELS = 256
-#: Level 0 is never finer than this (mm), whatever the volume's grid: a head CT's finer grid
-#: (0.5 x 0.5 x 2.5 mm) registers as its 1 x 1 x 3 mm grid does, at the same cost.
+#: Level 0 of an anisotropic grid (a CT's slices) is never finer than this (mm): a head CT's finer
+#: grid (0.5 x 0.5 x 2.5 mm) registers as its 1 x 1 x 3 mm grid does, at the same cost.
 MIN_LEVEL0_MM = 1.0
 #: A level's spacing this close (relative) to a power-of-two multiple of an isotropic volume's
 #: own spacing uses that grid (block averages of the volume, no resampling).

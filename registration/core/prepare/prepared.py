@@ -20,6 +20,7 @@ from registration.core.prepare.params import (
     CACHE_ENTRIES,
     DEFAULT_LEVELS,
     MIN_LEVEL0_MM,
+    SNAP_TOLERANCE,
 )
 from registration.core.prepare.reach import (
     Reach,
@@ -265,8 +266,10 @@ def _prepare(
     lo, hi = needed_box(volume, geometries, reach, margin_mm=margin, blocks=blocks) or full
     extent = min(extent_guess, max(_anatomy_extent_mm(volume, lo, hi, g) for g in geometries))
     # level 0 never finer than the volume's own finest spacing (resampling cannot add detail)
-    # nor than MIN_LEVEL0_MM (a finer scanner grid costs rays and samples, not accuracy)
-    base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()), MIN_LEVEL0_MM)
+    # nor, on a scanner's anisotropic grid (a CT's slices), than MIN_LEVEL0_MM: its fine in-plane
+    # spacing costs rays and samples, not accuracy; an isotropic 3DRA keeps its own pyramid
+    anisotropic = float(spacing.max()) > (1.0 + SNAP_TOLERANCE) * float(spacing.min())
+    base_mm = max(level_spacing_mm(extent, 0), float(spacing.min()), MIN_LEVEL0_MM if anisotropic else 0.0)
     targets = {lv: base_mm * 2**lv for lv in levels}
     base = _base(volume, blocks, targets, margin, body, store, remember, digest)
     return _assemble(volume, geometries, reach, np.eye(4), levels, base, margin, lo, hi, start)

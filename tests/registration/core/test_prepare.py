@@ -269,3 +269,12 @@ def test_the_probes_level_0_is_not_finer_than_the_floor() -> None:
     np.testing.assert_allclose(coarse.data[0, 0], (data[0, 0, 0:8:2] + data[0, 0, 1:8:2]) / 2)
     np.testing.assert_allclose(world_x, (world_x_src[0:8:2] + world_x_src[1:8:2]) / 2)
     assert _no_finer_than(coarse, 1.0) is coarse
+
+
+def test_an_isotropic_3dra_finer_than_the_floor_keeps_its_own_pyramid() -> None:
+    """A 3DRA of 0.71 mm voxels (the phantom's 256^3 of an 18 cm field) is not held to the CT's
+    1 mm floor: its levels are its own block averages, 1.42 and 2.85 mm."""
+    g = _view(fmt_cm=27.0, pixels=384)
+    vol = _volume((0.712, 0.712, 0.712), extent_mm=180.0, couch=False)
+    prep = prepare_volume(vol, g, cache=False)
+    assert prep.spacing_mm[1] == pytest.approx(2 * 0.712) and prep.spacing_mm[2] == pytest.approx(4 * 0.712)
