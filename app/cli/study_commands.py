@@ -248,6 +248,13 @@ def run_bench(options: Bench) -> int:
             f"{real['prepare_seconds']:.2f} s preparing, {real['register_end_to_end_seconds']:.2f} s end to end, "
             f"{100 * real['success_rate']:.0f} % successful (images formed from the CT: a best case)"
         )
+        conf = real.get("confidence")
+        if conf:
+            print(
+                f"real CT, --confidence   +{conf['seconds_median']:.2f} s median a registration "
+                f"({100 * conf['ratio_to_registration_median']:.0f} % of it, "
+                f"{100 * conf['ratio_to_registration_min']:.0f} % at least), {conf['applied']} applied"
+            )
         cli = real.get("command_line") or {}
         if "wall_seconds" in cli:
             warm = cli.get("warm", {}).get("wall_seconds")

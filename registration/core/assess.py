@@ -43,6 +43,12 @@ def shifted_start_withheld(result: RegistrationResult) -> bool:
     return bool(shift) and (getattr(result, "beyond_box", True) or (one_view and shift >= SINGLE_PLANE_MAX_SHIFT_MM))
 
 
+def depth_corrected(result: RegistrationResult) -> bool:
+    """Whether the registration corrected its single-view estimate along the beam (its depth
+    correction ran: ``depth_moves_mm``)."""
+    return bool(getattr(result, "depth_moves_mm", ()))
+
+
 def veto(result: RegistrationResult) -> str | None:
     """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
     the search bounds (inputs without information drift there), without a finite measure, one
@@ -112,15 +118,16 @@ def assess_on(
     ``views``: the view, or the views of a biplane registration (margins and edges averaged over
     the planes); ``single_plane_motion``: plane A's own single-view estimate, whose in-plane
     disagreement with the biplane estimate is the planes' agreement. A single-plane
-    (five-parameter) result is also probed along the beam
-    (:func:`registration.core.depth.depth_probe`, :func:`~registration.core.depth.depth_scan`;
-    kept in the assessment, the probe's pose is not applied)."""
+    (five-parameter) result is also scanned along the beam (:func:`registration.core.depth.depth_scan`)
+    and, when the registration did not correct it along the beam (:func:`depth_corrected`), probed
+    (:func:`~registration.core.depth.depth_probe`); both kept in the assessment, the probe's pose is
+    not applied."""
     start = time.perf_counter()
     views = (views,) if isinstance(views, XRayImage) else tuple(views)
     why_not = veto(result)
     if why_not is not None:
         return Assessment(0.0, False, why_not, Evidence(veto=why_not))
-    evidence, probe, scan = _evidence(result, views, volume, renderer)
+    evidence, probe, scan = _evidence(result, views, volume, renderer, rule)
     if single_plane_motion is not None:
         g = views[0].geometry
         iso = np.asarray(g.isocenter_mm)
@@ -132,22 +139,29 @@ def assess_on(
 
 
 def _evidence(
-    result: RegistrationResult, views: tuple[XRayImage, ...], volume: Volume, renderer: DRRRenderer
+    result: RegistrationResult,
+    views: tuple[XRayImage, ...],
+    volume: Volume,
+    renderer: DRRRenderer,
+    rule: ConfidenceRule,
 ) -> tuple[Evidence, object, object]:
-    """The evidence of a registration (each view's, combined) and, for one plane, the depth
-    probe and scan."""
+    """The evidence of a registration (each view's, combined) and, for one plane, the depth scan
+    and, for an estimate the registration did not correct along the beam, the depth probe (on
+    corrected estimates its term changed no decision: docs/decisions/2026-12-04-confidence-probes.md)."""
     from registration.core.tracking import registration_evidence
 
     motion = np.asarray(result.patient_motion)
     probe = scan = None
-    if len(views) == 1 and "tz" not in tuple(result.parameters):
-        from registration.core.depth import depth_probe, depth_scan
+    one_view = len(views) == 1 and "tz" not in tuple(result.parameters)
+    if one_view:
+        from registration.core.depth import SCAN_STRIDE, depth_probe, depth_scan
 
-        probe = depth_probe(renderer, views[0], motion)
-        scan = depth_scan(renderer, views[0], motion)
+        if not depth_corrected(result) and (rule.depth_weight or rule.pull_weight):
+            probe = depth_probe(renderer, views[0], motion)
+        scan = depth_scan(renderer, views[0], motion, stride=SCAN_STRIDE)
     per_view = [
         registration_evidence(volume, v, motion, renderer=renderer, capture_motions=result.capture_motions,
-                              depth=probe, agreement_in_plane=probe is not None)  # single plane: captures keep tz
+                              depth=probe, agreement_in_plane=one_view)  # single plane: captures keep tz
         for v in views
     ]  # fmt: skip
     check = result.rotation_check

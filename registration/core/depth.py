@@ -63,6 +63,9 @@ DEPTH_EVALUATIONS = 120
 SCAN_TZ_MM = tuple(float(v) for v in np.arange(-24.0, 24.1, 2.0))
 SCAN_IMAGE_PX = 256
 SCAN_VOLUME_LEVEL = 0
+#: The confidence's scan evaluates every third offset, then climbs offset by offset to the peak
+#: (:func:`depth_scan`'s ``stride``): the same peak as the full scan where the measure has one.
+SCAN_STRIDE = 3
 #: The depth-corrected registration's scan (:func:`scan_level`): the prepared level whose voxel
 #: is nearest this size (mm, in ratio), compared at about the polish's image size.
 CORRECTION_VOXEL_MM = 1.0
@@ -126,9 +129,12 @@ def depth_probe(
     bound_mm: float = DEPTH_BOUND_MM,
     bound_deg: float = DEPTH_BOUND_DEG,
     evaluations: int = DEPTH_EVALUATIONS,
+    method: str = "powell",
 ) -> DepthProbe:
     """Polish ``motion`` (a single-plane estimate for ``xray``) over all six parameters, tz
-    included, and report how far it moves (see the module's docstring). Deterministic."""
+    included, and report how far it moves (see the module's docstring). ``method``: the polish's
+    (:func:`registration.core.anneal.polish`; Powell's is the one the rule's ``depth`` term was
+    calibrated with). Deterministic."""
     m = check_rigid(motion, name="motion")
     if not bound_mm > 0 or not bound_deg > 0:
         raise ValueError("bound_mm and bound_deg must be positive")
@@ -146,6 +152,7 @@ def depth_probe(
         space.bounds,
         step=DEPTH_STEPS,
         max_evaluations=evaluations,
+        method=method,
     )
     probe = space.motion(result.x) if -result.fun > f0 else m
     f1 = max(-result.fun, f0)
@@ -213,6 +220,7 @@ def depth_scan(
     margin_mm: float | None = DEPTH_MARGIN_MM,
     sigma_px: float | None = None,
     pixel_at_iso_mm: float | None = None,
+    stride: int = 1,
 ) -> DepthScan:
     """The high-passed gradient difference of ``xray`` at ``motion`` moved along the beam by each
     of ``offsets_mm`` (nothing else moves), and where it peaks (see the module's docstring).
@@ -223,6 +231,8 @@ def depth_scan(
     volume resolves are removed from both images. ``pixel_at_iso_mm``: compare at the block
     size whose pixel at the iso-center is nearest this without being coarser
     (:func:`registration.core.problem.matched_factor`) instead of ``image_px``'s rule.
+    ``stride``: evaluate every ``stride``-th offset (the last too), then climb offset by offset
+    from the best until it has both neighbours (the offsets and values kept are those evaluated).
     Deterministic."""
     m = check_rigid(motion, name="motion")
     g = xray.geometry
@@ -250,12 +260,14 @@ def depth_scan(
     measure = GradientDifference(high_pass(image.image, view.mask, sigma_px, weight), view.mask)
     out = np.empty((view.geometry.rows, view.geometry.cols), np.float32)
     d = np.asarray(g.direction, dtype=np.float64)
-    values = []
-    for dz in offsets_mm:
+
+    def at(dz: float) -> float:
         shift = np.eye(4)
         shift[:3, 3] = -float(dz) * d  # + toward the source: against the beam's direction
         drr = renderer.render(view.geometry, shift @ m, level=problem.volume_level, mask=view.mask, out=out)
-        values.append(float(measure(high_pass(drr, view.mask, sigma_px, weight))))
+        return float(measure(high_pass(drr, view.mask, sigma_px, weight)))
+
+    offsets_mm, values = _scanned(tuple(float(o) for o in offsets_mm), at, stride)
     v = np.asarray(values)
     i = int(np.argmax(v))
     tz = float(offsets_mm[i])
@@ -271,3 +283,25 @@ def depth_scan(
         similarity=tuple(values),
         drr_count=renderer.count - count0,
     )
+
+
+def _scanned(offsets: tuple[float, ...], at, stride: int) -> tuple[tuple[float, ...], list[float]]:  # noqa: ANN001
+    """``at`` evaluated on ``offsets`` (``stride`` 1), or on every ``stride``-th offset (the ends
+    included) and then offset by offset uphill from the best until the best has both neighbours
+    evaluated: the same peak and parabola as the full scan when the measure has one peak there.
+    Returns the offsets evaluated (in order) and their values."""
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f"stride must be a positive integer, got {stride}")
+    n = len(offsets)
+    seen: dict[int, float] = {}
+    for i in sorted({*range(0, n, stride), n - 1}):
+        seen[i] = at(offsets[i])
+    while True:
+        best = max(seen, key=lambda k: (seen[k], -k))
+        missing = [k for k in (best - 1, best + 1) if 0 <= k < n and k not in seen]
+        if not missing:
+            break
+        for k in missing:
+            seen[k] = at(offsets[k])
+    keys = sorted(seen)
+    return tuple(offsets[k] for k in keys), [seen[k] for k in keys]

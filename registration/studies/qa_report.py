@@ -232,7 +232,12 @@ def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, 
         parts.append(page.image(f"{tag}evidence_profiles.png", png, caption, wide=True))
     depth = qa_evidence.depth_figure(scan, probe, reason=reason, term=term)
     parts.append(
-        page.image("evidence_depth.png", depth, "the depth scan along the beam and the depth probe", wide=True)
+        page.image(
+            "evidence_depth.png",
+            depth,
+            "the depth scan along the beam" + (" and the depth probe" if probe else ""),
+            wide=True,
+        )  # fmt: skip
     )
     if term == "edges":
         parts.append("<p class='withheld'>Too few edges: compare the image with its gradient above.</p>")

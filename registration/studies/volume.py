@@ -292,7 +292,8 @@ def _assessed(result: object, images: list[XRayImage], preparation: Preparation)
     from registration.studies.cases import assessment_fields
 
     found = assessment_fields(assess(result, images, preparation))  # type: ignore[arg-type]
-    return {k: found[k] for k in ("confidence", "applied", "withheld_reason", "confidence_evidence")}
+    keys = ("confidence", "applied", "withheld_reason", "confidence_evidence", "confidence_seconds")
+    return {k: found[k] for k in keys}
 
 
 def run_volume_case(

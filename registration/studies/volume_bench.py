@@ -61,7 +61,7 @@ def bench_real_volume(
     records = []
     for case in volume_cases(config):
         say(f"real CT case {case.number + 1}/{cases} ...")
-        records.append(run_volume_case(volume, imager, case, config, iso))
+        records.append(run_volume_case(volume, imager, case, config, iso, confidence=True))
     end_to_end = read_s + records[0]["prepare_seconds"] + records[0]["seconds"]
     seconds = float(np.median([r["seconds"] for r in records]))
     cli = _command_line_register(volume, imager, config, iso, path, log=say) if command_line else None
@@ -81,6 +81,7 @@ def bench_real_volume(
         "source_voxels": int(np.prod(volume.shape)),
         "read_seconds": read_s,
         "register_end_to_end_seconds": end_to_end,
+        "confidence": _confidence_cost(records),
         "command_line": cli,
         "finer_grid": grid,
         "success_rate": float(np.mean([r["success"] for r in records])),
@@ -91,6 +92,19 @@ def bench_real_volume(
         "volume": str(path),
         "isocenter_mm": list(iso),
         "images": IMAGES_FROM_VOLUME,
+    }
+
+
+def _confidence_cost(records: list[dict]) -> dict:
+    """What ``--confidence`` adds to each registration in this process: the assessment's seconds
+    (the probe levels built once per preparation, before the first, not counted) against the
+    registration's, per case."""
+    ratios = [r["confidence_seconds"] / r["seconds"] for r in records]
+    return {
+        "seconds_median": float(np.median([r["confidence_seconds"] for r in records])),
+        "ratio_to_registration_median": float(np.median(ratios)),
+        "ratio_to_registration_min": float(min(ratios)),
+        "applied": int(sum(bool(r["applied"]) for r in records)),
     }
 
 

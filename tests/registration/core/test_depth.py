@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from registration.core.confidence import DEFAULT_RULE, ConfidenceRule, Evidence
-from registration.core.depth import depth_probe, depth_scan, high_pass
+from registration.core.depth import SCAN_STRIDE, depth_probe, depth_scan, high_pass
 from registration.core.geometry import CArm, offsets_to_matrix
 from registration.core.metrics import residuals
 from registration.core.tracking import registration_evidence
@@ -76,6 +76,39 @@ def test_depth_scan_finds_the_offset_along_the_beam(scene):
         assert abs(scan.tz_mm + tz) < 5.0 and np.sign(scan.tz_mm) == -np.sign(tz), (tz, scan)
     # deterministic
     assert depth_scan(renderer, xray, np.eye(4)).similarity == at_truth.similarity
+    # the confidence's strided scan: fewer DRRs, the same peak (every offset it evaluates has
+    # the full scan's value, bit for bit: the same DRR and measure)
+    for tz in (0.0, 15.0, -15.0):
+        motion = offsets_to_matrix([0.0, 0.0, tz, 0.0, 0.0, 0.0], g)
+        full, strided = depth_scan(renderer, xray, motion), depth_scan(renderer, xray, motion, stride=SCAN_STRIDE)
+        assert strided.tz_mm == full.tz_mm, (tz, full, strided)
+        assert strided.drr_count < 0.7 * full.drr_count  # measured here: 11-12 of 25
+        values = dict(zip(full.offsets_mm, full.similarity, strict=True))
+        assert all(values[o] == v for o, v in zip(strided.offsets_mm, strided.similarity, strict=True))
+
+
+def test_strided_scan_climbs_to_the_peak_between_its_samples():
+    from registration.core.depth import _scanned
+
+    offsets = tuple(float(o) for o in range(-12, 13, 2))  # 13 offsets
+    calls: list[float] = []
+
+    def peaked_at(p: float):
+        def at(x: float) -> float:
+            calls.append(x)
+            return -((x - p) ** 2)
+
+        return at
+
+    # a peak between the every-third samples (-12, -6, 0, 6, 12): found by climbing, neighbours kept
+    got, values = _scanned(offsets, peaked_at(4.0), 3)
+    assert got[int(np.argmax(values))] == 4.0 and {2.0, 6.0} <= set(got)
+    assert len(calls) == len(set(calls)) < len(offsets)  # nothing evaluated twice, fewer than all
+    # a peak at the last offset (always sampled) and stride 1 (every offset, in order)
+    assert _scanned(offsets, peaked_at(12.0), 3)[0][-2:] == (10.0, 12.0)
+    assert _scanned(offsets, peaked_at(0.0), 1)[0] == offsets
+    with pytest.raises(ValueError, match="stride"):
+        _scanned(offsets, peaked_at(0.0), 0)
 
 
 def test_high_pass_removes_the_smooth_part_inside_the_field_only():
@@ -138,3 +171,24 @@ def test_the_measure_does_not_depend_on_where_its_buffers_lie(scene):
     evaluators = [problem.evaluator() for _ in range(24)]  # all alive: their buffers lie apart
     values = np.array([[e.similarity(q) for q in poses] for e in evaluators])
     assert (values == values[0]).all(), [len(set(column)) for column in values.T]
+
+
+def test_the_confidence_probes_only_an_estimate_not_corrected_along_the_beam(scene):
+    from dataclasses import replace
+
+    from registration.core.assess import assess_on, depth_corrected
+    from registration.core.register import register
+
+    volume, xray, renderer = scene
+    result = register(volume, xray, seed=0, renderer=renderer)
+    assert depth_corrected(result)  # one view: the registration scanned and moved its tz itself
+    corrected = assess_on(result, xray, volume, renderer)
+    assert corrected.depth_probe is None and corrected.evidence.depth_shift_mm is None
+    assert corrected.depth_scan is not None and corrected.evidence.depth_scan_tz_mm is not None
+    # the same estimate as if no correction had run (the option off): probed, its shift weighed
+    uncorrected = assess_on(replace(result, depth_moves_mm=()), xray, volume, renderer)
+    assert uncorrected.depth_probe is not None
+    assert uncorrected.evidence.depth_shift_mm == pytest.approx(uncorrected.depth_probe.shift_mm)
+    # everything else is measured the same way: equal where the probe's term does not bite
+    assert uncorrected.evidence.margin == corrected.evidence.margin
+    assert uncorrected.evidence.depth_scan_tz_mm == corrected.evidence.depth_scan_tz_mm

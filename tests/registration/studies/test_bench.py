@@ -32,3 +32,20 @@ def test_the_checks_price_is_measured_beside_them() -> None:
     names = [s["stage"] for s in reg["stages"]]
     assert any(n.startswith("depth correction") for n in names) and any(n.startswith("rotation check") for n in names)
     assert all(s["runs"] == 4 and s["drrs_median"] > 0 for s in reg["stages"])
+
+
+def test_the_confidence_cost_is_per_registration_ratios() -> None:
+    from registration.studies.volume_bench import _confidence_cost
+
+    records = [
+        {"seconds": 1.0, "confidence_seconds": 0.2, "applied": True},
+        {"seconds": 2.0, "confidence_seconds": 0.2, "applied": False},
+        {"seconds": 0.5, "confidence_seconds": 0.25, "applied": True},
+    ]
+    # per case 0.2, 0.1 and 0.5 of the registration: the median and the least, not a ratio of medians
+    assert _confidence_cost(records) == {
+        "seconds_median": 0.2,
+        "ratio_to_registration_median": 0.2,
+        "ratio_to_registration_min": 0.1,
+        "applied": 2,
+    }
