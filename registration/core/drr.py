@@ -154,13 +154,30 @@ class DRRRenderer:
         step_voxels = float(step_voxels)
         if not math.isfinite(step_voxels) or not 0.01 <= step_voxels <= 4.0:
             raise ValueError(f"step_voxels must lie in [0.01, 4], got {step_voxels}")
+        self._set_up(volume, step_voxels, bool(skip_empty), [None if v is None else _Level(v) for v in pyramid])
+
+    def _set_up(self, volume: Volume, step_voxels: float, skip_empty: bool, levels: list[_Level | None]) -> None:
         self.volume = volume
         self.step_voxels = step_voxels
-        self.skip_empty = bool(skip_empty)
-        self._levels: list[_Level | None] = [None if v is None else _Level(v) for v in pyramid]
+        self.skip_empty = skip_empty
+        self._levels: list[_Level | None] = levels
         self.count = 0
         self.samples_per_level = [0] * len(self._levels)
         self._no_mask = np.zeros((1, 1), dtype=np.uint8)
+
+    def with_levels(self, levels: dict[int, Volume]) -> DRRRenderer:
+        """A renderer of the same volume with ``levels`` (index -> volume) added or replaced and
+        every other prepared level shared with this one (not converted again); its own counters."""
+        if not levels or any(not isinstance(k, int) or k < 0 for k in levels):
+            raise ValueError("levels must map non-negative level indices to volumes")
+        if any(not isinstance(v, Volume) for v in levels.values()):
+            raise ValueError("levels must be volumes")
+        n = max(len(self._levels), max(levels) + 1)
+        shared = [_Level(levels[k]) if k in levels else (self._levels[k] if k < len(self._levels) else None)
+                  for k in range(n)]  # fmt: skip
+        out = object.__new__(DRRRenderer)
+        out._set_up(self.volume, self.step_voxels, self.skip_empty, shared)
+        return out
 
     @property
     def n_levels(self) -> int:

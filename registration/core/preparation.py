@@ -116,11 +116,9 @@ def _probe_renderer(prepared: PreparedVolume, planes: int) -> DRRRenderer:
     data = np.ascontiguousarray(volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1])
     level0 = _no_finer_than(Volume(data, affine, label=volume.label, meta=volume.meta), MIN_LEVEL0_MM)
     if prepared.body:
-        level0 = mask_outside_body(level0, volume, probe_blocks(volume))
-    levels = [level0] + [
-        renderer.level_volume(k) if renderer.has_level(k) else None for k in range(1, renderer.n_levels)
-    ]
-    return DRRRenderer(volume, levels=levels)
+        blocks = prepared.blocks if prepared.blocks is not None else probe_blocks(volume)
+        level0 = mask_outside_body(level0, volume, blocks)
+    return renderer.with_levels({0: level0})  # the prepared levels shared, not converted again
 
 
 def _no_finer_than(volume: Volume, floor_mm: float) -> Volume:

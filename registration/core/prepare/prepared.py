@@ -71,6 +71,8 @@ class PreparedVolume:
     crop: Crop | None = field(default=None, repr=False)
     #: Renderers built on these levels and kept with them (the confidence's probe levels, by planes).
     derived: dict = field(default_factory=dict, repr=False, compare=False)
+    #: The volume's probe blocks the levels were masked with (the body; None: not kept).
+    blocks: ProbeBlocks | None = field(default=None, repr=False, compare=False)
 
     @property
     def voxels_per_level(self) -> list[int | None]:
@@ -306,6 +308,7 @@ def _assemble(
         body=base.blocks.body is not None,
         base_source=base.source,
         crop=crop,
+        blocks=base.blocks,
     )
 
 

@@ -193,8 +193,13 @@ class RotationCheckOptions:
     evaluations: int = 40
     #: Checks at most (default 3, >= 1).
     rounds: int = 3
+    #: No polish when the estimate's relative margin over rx and ry turned by 3 degrees reaches
+    #: this (a sharp peak of its own; None: always check).
+    skip_margin: float | None = 0.008
 
     def __post_init__(self) -> None:
+        if self.skip_margin is not None and not (math.isfinite(self.skip_margin) and self.skip_margin >= 0):
+            raise ValueError(f"RotationCheckOptions.skip_margin must be >= 0 or None, got {self.skip_margin}")
         if not (math.isfinite(self.turn_deg) and 0 < self.turn_deg <= 15):
             raise ValueError(f"RotationCheckOptions.turn_deg must lie in (0, 15], got {self.turn_deg}")
         _reach("RotationCheckOptions", self.reach_mm, self.reach_deg, optional=False)
@@ -308,6 +313,7 @@ FLAT_NAMES: dict[str, tuple[str, str | tuple[str, str]]] = {
     "rotation_check_reach": ("rotation_check", ("reach_mm", "reach_deg")),
     "rotation_check_evaluations": ("rotation_check", "evaluations"),
     "rotation_check_rounds": ("rotation_check", "rounds"),
+    "rotation_check_skip_margin": ("rotation_check", "skip_margin"),
 }
 _GROUPS = {"polish": PolishOptions, "biplane": BiplaneOptions, "depth": DepthOptions,
            "rotation_check": RotationCheckOptions, "start": StartOptions}  # fmt: skip

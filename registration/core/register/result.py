@@ -195,6 +195,11 @@ class RotationCheck:
     f_estimate: float
     checks: int = 1
     moves: int = 0
+    #: The estimate's out-of-plane rotation margin measured before the first check
+    #: (:func:`~registration.core.register.rotation_check.rotation_margin`), and whether it was
+    #: sharp enough that no polish ran (``checks`` 0).
+    margin: float | None = None
+    skipped: bool = False
 
     def to_dict(self) -> dict:
         return {
@@ -202,4 +207,6 @@ class RotationCheck:
             "moved_deg": self.moved_deg,
             "checks": self.checks,
             "moves": self.moves,
+            "margin": self.margin,
+            "skipped": self.skipped,
         }

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -25,6 +27,8 @@ Array = NDArray[np.float64]
 #: A rotation check's polish that ends more than this far from the estimate (deg) found a
 #: rival optimum, not the estimate's own peak.
 RIVAL_DISTINCT_DEG = 2.0
+#: The turn of rx and ry (deg) at which the check's screen measures the estimate's margin.
+SCREEN_TURN_DEG = 3.0
 
 
 @dataclass(frozen=True)
@@ -43,8 +47,11 @@ class CheckRotations:
 
     def describe(self) -> str:
         c = self.check
-        return (f"rotation check: 4 polishes from rx, ry turned +-{c.turn_deg:g} deg at {self.polish_image_px} px "
-                f"({self.budget.describe()} each), up to {c.rounds} checks")  # fmt: skip
+        screen = ""
+        if c.skip_margin is not None:
+            screen = f"unless its margin at +-{SCREEN_TURN_DEG:g} deg reaches {c.skip_margin:g}, "
+        return (f"rotation check: {screen}4 polishes from rx, ry turned +-{c.turn_deg:g} deg at "
+                f"{self.polish_image_px} px ({self.budget.describe()} each), up to {c.rounds} checks")  # fmt: skip
 
     def runs(self, state: State) -> bool:
         return True
@@ -52,9 +59,12 @@ class CheckRotations:
     def run(self, state: State) -> State:
         r = state.run
         renderer, view = r.inputs.renderer, r.inputs.views[0]
-        moves, check = 0, None
+        moves, check, margin = 0, None, None
         for n in range(self.check.rounds):
-            check = check_estimate(renderer, view, state.space, state.x, self, r.monitor, state.number)
+            check = check_estimate(renderer, view, state.space, state.x, self, r.monitor, state.number, screen=n == 0)
+            if check.skipped:
+                return replace(state, check=replace(check, checks=0))
+            margin = check.margin if n == 0 else margin
             if not check.fun < check.f_estimate or r.monitor.stopped:
                 break
             state, moves = replace(state, x=check.x, f=check.fun), moves + 1
@@ -66,22 +76,29 @@ class CheckRotations:
                 # gain over the estimate it left is the evidence (> 0)
                 check = replace(check, rival_gain=(check.f_estimate - check.fun) / max(abs(check.fun), 1e-12))
         assert check is not None
-        return replace(state, check=replace(check, checks=n + 1, moves=moves))
+        return replace(state, check=replace(check, checks=n + 1, moves=moves, margin=margin))
 
 
 def check_estimate(
     renderer: DRRRenderer, view: XRayImage, space: SearchSpace, x: Array, stage: CheckRotations, monitor: Monitor,
-    number: int,
+    number: int, *, screen: bool = False,
 ) -> RotationCheck:  # fmt: skip
     """Polish the five parameters of ``space`` (tz held) from the estimate ``x`` with the view's
     rx or ry turned by +- ``turn_deg``, at the polish's level, and compare with the estimate's
-    measure there (one support mask, the estimate's). Deterministic; DRRs counted in ``monitor``."""
+    measure there (one support mask, the estimate's). ``screen``: first measure the estimate's
+    out-of-plane rotation margin (:func:`rotation_margin`) and, when it reaches the options'
+    ``skip_margin``, polish nothing (``skipped``). Deterministic; DRRs counted in ``monitor``."""
     x = np.asarray(x, dtype=np.float64)
     m_est = space.motion(x)
     problem = LevelProblem.prepare(renderer, (view,), image_px=stage.polish_image_px,
                                    volume_level=stage.polish_volume_level, motion=m_est,
                                    margin_mm=stage.margin_mm)  # fmt: skip
-    f_est = cost_function(problem, space, monitor, None)(x)
+    cost = cost_function(problem, space, monitor, None)
+    f_est = cost(x)
+    margin = rotation_margin(cost, space, x, f_est) if screen else None
+    skip = stage.check.skip_margin
+    if margin is not None and skip is not None and margin >= skip:
+        return RotationCheck(None, 0.0, x, f_est, f_est, margin=margin, skipped=True)
     ends: list[AnnealResult] = []
     for slot in (2, 3):  # rx, ry of the five parameters
         for sign in (1.0, -1.0):
@@ -103,7 +120,21 @@ def check_estimate(
     others = [(space.motion(r.x), r.fun) for r in ends] + [(m_est, f_est)]
     gains = [(chosen_f - fun) / scale for m, fun in others
              if rotation_angle_deg(m @ invert_rigid(m_chosen)) > RIVAL_DISTINCT_DEG]  # fmt: skip
-    return RotationCheck(max(gains) if gains else None, moved, chosen_x, chosen_f, f_est)
+    return RotationCheck(max(gains) if gains else None, moved, chosen_x, chosen_f, f_est, margin=margin)
+
+
+def rotation_margin(cost: Callable[[Array], float], space: SearchSpace, x: Array, f_est: float) -> float:
+    """The estimate's relative margin over its out-of-plane rotations: the measure at ``x`` less
+    the best of rx and ry turned by +- :data:`SCREEN_TURN_DEG` (four evaluations of ``cost``,
+    the negated measure), relative to the measure. A wrong rx / ry optimum sits on a flat ridge
+    there (its margin small or negative), as the confidence's ``rotation_margin`` finds."""
+    worst = math.inf
+    for slot in (2, 3):  # rx, ry of the five parameters
+        for sign in (1.0, -1.0):
+            turned = x.copy()
+            turned[slot] += sign * SCREEN_TURN_DEG
+            worst = min(worst, cost(np.clip(turned, space.bounds[:, 0], space.bounds[:, 1])))
+    return float((worst - f_est) / max(abs(f_est), 1e-12))
 
 
 def rotation_check(

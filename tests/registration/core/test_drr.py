@@ -281,6 +281,23 @@ def test_mask_skips_pixels_and_count_increments(smooth_volume):
     assert renderer.count == 3
 
 
+def test_a_level_added_shares_the_others(smooth_volume):
+    geometry = _small_view(15.0, 5.0)
+    renderer = DRRRenderer(smooth_volume, levels=2)
+    finer = Volume(smooth_volume.data * 0.5, smooth_volume.index_to_world)  # another level 0 on the same grid
+    added = renderer.with_levels({0: finer})
+    # level 1 is the same object (not converted again) and renders the same DRR, bit for bit
+    assert added.level_volume(1) is renderer.level_volume(1) and added.n_levels == 2
+    small = geometry.resized(20, 20)
+    assert np.array_equal(added.render(small, level=1), renderer.render(small, level=1))
+    # level 0 is the new volume, as a renderer built on it renders it
+    alone = DRRRenderer(smooth_volume, levels=[finer, None])
+    assert np.array_equal(added.render(geometry, level=0), alone.render(geometry, level=0))
+    assert added.count == 2 and renderer.count == 1  # counters of its own
+    with pytest.raises(ValueError, match="levels"):
+        renderer.with_levels({})
+
+
 def test_empty_volume_renders_zero():
     vol = Volume.from_grid(np.full((8, 8, 8), -1000.0, np.float32), 5.0)
     assert np.all(DRRRenderer(vol, levels=1).render(_small_view(pixels=8)) == 0.0)

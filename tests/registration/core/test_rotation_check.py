@@ -18,6 +18,7 @@ from registration.core.register import (
     register,
     rotation_check,
 )
+from registration.core.register.rotation_check import check_estimate, rotation_check_stage
 from registration.core.search import SearchSpace
 
 #: (tx, ty, tz, rx, ry, rz) of the truth: Table I's T4-like in-plane and rotation offsets
@@ -81,20 +82,53 @@ def test_register_reports_the_check_and_counts_its_drrs(scene):
                    options=replace(OPTIONS, rotation_check=False))  # fmt: skip
     assert off.rotation_check is None and "rotation_check" not in off.to_dict()
     check = on.rotation_check
-    assert check is not None and 1 <= check.checks <= OPTIONS.rotation_check_rounds
+    assert check is not None and 0 <= check.checks <= OPTIONS.rotation_check_rounds
     assert on.to_dict()["rotation_check"]["checks"] == check.checks
+    assert check.margin is not None and check.skipped == (check.checks == 0)
     # from Table I's T4-like pose both end right (measured 0.1 mm, 0.3 deg); 0.3 mm is the
     # polish jitter of 0.53 mm pixels at the iso-center with room
     assert on.success and on.residual.inplane_mm < 0.3 and on.residual.rotation_deg < 1.0
-    # a check that kept the estimate costs its four polishes and the estimate's measure
-    if check.moves == 0:
-        assert 0 < on.drr_count - off.drr_count <= 4 * (OPTIONS.rotation_check_evaluations + 1) + 1
+    # a check that kept the estimate costs its screen (the estimate's measure and four turns)
+    # and, when not skipped, four polishes
+    if check.skipped:
+        assert on.drr_count - off.drr_count == 5
+    elif check.moves == 0:
+        assert 5 < on.drr_count - off.drr_count <= 4 * (OPTIONS.rotation_check_evaluations + 1) + 5
     # deterministic
     again = register(volume, xray, truth=truth, seed=0, renderer=renderer, options=OPTIONS)
     np.testing.assert_array_equal(again.patient_motion, on.patient_motion)
 
 
+def test_the_screen_skips_a_sharp_peak_and_checks_a_flat_one(scene):
+    volume, renderer, truth, xray = scene
+    space = SearchSpace.for_views(xray.geometry, np.eye(4), optimize_tz=False, bound_mm=30.0, bound_deg=15.0)
+    stage = rotation_check_stage(OPTIONS, len(OPTIONS.levels))
+
+    def check(offsets, skip_margin):
+        stage_ = replace(stage, check=replace(stage.check, skip_margin=skip_margin))
+        monitor = Monitor(space, None, 0.0)
+        out = check_estimate(renderer, xray, space, _five(offsets), stage_, monitor, 0, screen=True)
+        return out, monitor.drr_count
+
+    # at the truth the measure falls off both out-of-plane rotations (measured margin 0.034;
+    # the FDK study's estimates that a check moved to a rival had -0.0002 to 0.0040)
+    sharp, drrs = check(TRUTH, OPTIONS.rotation_check_skip_margin)
+    assert sharp.skipped and sharp.margin >= OPTIONS.rotation_check_skip_margin and drrs == 5
+    assert np.array_equal(sharp.x, _five(TRUTH)) and sharp.fun == sharp.f_estimate
+    # 7 degrees off in rx (measured margin -0.026: the truth lies toward a turn), the polishes run
+    wrong = np.array(TRUTH)
+    wrong[3] += 7.0
+    flat, drrs = check(wrong, OPTIONS.rotation_check_skip_margin)
+    assert not flat.skipped and flat.margin < OPTIONS.rotation_check_skip_margin and drrs > 5
+    assert flat.moved_deg > 5.0
+    # None: never skipped, the margin still measured
+    always, _ = check(TRUTH, None)
+    assert not always.skipped and always.margin == pytest.approx(sharp.margin, abs=1e-12)
+
+
 def test_the_options_are_checked():
+    with pytest.raises(ValueError, match="skip_margin"):
+        RegistrationOptions(rotation_check_skip_margin=-0.1)
     with pytest.raises(ValueError, match="rotation_check_deg"):
         RegistrationOptions(rotation_check_deg=0.0)
     with pytest.raises(ValueError, match="rotation_check_reach"):
