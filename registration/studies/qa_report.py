@@ -169,6 +169,10 @@ def _numbers(doc: Mapping[str, Any]) -> str:
     if doc.get("rotation_check") is not None:
         rc = doc["rotation_check"]
         checks = number(rc.get("checks"), "rotation_check.checks")
+        if rc.get("margin") is not None:
+            margin = number(rc["margin"], "rotation_check.margin", ".4f")
+            said = " (a sharp peak of its own: no polish ran)" if rc.get("skipped") else ""
+            rows.append(("rotation check: margin over rx, ry at +-3 deg", margin + said))
         rows.append(("rotation check: checks / moves", f"{checks} / {number(rc.get('moves'), 'rotation_check.moves')}"))
         rows.append(
             ("rotation check: best rival (relative)", number(rc.get("rival_gain"), "rotation_check.rival_gain", ".5f"))
