@@ -96,6 +96,8 @@ def check_estimate(
     cost = cost_function(problem, space, monitor, None)
     f_est = cost(x)
     margin = rotation_margin(cost, space, x, f_est) if screen else None
+    if margin is not None and not math.isfinite(margin):
+        margin = None  # the run was stopped: nothing was measured
     skip = stage.check.skip_margin
     if margin is not None and skip is not None and margin >= skip:
         return RotationCheck(None, 0.0, x, f_est, f_est, margin=margin, skipped=True)
