@@ -49,7 +49,8 @@ class CheckRotations:
         c = self.check
         screen = ""
         if c.skip_margin is not None:
-            screen = f"unless its margin at +-{SCREEN_TURN_DEG:g} deg reaches {c.skip_margin:g}, "
+            turn = f"+-{SCREEN_TURN_DEG:g} deg"
+            screen = f"unless the estimate's margin over rx, ry turned {turn} reaches {c.skip_margin:g}, "
         return (f"rotation check: {screen}4 polishes from rx, ry turned +-{c.turn_deg:g} deg at "
                 f"{self.polish_image_px} px ({self.budget.describe()} each), up to {c.rounds} checks")  # fmt: skip
 
