@@ -129,12 +129,9 @@ def depth_probe(
     bound_mm: float = DEPTH_BOUND_MM,
     bound_deg: float = DEPTH_BOUND_DEG,
     evaluations: int = DEPTH_EVALUATIONS,
-    method: str = "powell",
 ) -> DepthProbe:
     """Polish ``motion`` (a single-plane estimate for ``xray``) over all six parameters, tz
-    included, and report how far it moves (see the module's docstring). ``method``: the polish's
-    (:func:`registration.core.anneal.polish`; Powell's is the one the rule's ``depth`` term was
-    calibrated with). Deterministic."""
+    included, and report how far it moves (see the module's docstring). Deterministic."""
     m = check_rigid(motion, name="motion")
     if not bound_mm > 0 or not bound_deg > 0:
         raise ValueError("bound_mm and bound_deg must be positive")
@@ -152,7 +149,6 @@ def depth_probe(
         space.bounds,
         step=DEPTH_STEPS,
         max_evaluations=evaluations,
-        method=method,
     )
     probe = space.motion(result.x) if -result.fun > f0 else m
     f1 = max(-result.fun, f0)

@@ -65,7 +65,8 @@ class CheckRotations:
             check = check_estimate(renderer, view, state.space, state.x, self, r.monitor, state.number, screen=n == 0)
             if check.skipped:
                 return replace(state, check=replace(check, checks=0))
-            margin = check.margin if n == 0 else margin
+            if n == 0:
+                margin = check.margin
             if not check.fun < check.f_estimate or r.monitor.stopped:
                 break
             state, moves = replace(state, x=check.x, f=check.fun), moves + 1
@@ -103,14 +104,10 @@ def check_estimate(
     if margin is not None and skip is not None and margin >= skip:
         return RotationCheck(None, 0.0, x, f_est, f_est, margin=margin, skipped=True)
     ends: list[AnnealResult] = []
-    for slot in (2, 3):  # rx, ry of the five parameters
-        for sign in (1.0, -1.0):
-            if monitor.stopped:
-                break
-            start = x.copy()
-            start[slot] += sign * stage.check.turn_deg
-            start = np.clip(start, space.bounds[:, 0], space.bounds[:, 1])
-            ends.append(run_polish(problem, space, number, start, stage.budget, monitor))
+    for start in _turned(x, space, stage.check.turn_deg):
+        if monitor.stopped:
+            break
+        ends.append(run_polish(problem, space, number, start, stage.budget, monitor))
     best = min(ends, key=lambda r: r.fun) if ends else None
     if best is not None and best.fun < f_est:
         chosen_x, chosen_f = np.asarray(best.x, dtype=np.float64), float(best.fun)
@@ -131,13 +128,20 @@ def rotation_margin(cost: Callable[[Array], float], space: SearchSpace, x: Array
     the best of rx and ry turned by +- :data:`SCREEN_TURN_DEG` (four evaluations of ``cost``,
     the negated measure), relative to the measure. A wrong rx / ry optimum sits on a flat ridge
     there (its margin small or negative), as the confidence's ``rotation_margin`` finds."""
-    worst = math.inf
-    for slot in (2, 3):  # rx, ry of the five parameters
+    worst = min(cost(turned) for turned in _turned(x, space, SCREEN_TURN_DEG))
+    return float((worst - f_est) / max(abs(f_est), 1e-12))
+
+
+def _turned(x: Array, space: SearchSpace, turn_deg: float) -> list[Array]:
+    """``x`` with rx, then ry (of the five parameters) turned by +``turn_deg`` and -``turn_deg``,
+    each clipped to the space's bounds."""
+    out = []
+    for slot in (2, 3):
         for sign in (1.0, -1.0):
             turned = x.copy()
-            turned[slot] += sign * SCREEN_TURN_DEG
-            worst = min(worst, cost(np.clip(turned, space.bounds[:, 0], space.bounds[:, 1])))
-    return float((worst - f_est) / max(abs(f_est), 1e-12))
+            turned[slot] += sign * turn_deg
+            out.append(np.clip(turned, space.bounds[:, 0], space.bounds[:, 1]))
+    return out
 
 
 def rotation_check(
