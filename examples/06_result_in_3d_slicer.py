@@ -31,9 +31,20 @@ print((folder / "result.tfm").read_text())
 # %%
 volume = sitk.ReadImage(str(folder / "3dra.nii.gz"))
 moved = sitk.Resample(volume, volume, sitk.ReadTransform(str(folder / "result.tfm")), sitk.sitkLinear, -1000.0)
-point = np.array([10.0, -20.0, 15.0])  # a point of the anatomy (LPS mm)
-where_now = result.patient_motion @ np.append(point, 1.0)
-value_then = volume.EvaluateAtPhysicalPoint(point.tolist(), sitk.sitkLinear)
-value_now = moved.EvaluateAtPhysicalPoint(where_now[:3].tolist(), sitk.sitkLinear)
-print(f"HU at the point in the 3DRA: {value_then:.1f}; at M @ point after resampling: {value_now:.1f}")
-assert abs(value_then - value_now) < 1.0
+# points of the anatomy (LPS mm, a 5 x 5 x 5 grid about the iso-center)
+axis = np.linspace(-40.0, 40.0, 5)
+points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def hu(image: sitk.Image, p: np.ndarray) -> float:
+    return image.EvaluateAtPhysicalPoint(p.tolist(), sitk.sitkLinear)
+
+
+then = np.array([hu(volume, p) for p in points])
+now = np.array([hu(moved, (result.patient_motion @ np.append(p, 1.0))[:3]) for p in points])
+# the other convention, for comparison: the anatomy looked up where the inverse motion puts it
+other = np.array([hu(moved, (np.linalg.inv(result.patient_motion) @ np.append(p, 1.0))[:3]) for p in points])
+right, wrong = np.median(np.abs(now - then)), np.median(np.abs(other - then))
+print(f"median HU difference at M @ point: {right:.1f}; at the inverse motion's point: {wrong:.1f}")
+# resampling interpolates once more, so the right convention agrees up to that smoothing only
+assert right < 0.25 * wrong

@@ -74,11 +74,12 @@ CORRECTION_VOXEL_MM = 1.0
 def scan_level(renderer: DRRRenderer, voxel_mm: float = CORRECTION_VOXEL_MM) -> int:
     """The prepared level of ``renderer`` whose voxel (its largest spacing) is nearest
     ``voxel_mm`` in ratio (ties: the finer): a scan level chosen in millimetres, not by index.
-    On the clinical study's 128^3 FDK volumes (its own pyramid, level 0 of 1.2-1.6 mm voxels)
-    that is level 0, where the high-passed scan was measured to see the offset
-    (docs/validation/clinical-s6/depth_scan.md); on a CT prepared by
+    On the clinical study's 128^3 FDK volumes (level 0 of 1.2-1.4 mm voxels, prepared for one
+    view's correction: :func:`registration.core.register.inputs.scans_level0`) that is level 0,
+    where the high-passed scan was measured to see the offset
+    (docs/validation/clinical-s6/depth_scan.md); on a CT or a 256^3 3DRA prepared by
     :func:`registration.core.prepare.prepare_volume` (levels 1 and 2 only) it is the polish's
-    level 1 (1.4-2 mm), and rendering a 23.5 M-voxel level 0 is never asked for."""
+    level 1 (1.2-2 mm), and rendering a 23.5 M-voxel level 0 is never asked for."""
     if not voxel_mm > 0:
         raise ValueError(f"voxel_mm must be positive, got {voxel_mm}")
     sizes = {

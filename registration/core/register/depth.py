@@ -10,9 +10,12 @@ from numpy.typing import NDArray
 
 from registration.core.drr import DRRRenderer
 from registration.core.problem import iso_pixel_mm, level_factor, renderer_level
+from registration.core.register.monitor import cost_function
 from registration.core.register.options import DepthOptions, RegistrationOptions
 from registration.core.register.plan import State
+from registration.core.register.screen import rotation_margin
 from registration.core.register.stages import PolishBudget, run_polish
+from registration.core.search import SearchSpace
 
 Array = NDArray[np.float64]
 
@@ -42,9 +45,13 @@ class DepthCorrect:
 
     def describe(self) -> str:
         d = self.depth
+        stride = f", every {d.scan_stride} then climbing to the peak" if d.scan_stride > 1 else ""
+        first = ""
+        if d.first_polish and d.first_polish_skip_margin is not None:
+            first = f" (the first only if tz moved or the rx, ry margin is below {d.first_polish_skip_margin:g})"
         return (f"depth correction: up to {d.rounds} scans along the beam (+-{d.bound_mm:g} mm, then "
-                f"+-{d.rescan_mm:g} mm, {d.scan_step_mm:g} mm steps), each followed by a polish at "
-                f"{self.polish_image_px} px: {self.budget.describe()}")  # fmt: skip
+                f"+-{d.rescan_mm:g} mm, {d.scan_step_mm:g} mm steps{stride}), each followed by a polish"
+                f"{first} at {self.polish_image_px} px: {self.budget.describe()}")  # fmt: skip
 
     def runs(self, state: State) -> bool:
         return True
@@ -69,6 +76,7 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
     step, bound = d.scan_step_mm, d.bound_mm
     space, tz, moves = state.space, state.space.held_tz_mm, []
     x, f = np.asarray(state.x, dtype=np.float64), state.f
+    screened = None
     for n in range(d.rounds):
         if r.monitor.stopped:
             break
@@ -79,12 +87,19 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
         if len(offsets) < 3:
             break
         scan = depth_scan(renderer, view, space.holding_tz(tz).motion(x), offsets_mm=offsets, image_px=d.image_px,
-                          volume_level=level, margin_mm=stage.margin_mm, pixel_at_iso_mm=pixel_mm)  # fmt: skip
+                          volume_level=level, margin_mm=stage.margin_mm, pixel_at_iso_mm=pixel_mm,
+                          stride=d.scan_stride)  # fmt: skip
         r.monitor.charge(scan.drr_count, scan.drr_count * d.image_px * d.image_px)  # the scan's square images
         move = float(np.clip(tz + scan.tz_mm, -bound, bound)) - tz
         moves.append(move)
         if abs(move) < d.move_mm and not (n == 0 and d.first_polish):
             break
+        if abs(move) < d.move_mm and d.first_polish_skip_margin is not None:
+            # the first polish only where the estimate's rx / ry is in doubt
+            measured = _screen(state, stage, space.holding_tz(tz), x)
+            if measured[2] >= d.first_polish_skip_margin:
+                screened = measured
+                break
         tz += move
         held = space.holding_tz(tz)
         problem = r.problem(stage.polish_image_px, stage.polish_volume_level, stage.margin_mm, held.motion(x),
@@ -92,7 +107,18 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
         best = run_polish(problem, held, state.number, x, stage.budget, r.monitor)
         x, f = best.x, best.fun
     moved = (state.depth_moves_mm or ()) + tuple(moves)
-    return replace(state, x=x, f=f, space=space.holding_tz(tz), depth_moves_mm=moved)
+    return replace(state, x=x, f=f, space=space.holding_tz(tz), depth_moves_mm=moved, screened=screened)
+
+
+def _screen(state: State, stage: DepthCorrect, space: SearchSpace, x: Array) -> tuple[Array, float, float]:
+    """The estimate ``x``, its cost and its out-of-plane rotation margin
+    (:func:`registration.core.register.screen.rotation_margin`) at the polish's level."""
+    r = state.run
+    problem = r.problem(stage.polish_image_px, stage.polish_volume_level, stage.margin_mm, space.motion(x),
+                        views=r.inputs.views[:1])  # fmt: skip
+    cost = cost_function(problem, space, r.monitor, None)
+    f_est = cost(x)
+    return np.array(x, dtype=np.float64), float(f_est), rotation_margin(cost, space, x, f_est)
 
 
 def depth_stage(options: RegistrationOptions, margin_index: int) -> DepthCorrect:

@@ -82,7 +82,17 @@ def prepared_volume(
         translations=3 if options.optimizes_tz(len(views)) else 2,
     )
     levels = options.volume_levels()
+    if scans_level0(volume, len(views), options):
+        levels = [0, *levels]
     return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=levels, store=store)
+
+
+def scans_level0(volume: Volume, n_views: int, options: RegistrationOptions) -> bool:
+    """Whether one view's depth correction gets the volume's level 0 to scan on: a coarse volume
+    (at most ``options.depth.level0_max_voxels`` voxels), where level 1's voxel is twice the
+    3DRA's and the truncated reconstruction's coarse scales bias the scan toward the source."""
+    d = options.depth
+    return n_views == 1 and d.enabled and 0 < volume.data.size <= d.level0_max_voxels
 
 
 def coarse_level(renderer: DRRRenderer, options: RegistrationOptions) -> int:

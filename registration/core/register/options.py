@@ -155,6 +155,9 @@ class DepthOptions:
     voxel_mm: float = 1.0
     #: No correction when that level's voxel is coarser than this, mm (default 3.0, > 0).
     max_voxel_mm: float = 3.0
+    #: The volume's own level 0 is prepared for the scan too when the volume has at most this many
+    #: voxels (default 2**22: a 128^3 3DRA, not a 256^3 one or a CT; 0: never).
+    level0_max_voxels: int = 2**22
     #: The scan's image size, pixels across (default 128, >= 16).
     image_px: int = 128
     #: The scan's step along the beam, mm (default 2.0, > 0).
@@ -168,10 +171,22 @@ class DepthOptions:
     polish_evaluations: int = 60
     #: Polish after the first scan even when it moved tz by less than ``move_mm`` (default True).
     first_polish: bool = True
+    #: ... unless the estimate's out-of-plane rotation margin (rx, ry turned +-3 deg, relative)
+    #: reaches this (default 0.008, the rotation check's): its rotation is not in doubt, and tz
+    #: stays (None: always polish).
+    first_polish_skip_margin: float | None = 0.008
+    #: The scans evaluate every this-th offset, then climb offset by offset to the peak (default 3;
+    #: 1: every offset).
+    scan_stride: int = 3
 
     def __post_init__(self) -> None:
         _at_least("DepthOptions", 1, rounds=self.rounds, polish_evaluations=self.polish_evaluations)
         _at_least("DepthOptions", 16, image_px=self.image_px)
+        _at_least("DepthOptions", 0, level0_max_voxels=self.level0_max_voxels)
+        _at_least("DepthOptions", 1, scan_stride=self.scan_stride)
+        skip = self.first_polish_skip_margin
+        if skip is not None and not (math.isfinite(skip) and skip >= 0):
+            raise ValueError(f"DepthOptions.first_polish_skip_margin must be >= 0 or None, got {skip}")
         _positive("DepthOptions", move_mm=self.move_mm, bound_mm=self.bound_mm, voxel_mm=self.voxel_mm,
                   max_voxel_mm=self.max_voxel_mm, scan_step_mm=self.scan_step_mm, rescan_mm=self.rescan_mm)  # fmt: skip
         _reach("DepthOptions.polish", self.polish_reach_mm, self.polish_reach_deg, optional=False)
@@ -303,12 +318,15 @@ FLAT_NAMES: dict[str, tuple[str, str | tuple[str, str]]] = {
     "depth_bound_mm": ("depth", "bound_mm"),
     "depth_voxel_mm": ("depth", "voxel_mm"),
     "depth_max_voxel_mm": ("depth", "max_voxel_mm"),
+    "depth_level0_max_voxels": ("depth", "level0_max_voxels"),
     "depth_image_px": ("depth", "image_px"),
     "depth_scan_step_mm": ("depth", "scan_step_mm"),
     "depth_rescan_mm": ("depth", "rescan_mm"),
     "depth_polish_reach": ("depth", ("polish_reach_mm", "polish_reach_deg")),
     "depth_polish_evaluations": ("depth", "polish_evaluations"),
     "depth_first_polish": ("depth", "first_polish"),
+    "depth_first_polish_skip_margin": ("depth", "first_polish_skip_margin"),
+    "depth_scan_stride": ("depth", "scan_stride"),
     "rotation_check_deg": ("rotation_check", "turn_deg"),
     "rotation_check_reach": ("rotation_check", ("reach_mm", "reach_deg")),
     "rotation_check_evaluations": ("rotation_check", "evaluations"),

@@ -59,7 +59,7 @@ class State:
     follows); ``number``: Progress's number of the stage running; ``starts``: several starts
     for the next annealing level (planes that disagreed); ``planes_agree``: the biplane
     captures' outcome (None: none ran); ``depth_moves_mm``: each depth scan's move of tz;
-    ``check``: what the last rotation check found.
+    ``check``: what the last rotation check found; ``screened``: see below.
     """
 
     run: Run
@@ -71,6 +71,9 @@ class State:
     planes_agree: bool | None = None
     depth_moves_mm: tuple[float, ...] | None = None
     check: RotationCheck | None = None
+    #: The depth correction's rotation screen: the estimate it measured, its cost and its margin
+    #: (at the polish's level; the rotation check's screen of the same estimate).
+    screened: tuple[Array, float, float] | None = None
 
     @property
     def motion(self) -> Array:

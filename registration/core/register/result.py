@@ -196,7 +196,7 @@ class RotationCheck:
     checks: int = 1
     moves: int = 0
     #: The estimate's out-of-plane rotation margin measured before the first check
-    #: (:func:`~registration.core.register.rotation_check.rotation_margin`), and whether it was
+    #: (:func:`~registration.core.register.screen.rotation_margin`), and whether it was
     #: sharp enough that no polish ran (``checks`` 0).
     margin: float | None = None
     skipped: bool = False

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -19,6 +18,7 @@ from registration.core.register.monitor import Monitor, cost_function
 from registration.core.register.options import RegistrationOptions, RotationCheckOptions
 from registration.core.register.plan import State
 from registration.core.register.result import RotationCheck
+from registration.core.register.screen import SCREEN_TURN_DEG, rotation_margin, turned_starts
 from registration.core.register.stages import PolishBudget, run_polish
 from registration.core.search import SearchSpace
 
@@ -27,8 +27,6 @@ Array = NDArray[np.float64]
 #: A rotation check's polish that ends more than this far from the estimate (deg) found a
 #: rival optimum, not the estimate's own peak.
 RIVAL_DISTINCT_DEG = 2.0
-#: The turn of rx and ry (deg) at which the check's screen measures the estimate's margin.
-SCREEN_TURN_DEG = 3.0
 
 
 @dataclass(frozen=True)
@@ -62,7 +60,11 @@ class CheckRotations:
         renderer, view = r.inputs.renderer, r.inputs.views[0]
         moves, check, margin = 0, None, None
         for n in range(self.check.rounds):
-            check = check_estimate(renderer, view, state.space, state.x, self, r.monitor, state.number, screen=n == 0)
+            known = state.screened if n == 0 and state.screened is not None else None
+            if known is not None and not np.array_equal(known[0], state.x):
+                known = None  # the depth correction screened another estimate
+            check = check_estimate(renderer, view, state.space, state.x, self, r.monitor, state.number,
+                                   screen=n == 0, screened=known)  # fmt: skip
             if check.skipped:
                 return replace(state, check=replace(check, checks=0))
             if n == 0:
@@ -83,28 +85,33 @@ class CheckRotations:
 
 def check_estimate(
     renderer: DRRRenderer, view: XRayImage, space: SearchSpace, x: Array, stage: CheckRotations, monitor: Monitor,
-    number: int, *, screen: bool = False,
+    number: int, *, screen: bool = False, screened: tuple[Array, float, float] | None = None,
 ) -> RotationCheck:  # fmt: skip
     """Polish the five parameters of ``space`` (tz held) from the estimate ``x`` with the view's
     rx or ry turned by +- ``turn_deg``, at the polish's level, and compare with the estimate's
     measure there (one support mask, the estimate's). ``screen``: first measure the estimate's
     out-of-plane rotation margin (:func:`rotation_margin`) and, when it reaches the options'
-    ``skip_margin``, polish nothing (``skipped``). Deterministic; DRRs counted in ``monitor``."""
+    ``skip_margin``, polish nothing (``skipped``); ``screened``: the estimate's cost and margin
+    measured already (by the depth correction, at the same level). Deterministic; DRRs counted in
+    ``monitor``."""
     x = np.asarray(x, dtype=np.float64)
     m_est = space.motion(x)
-    problem = LevelProblem.prepare(renderer, (view,), image_px=stage.polish_image_px,
-                                   volume_level=stage.polish_volume_level, motion=m_est,
-                                   margin_mm=stage.margin_mm)  # fmt: skip
-    cost = cost_function(problem, space, monitor, None)
-    f_est = cost(x)
-    margin = rotation_margin(cost, space, x, f_est) if screen else None
+    if screen and screened is not None:
+        problem, f_est, margin = None, screened[1], screened[2]
+    else:
+        problem = _polish_problem(renderer, view, stage, m_est)
+        cost = cost_function(problem, space, monitor, None)
+        f_est = cost(x)
+        margin = rotation_margin(cost, space, x, f_est) if screen else None
     if margin is not None and not math.isfinite(margin):
         margin = None  # the run was stopped: nothing was measured
     skip = stage.check.skip_margin
     if margin is not None and skip is not None and margin >= skip:
         return RotationCheck(None, 0.0, x, f_est, f_est, margin=margin, skipped=True)
+    if problem is None:
+        problem = _polish_problem(renderer, view, stage, m_est)
     ends: list[AnnealResult] = []
-    for start in _turned(x, space, stage.check.turn_deg):
+    for start in turned_starts(x, space, stage.check.turn_deg):
         if monitor.stopped:
             break
         ends.append(run_polish(problem, space, number, start, stage.budget, monitor))
@@ -123,25 +130,11 @@ def check_estimate(
     return RotationCheck(max(gains) if gains else None, moved, chosen_x, chosen_f, f_est, margin=margin)
 
 
-def rotation_margin(cost: Callable[[Array], float], space: SearchSpace, x: Array, f_est: float) -> float:
-    """The estimate's relative margin over its out-of-plane rotations: the measure at ``x`` less
-    the best of rx and ry turned by +- :data:`SCREEN_TURN_DEG` (four evaluations of ``cost``,
-    the negated measure), relative to the measure. A wrong rx / ry optimum sits on a flat ridge
-    there (its margin small or negative), as the confidence's ``rotation_margin`` finds."""
-    worst = min(cost(turned) for turned in _turned(x, space, SCREEN_TURN_DEG))
-    return float((worst - f_est) / max(abs(f_est), 1e-12))
-
-
-def _turned(x: Array, space: SearchSpace, turn_deg: float) -> list[Array]:
-    """``x`` with rx, then ry (of the five parameters) turned by +``turn_deg`` and -``turn_deg``,
-    each clipped to the space's bounds."""
-    out = []
-    for slot in (2, 3):
-        for sign in (1.0, -1.0):
-            turned = x.copy()
-            turned[slot] += sign * turn_deg
-            out.append(np.clip(turned, space.bounds[:, 0], space.bounds[:, 1]))
-    return out
+def _polish_problem(renderer: DRRRenderer, view: XRayImage, stage: CheckRotations, motion: Array) -> LevelProblem:
+    """The view at the polish's level, prepared at ``motion`` (its support mask)."""
+    return LevelProblem.prepare(renderer, (view,), image_px=stage.polish_image_px,
+                                volume_level=stage.polish_volume_level, motion=motion,
+                                margin_mm=stage.margin_mm)  # fmt: skip
 
 
 def rotation_check(

@@ -125,6 +125,29 @@ def test_the_scan_level_is_chosen_in_millimetres(scene):
         scan_level(renderer, 0.0)
 
 
+def test_a_coarse_volume_is_prepared_with_its_level0_for_one_planes_scan(scene):
+    """A 128^3 3DRA (2.1 M voxels): one view's preparation holds level 0, the volume's own grid,
+    and the correction scans there (1 mm is nearer its 2.1 mm voxel than level 1's 4.2 mm);
+    two views, no correction, or a limit below the volume's size: levels 1 and 2 only."""
+    from registration.core.register.inputs import prepared_volume
+
+    volume, _, cases = scene
+    truth, xray = cases[1.0]
+    prepared = prepared_volume(volume, (xray,), np.eye(4), ON)
+    assert prepared.renderer.has_level(0) and scan_level(prepared.renderer) == 0
+    # the volume's own grid, not resampled (its spacing to float32's precision)
+    np.testing.assert_allclose(prepared.renderer.level_volume(0).spacing_mm, volume.spacing_mm, rtol=1e-6)
+    b = replace(xray.geometry, primary_deg=xray.geometry.primary_deg + 90.0)
+    two = (xray, replace(xray, geometry=b))
+    for views, options in (
+        (two, ON),
+        ((xray,), OFF),
+        ((xray,), replace(ON, depth=replace(ON.depth, level0_max_voxels=volume.data.size - 1))),
+    ):
+        prepared = prepared_volume(volume, views, np.eye(4), options)
+        assert not prepared.renderer.has_level(0) and scan_level(prepared.renderer) == 1
+
+
 def test_a_volume_too_coarse_to_see_magnification_is_not_corrected(scene):
     """48^3 over a 27 cm field (5.6 mm voxels, the app's PACS export): a 2.7 % magnification is
     below what it resolves, so the five-parameter estimate is left as it is."""
@@ -149,6 +172,7 @@ def test_bad_depth_options():
         {"depth_image_px": 8},
         {"depth_polish_reach": (2.0, 0.0)},
         {"depth_polish_evaluations": 0},
+        {"depth_level0_max_voxels": -1},
     ):
         with pytest.raises(ValueError):
             RegistrationOptions(**bad)

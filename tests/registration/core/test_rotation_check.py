@@ -91,7 +91,10 @@ def test_register_reports_the_check_and_counts_its_drrs(scene):
     # a check that kept the estimate costs its screen (the estimate's measure and four turns)
     # and, when not skipped, four polishes
     if check.skipped:
-        assert on.drr_count - off.drr_count == 5
+        # nothing more when the depth correction's screen measured this estimate (its first
+        # polish skipped: one scan), else the check's own screen
+        reused = len(on.depth_moves_mm) == 1
+        assert on.drr_count - off.drr_count == (0 if reused else 5)
     elif check.moves == 0:
         assert 5 < on.drr_count - off.drr_count <= 4 * (OPTIONS.rotation_check_evaluations + 1) + 5
     # deterministic
@@ -126,6 +129,44 @@ def test_the_screen_skips_a_sharp_peak_and_checks_a_flat_one(scene):
     assert not always.skipped and always.margin == pytest.approx(sharp.margin, abs=1e-12)
 
 
+def test_the_depth_correction_screens_its_first_polish_and_the_check_reuses_the_screen(scene):
+    volume, renderer, truth, xray = scene
+    always = replace(OPTIONS, depth=replace(OPTIONS.depth, first_polish_skip_margin=None))
+    screened = replace(OPTIONS, depth=replace(OPTIONS.depth, first_polish_skip_margin=0.008))
+
+    def run(options):
+        return register(volume, xray, truth=truth, seed=0, renderer=renderer, options=options)
+
+    a, b = run(always), run(screened)
+    # the truth lies at tz 0, where the registration starts: the first scan moves tz by less than
+    # 1.5 mm, and the estimate's rx / ry peak is sharp (margin 0.034 at the truth), so the polish
+    # that followed the scan is skipped, tz stays and the rotation check takes the same margin
+    assert len(b.depth_moves_mm) == 1 and abs(b.depth_moves_mm[0]) < OPTIONS.depth.move_mm
+    assert b.depth_tz_mm == 0.0
+    assert b.rotation_check.skipped and b.rotation_check.margin >= 0.008
+    # the check's screen renders nothing more: the same DRRs as without the check
+    assert b.drr_count == run(replace(screened, rotation_check=False)).drr_count
+    assert b.drr_count < a.drr_count - OPTIONS.depth.polish_evaluations // 2
+    # and it is as right as before (the polish jitter of 0.53 mm pixels at the iso-center)
+    assert b.success and b.residual.inplane_mm < 0.3 and b.residual.rotation_deg < 1.0
+    # a threshold no margin reaches changes nothing
+    never = run(replace(OPTIONS, depth=replace(OPTIONS.depth, first_polish_skip_margin=1.0)))
+    np.testing.assert_array_equal(never.patient_motion, a.patient_motion)
+    assert never.drr_count == a.drr_count + 5  # its screen's estimate and four turns
+
+
+def test_strided_depth_scans_find_the_same_peaks_for_fewer_drrs(scene):
+    volume, renderer, truth, xray = scene
+    base = replace(OPTIONS, depth=replace(OPTIONS.depth, first_polish_skip_margin=None, scan_stride=1))
+    a = register(volume, xray, truth=truth, seed=0, renderer=renderer, options=base)
+    b = register(volume, xray, truth=truth, seed=0, renderer=renderer,
+                 options=replace(base, depth=replace(base.depth, scan_stride=3)))  # fmt: skip
+    # one peak along the beam: the climb reaches the full scan's peak and parabola, bit for bit
+    assert b.depth_moves_mm == a.depth_moves_mm
+    np.testing.assert_array_equal(b.patient_motion, a.patient_motion)
+    assert b.drr_count < a.drr_count
+
+
 def test_the_options_are_checked():
     with pytest.raises(ValueError, match="skip_margin"):
         RegistrationOptions(rotation_check_skip_margin=-0.1)
@@ -135,3 +176,7 @@ def test_the_options_are_checked():
         RegistrationOptions(rotation_check_reach=(2.0, -1.0))
     with pytest.raises(ValueError, match="rounds"):
         RegistrationOptions(rotation_check_rounds=0)
+    with pytest.raises(ValueError, match="first_polish_skip_margin"):
+        RegistrationOptions(depth_first_polish_skip_margin=float("nan"))
+    with pytest.raises(ValueError, match="scan_stride"):
+        RegistrationOptions(depth_scan_stride=0)

@@ -31,7 +31,10 @@ def test_the_checks_price_is_measured_beside_them() -> None:
     assert reg["checks_ratio"]["min"] <= reg["checks_ratio"]["median"] and reg["checks_off_seconds_median"] > 0
     names = [s["stage"] for s in reg["stages"]]
     assert any(n.startswith("depth correction") for n in names) and any(n.startswith("rotation check") for n in names)
-    assert all(s["runs"] == 4 and s["drrs_median"] > 0 for s in reg["stages"])
+    # every stage renders but the rotation check, which takes the depth correction's screen of a
+    # sharp estimate at no cost (Table I's are)
+    assert all(s["runs"] == 4 and (s["drrs_median"] > 0 or n.startswith("rotation check"))
+               for n, s in zip(names, reg["stages"], strict=True))  # fmt: skip
 
 
 def test_the_confidence_cost_is_per_registration_ratios() -> None:
