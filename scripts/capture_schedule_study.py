@@ -1,0 +1,96 @@
+"""The same draws registered with the capture level's annealing schedule as it is and shortened
+(fewer temperature stages, or fewer moves per stage); each estimate assessed as
+``register --confidence``.
+
+python scripts/capture_schedule_study.py runs --seed 50 --cases 10 --out tune-runs.jsonl
+python scripts/capture_schedule_study.py volume --seed 80 --cases 20 --out tune-ct.jsonl
+python scripts/capture_schedule_study.py table1 --seed 0 --out tune-t1.jsonl
+
+``runs``: the rotational-run study (``roadmap3d validate clinical --quick``, ``--cases``
+registrations per patient); ``volume``: the shared real CT's clinical-looking images
+(``roadmap3d validate volume --realism clinical``, single plane, ``--strength``); ``table1``:
+Table I's four offsets on the phantom (27 cm, fluoro), ``--cases`` seeds from ``--seed``.
+``--variants``: which schedules, as NAME=STAGESxMOVES (the default: 14x14, 11x14, 14x10, 10x12).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from registration.core.register import RegistrationOptions
+
+KEYS = ("inplane_residual_mm", "outofplane_residual_mm", "rotation_residual_deg", "success", "applied",
+        "confidence", "drr_count", "seconds")  # fmt: skip
+
+
+def variants(spec: list[str]) -> dict[str, RegistrationOptions]:
+    base = RegistrationOptions()
+    out = {}
+    for item in spec:
+        name, _, shape = item.partition("=")
+        stages, moves = (int(v) for v in shape.split("x"))
+        capture = base.levels[0]
+        schedule = replace(capture.schedule, stages=stages, moves_per_stage=moves)
+        out[name] = replace(base, levels=(replace(capture, schedule=schedule), *base.levels[1:]))
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("study", choices=("runs", "volume", "table1"))
+    ap.add_argument("--seed", type=int, required=True)
+    ap.add_argument("--cases", type=int, default=10)
+    ap.add_argument("--strength", type=float, default=1.0)
+    ap.add_argument("--variants", nargs="+", default=["s14m14=14x14", "s11m14=11x14", "s14m10=14x10", "s10m12=10x12"])
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    options = variants(args.variants)
+    with args.out.open("a") as fh:
+        if args.study == "runs":
+            from registration.studies import runs
+
+            config = replace(runs.ClinicalConfig.quick_config(args.seed), registrations_per_patient=args.cases)
+            for task in runs.clinical_tasks(config):
+                line = {"case_id": task.case_id, "study": "runs", "seed": args.seed}
+                for name, o in options.items():
+                    record = runs.run_clinical_case(task.case, options=o)
+                    line[name] = {k: record.get(k) for k in KEYS}
+                fh.write(json.dumps(line) + "\n")
+                fh.flush()
+        elif args.study == "table1":
+            from registration.core.geometry import TABLE_I
+            from registration.studies.cases import Case, run_case
+
+            for seed in range(args.seed, args.seed + args.cases):
+                for n, offset in enumerate(TABLE_I):
+                    case = Case(offset=offset, image_kind="fluoro", volume_format_cm=27.0, image_format_cm=27.0,
+                                seed=seed)  # fmt: skip
+                    line = {"study": "table1", "seed": seed, "case": n}
+                    for name, o in options.items():
+                        record = run_case(case, options=o)
+                        line[name] = {k: record.get(k) for k in KEYS}
+                    fh.write(json.dumps(line) + "\n")
+                    fh.flush()
+        else:
+            import registration.studies.volume as study
+            from registration.io import dicom
+
+            volume = dicom.read_volume(study.find_real_ct())
+            iso = study.head_isocenter_mm(volume)
+            config = study.VolumeStudyConfig(cases=args.cases, seed=args.seed, realism="clinical",
+                                             strengths=(args.strength,))  # fmt: skip
+            passes = {name: study.run_volume_study(volume, iso, config, options=o)[0] for name, o in options.items()}
+            for n in range(args.cases):
+                line = {"study": f"volume:{args.strength:g}", "seed": args.seed, "case": n}
+                for name, records in passes.items():
+                    line[name] = {k: records[n].get(k) for k in KEYS}
+                fh.write(json.dumps(line) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
