@@ -5,11 +5,14 @@
 python scripts/capture_schedule_study.py runs --seed 50 --cases 10 --out tune-runs.jsonl
 python scripts/capture_schedule_study.py volume --seed 80 --cases 20 --out tune-ct.jsonl
 python scripts/capture_schedule_study.py table1 --seed 0 --out tune-t1.jsonl
+python scripts/capture_schedule_study.py capture --seed 9 --cases 10 --mm 50 --out fresh-50mm.jsonl
 
 ``runs``: the rotational-run study (``roadmap3d validate clinical --quick``, ``--cases``
 registrations per patient); ``volume``: the shared real CT's clinical-looking images
 (``roadmap3d validate volume --realism clinical``, single plane, ``--strength``); ``table1``:
-Table I's four offsets on the phantom (27 cm, fluoro), ``--cases`` seeds from ``--seed``.
+Table I's four offsets on the phantom (27 cm, fluoro), ``--cases`` seeds from ``--seed``;
+``capture``: the capture-range study's phantom moments at a translation of ``--mm`` (and a
+rotation of ``--deg``), registered biplane and on plane A alone, ``--cases`` moments.
 ``--variants``: which schedules, as NAME=STAGESxMOVES (the default: 14x14, 11x14, 14x10, 10x12).
 """
 
@@ -27,6 +30,10 @@ KEYS = ("inplane_residual_mm", "outofplane_residual_mm", "rotation_residual_deg"
         "confidence", "drr_count", "seconds")  # fmt: skip
 
 
+CAPTURE_KEYS = ("success", "applied", "translation_residual_mm", "single_success_inplane", "single_applied",
+                "single_inplane_residual_mm", "drr_count", "seconds", "withheld_reason")  # fmt: skip
+
+
 def variants(spec: list[str]) -> dict[str, RegistrationOptions]:
     base = RegistrationOptions()
     out = {}
@@ -41,10 +48,12 @@ def variants(spec: list[str]) -> dict[str, RegistrationOptions]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("study", choices=("runs", "volume", "table1"))
+    ap.add_argument("study", choices=("runs", "volume", "table1", "capture"))
     ap.add_argument("--seed", type=int, required=True)
     ap.add_argument("--cases", type=int, default=10)
     ap.add_argument("--strength", type=float, default=1.0)
+    ap.add_argument("--mm", type=float, default=50.0)
+    ap.add_argument("--deg", type=float, default=0.0)
     ap.add_argument("--variants", nargs="+", default=["s14m14=14x14", "s11m14=11x14", "s14m10=14x10", "s10m12=10x12"])
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
@@ -61,6 +70,21 @@ def main() -> int:
                     line[name] = {k: record.get(k) for k in KEYS}
                 fh.write(json.dumps(line) + "\n")
                 fh.flush()
+        elif args.study == "capture":
+            from registration.studies.capture import CaptureConfig, capture_tasks
+            from registration.studies.execution import execute
+
+            sweep = "combined" if args.mm and args.deg else "rotation" if args.deg else "translation"
+            config = replace(CaptureConfig.quick_config(seed=args.seed), sweeps=(sweep,), translations_mm=(args.mm,),
+                             rotations_deg=(args.deg,), registrations_per_level=args.cases)  # fmt: skip
+            lines: dict[str, dict] = {}
+            for name, o in options.items():
+                for task in capture_tasks(config, o):
+                    record = execute(task)
+                    line = lines.setdefault(task.case_id, {"case_id": task.case_id, "study": "capture", "seed": args.seed})
+                    line[name] = {k: record.get(k) for k in CAPTURE_KEYS}
+            for line in lines.values():
+                fh.write(json.dumps(line) + "\n")
         elif args.study == "table1":
             from registration.core.geometry import TABLE_I
             from registration.studies.cases import Case, run_case
