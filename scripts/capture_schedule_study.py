@@ -81,7 +81,8 @@ def main() -> int:
             for name, o in options.items():
                 for task in capture_tasks(config, o):
                     record = execute(task)
-                    line = lines.setdefault(task.case_id, {"case_id": task.case_id, "study": "capture", "seed": args.seed})
+                    first = {"case_id": task.case_id, "study": "capture", "seed": args.seed}
+                    line = lines.setdefault(task.case_id, first)
                     line[name] = {k: record.get(k) for k in CAPTURE_KEYS}
             for line in lines.values():
                 fh.write(json.dumps(line) + "\n")
