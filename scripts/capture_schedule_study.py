@@ -24,6 +24,8 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from variant_draws import write_runs, write_volume
+
 from registration.core.register import RegistrationOptions
 
 KEYS = ("inplane_residual_mm", "outofplane_residual_mm", "rotation_residual_deg", "success", "applied",
@@ -60,16 +62,7 @@ def main() -> int:
     options = variants(args.variants)
     with args.out.open("a") as fh:
         if args.study == "runs":
-            from registration.studies import runs
-
-            config = replace(runs.ClinicalConfig.quick_config(args.seed), registrations_per_patient=args.cases)
-            for task in runs.clinical_tasks(config):
-                line = {"case_id": task.case_id, "study": "runs", "seed": args.seed}
-                for name, o in options.items():
-                    record = runs.run_clinical_case(task.case, options=o)
-                    line[name] = {k: record.get(k) for k in KEYS}
-                fh.write(json.dumps(line) + "\n")
-                fh.flush()
+            write_runs(fh, args.seed, args.cases, options, KEYS)
         elif args.study == "capture":
             from registration.studies.capture import CaptureConfig, capture_tasks
             from registration.studies.execution import execute
@@ -101,19 +94,7 @@ def main() -> int:
                     fh.write(json.dumps(line) + "\n")
                     fh.flush()
         else:
-            import registration.studies.volume as study
-            from registration.io import dicom
-
-            volume = dicom.read_volume(study.find_real_ct())
-            iso = study.head_isocenter_mm(volume)
-            config = study.VolumeStudyConfig(cases=args.cases, seed=args.seed, realism="clinical",
-                                             strengths=(args.strength,))  # fmt: skip
-            passes = {name: study.run_volume_study(volume, iso, config, options=o)[0] for name, o in options.items()}
-            for n in range(args.cases):
-                line = {"study": f"volume:{args.strength:g}", "seed": args.seed, "case": n}
-                for name, records in passes.items():
-                    line[name] = {k: records[n].get(k) for k in KEYS}
-                fh.write(json.dumps(line) + "\n")
+            write_volume(fh, args.seed, args.cases, args.strength, options, KEYS)
     return 0
 
 

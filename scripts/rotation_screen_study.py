@@ -13,10 +13,10 @@ clinical``, single plane, ``--strength``), written when both passes have ended.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from dataclasses import replace
 from pathlib import Path
+
+from variant_draws import write_runs, write_volume
 
 from registration.core.register import RegistrationOptions
 
@@ -34,31 +34,12 @@ def main() -> int:
     ap.add_argument("--strength", type=float, default=1.0)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
+    variants = {"on": None, "off": OFF}
     with args.out.open("a") as fh:
         if args.study == "runs":
-            from registration.studies import runs
-
-            config = replace(runs.ClinicalConfig.quick_config(args.seed), registrations_per_patient=args.cases)
-            for task in runs.clinical_tasks(config):
-                line = {"case_id": task.case_id, "study": "runs", "seed": args.seed}
-                for name, options in (("on", None), ("off", OFF)):
-                    record = runs.run_clinical_case(task.case, options=options)
-                    line[name] = {k: record.get(k) for k in KEYS}
-                fh.write(json.dumps(line) + "\n")
-                fh.flush()
+            write_runs(fh, args.seed, args.cases, variants, KEYS)
         else:
-            import registration.studies.volume as study
-            from registration.io import dicom
-
-            volume = dicom.read_volume(study.find_real_ct())
-            iso = study.head_isocenter_mm(volume)
-            config = study.VolumeStudyConfig(cases=args.cases, seed=args.seed, realism="clinical",
-                                             strengths=(args.strength,))  # fmt: skip
-            on = study.run_volume_study(volume, iso, config)[0]
-            off = study.run_volume_study(volume, iso, config, options=OFF)[0]
-            for a, b in zip(on, off, strict=True):
-                both = {"on": {k: a.get(k) for k in KEYS}, "off": {k: b.get(k) for k in KEYS}}
-                fh.write(json.dumps({"study": f"volume:{args.strength:g}", "seed": args.seed} | both) + "\n")
+            write_volume(fh, args.seed, args.cases, args.strength, variants, KEYS)
     return 0
 
 
