@@ -6,7 +6,9 @@ four landmarks per plane picked with noise: each volume point 3 mm off (isotropi
 axis 3 mm / sqrt(3)) and each image point off by the same 3 mm seen at the iso-center. The
 volume points are the skull's outermost voxels in eight spread directions (orbit rims, vertex,
 occiput, temples: where a user picks). Biplane: four per plane; single plane: plane A's four.
-Each start registers with the usual pipeline; success is the capture study's criterion.
+Each start registers as ``roadmap3d register --landmarks --confidence`` does (the volume prepared
+from the start, the estimate assessed with the landmarks' check); success is the capture study's
+criterion, and each line says whether the estimate was applied and how far it moved the landmarks.
 
 python scripts/landmark_start_study.py --seed 0 [--pairs 4] [--noise-mm 3]
 Prints one JSON line per registration and a summary.
@@ -20,11 +22,13 @@ import sys
 
 import numpy as np
 
+from registration.core.assess import assess
 from registration.core.geometry import apply
 from registration.core.landmarks import Landmark, landmark_start
-from registration.core.register import RegistrationOptions, register
-from registration.studies.biplane import _offset_motion, case_preparations, case_views, study_volume
+from registration.core.register import RegistrationOptions
+from registration.studies.biplane import _offset_motion, case_views, study_volume
 from registration.studies.capture import CaptureConfig, capture_tasks
+from registration.studies.cases import register_prepared
 
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, -1, 0.3], [0, 1, 0.3], [0, 0, 1], [0.7, -0.7, 0.3],
                        [-0.7, -0.7, 0.3], [0, -0.6, -0.8]], dtype=float)  # fmt: skip
@@ -50,13 +54,12 @@ def main() -> int:
     rng = np.random.default_rng([args.seed, 0x1A])
     config = CaptureConfig.quick_config(seed=args.seed)
     tasks = [t for t in capture_tasks(config) if t.extra["level"] >= 2]
-    rows = {"biplane": [], "single_plane": []}
+    rows: dict[str, list[tuple[bool, bool]]] = {"biplane": [], "single_plane": []}
     for task in tasks:
         case = task.case
         volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
         truth = _offset_motion(case)
         views, _ = case_views(case, volume, truth)
-        pair, alone = case_preparations(case, volume, views, RegistrationOptions())
         anatomy = outer_bone_points(volume, args.pairs)
         sigma = args.noise_mm / np.sqrt(3.0)
         landmarks = []
@@ -67,15 +70,17 @@ def main() -> int:
                 image_px = g.project(apply(truth, p)) + rng.normal(0.0, sigma, 2) * px_per_mm
                 volume_mm = p + rng.normal(0.0, sigma, 3)
                 landmarks.append(Landmark(tuple(image_px), tuple(volume_mm), plane))
-        for name, vs, lms, _prep in (
-            ("biplane", list(views), landmarks, pair),
-            ("single_plane", [views[0]], [lm for lm in landmarks if lm.plane == 0], alone),
+        for name, vs, lms in (
+            ("biplane", list(views), landmarks),
+            ("single_plane", [views[0]], [lm for lm in landmarks if lm.plane == 0]),
         ):
             start = landmark_start([v.geometry for v in vs], lms)
-            r = register(volume, vs if len(vs) > 1 else vs[0], initial_motion=start.patient_motion, truth=truth,
-                         seed=case.seed)  # fmt: skip
+            images = vs if len(vs) > 1 else vs[0]
+            r, prepared = register_prepared(volume, images, initial_motion=start.patient_motion, truth=truth,
+                                            seed=case.seed, options=RegistrationOptions())  # fmt: skip
+            decided = assess(r, images, prepared, landmarks=start)
             ok = bool(r.residual.success_total if name == "biplane" else r.residual.success)
-            rows[name].append(ok)
+            rows[name].append((ok, bool(decided.applied)))
             iso = np.asarray(views[0].geometry.isocenter_mm)
             start_off = float(np.linalg.norm(apply(start.patient_motion, iso) - apply(truth, iso)))
             print(
@@ -91,12 +96,19 @@ def main() -> int:
                         "total_mm": round(r.residual.translation_mm, 3),
                         "rotation_deg": round(r.residual.rotation_deg, 3),
                         "success": ok,
+                        "estimate_moved_mm": round(start.moved_mm(r.patient_motion), 3),
+                        "applied": bool(decided.applied),
+                        "withheld_reason": decided.reason,
                     }
                 ),
                 flush=True,
             )
-    for name, oks in rows.items():
-        print(json.dumps({"planes": name, "success": f"{sum(oks)}/{len(oks)}"}))
+    for name, got in rows.items():
+        right = sum(ok for ok, _ in got)
+        applied = sum(a for _, a in got)
+        wrong = sum(a and not ok for ok, a in got)
+        summary = {"planes": name, "success": f"{right}/{len(got)}", "applied": applied, "wrong_applied": wrong}
+        print(json.dumps(summary))
     return 0
 
 

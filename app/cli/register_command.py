@@ -305,13 +305,18 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
         clock.lap("skull and spine")
         _say(outcome.skull_spine.message())
     say_result(result, len(views))
+    if inputs.landmark_start is not None:
+        moved = inputs.landmark_start.moved_mm(result.patient_motion)
+        _say(f"landmarks: the estimate moves them {moved:.1f} mm (rms, at the iso-center) "
+             "from where their picks put them")  # fmt: skip
     if (options.confidence or options.report is not None) and not result.at_bounds:
         from registration.core.assess import assess
         from registration.core.preparation import Preparation
         from registration.studies.cases import assessment_fields
 
         # the registration's prepared levels (cropped, in mm, cached), not a pyramid of the whole volume
-        outcome.assessed = assessment_fields(assess(result, outcome.views, Preparation(vol, prepared, len(views))))
+        outcome.assessed = assessment_fields(assess(result, outcome.views, Preparation(vol, prepared, len(views)),
+                                                    landmarks=inputs.landmark_start))  # fmt: skip
         clock.lap("confidence")
         decision = "applied" if outcome.assessed["applied"] else f"withheld: {outcome.assessed['withheld_reason']}"
         _say(f"confidence {outcome.assessed['confidence']:.2f} -> {decision}")
@@ -376,7 +381,7 @@ def result_document(options: Register, inputs: Inputs, outcome: Outcome) -> dict
     if len(views) == 2:
         document["images"] = described
     if inputs.landmark_start is not None:
-        document["landmark_start"] = inputs.landmark_start.to_dict()
+        document["landmark_start"] = inputs.landmark_start.report(outcome.result.patient_motion)
     if inputs.region is not None:
         document["region"] = inputs.region.summary()
     if outcome.skull_spine is not None:

@@ -209,7 +209,7 @@ class LandmarksPanel(BasePanel):
             start = landmark_start(geometries, pairs)  # ValueError (too few, degenerate): a message
             self.start = start
             self.table.content = self.picks.table_markdown(start)
-        s.start_from(start.patient_motion)
+        s.start_from(start.patient_motion, start)
         self.ctx.refresh()
         kept = int(start.inliers.sum())
         self.ctx.message(f"Landmarks: the roadmap starts at the pose of {kept} pairs (reprojection error "

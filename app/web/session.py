@@ -58,6 +58,9 @@ class Session:
         self.settings = CArmSettings()
         self.true_motion: Array = np.eye(4)
         self.estimate: Array = np.eye(4)
+        #: The landmark start the roadmap was put at (start_from); the registration from that pose
+        #: is checked against its landmarks.
+        self.landmark_start: Any = None
         self.run = RunState()
         #: bumped on every change of settings, motion or estimate (the presenter watches it)
         self.version = 0
@@ -259,13 +262,15 @@ class Session:
                 self.run = RunState()
             self._changed()
 
-    def start_from(self, motion: Array) -> None:
-        """Put the roadmap at ``motion`` (a start found another way, e.g. from landmarks); the next
-        registration refines it."""
+    def start_from(self, motion: Array, landmarks: Any = None) -> None:
+        """Put the roadmap at ``motion`` (a start found another way, e.g. from landmarks: their
+        :class:`~registration.core.landmarks.LandmarkStart`); the next registration refines it
+        and, from landmarks, is checked against them."""
         m = check_rigid(motion, name="start")
         with self.lock:
             self._refuse_while_running()
             self.estimate = m
+            self.landmark_start = landmarks
             self.run = RunState()
             self._changed()
 
@@ -303,6 +308,9 @@ class Session:
             if self.run.running:
                 return False
             initial = self.estimate.copy()
+            start = self.landmark_start
+            # the landmarks judge a registration only from the pose they gave
+            landmarks = start if start is not None and np.allclose(start.patient_motion, initial) else None
             self.run = RunState(
                 running=True, iterations=[], similarity=[], temperature=[], started_s=time.perf_counter(),
                 initial_motion=initial.copy(), isocenter_mm=self.geometry().isocenter_mm, trigger=trigger,
@@ -315,7 +323,7 @@ class Session:
             # never the previous one or one not yet started.
             worker = threading.Thread(
                 target=self._register,
-                args=(run, initial, truth, volume_format, on_done),
+                args=(run, initial, truth, volume_format, on_done, landmarks),
                 name="registration",
                 daemon=True,
             )
@@ -330,6 +338,7 @@ class Session:
         truth: Array | None,
         volume_format: float,
         on_done: Callable[[], None] | None,
+        landmarks: Any = None,
     ) -> None:
         callback = self._progress_recorder(run)
         assessment = None
@@ -355,7 +364,7 @@ class Session:
             )
             skull_spine = None
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
-                assessment = self._assess(views, result, volume_format, initial)
+                assessment = self._assess(views, result, volume_format, initial, landmarks)
                 skull_spine = self._skull_spine(views, result)
         except Exception as exc:  # shown in the page, never a dead worker thread
             with self.lock:
@@ -426,7 +435,12 @@ class Session:
         return skull_spine_check(self.data.whole_volume, views, result.patient_motion, seed=self.config.seed)
 
     def _assess(
-        self, views: list[XRayImage], result: RegistrationResult, volume_format: float, initial: Array
+        self,
+        views: list[XRayImage],
+        result: RegistrationResult,
+        volume_format: float,
+        initial: Array,
+        landmarks: Any = None,
     ) -> dict | None:
         """The estimate's confidence and decision, as ``register --confidence`` and the studies
         assess it (:func:`registration.core.assess.assess_on`); None (the estimate is
@@ -436,7 +450,8 @@ class Session:
 
         try:
             renderer = self.data.evidence_renderer(volume_format, views, initial)
-            return assessment_fields(assess_on(result, views, self.data.volume(volume_format), renderer))
+            return assessment_fields(assess_on(result, views, self.data.volume(volume_format), renderer,
+                                               landmarks=landmarks))  # fmt: skip
         except Exception:  # noqa: BLE001 - the registration stands; the page says it was not assessed
             log.exception("confidence assessment failed")
             return None

@@ -22,6 +22,7 @@ from registration.core.confidence import DEFAULT_RULE, Assessment, ConfidenceRul
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import apply
 from registration.core.images import XRayImage
+from registration.core.landmarks import LandmarkStart
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationResult
 from registration.core.register.result import SINGLE_PLANE_MAX_TURN_DEG, single_plane_turn_deg
@@ -49,13 +50,14 @@ def depth_corrected(result: RegistrationResult) -> bool:
     return bool(getattr(result, "depth_moves_mm", ()))
 
 
-def veto(result: RegistrationResult) -> str | None:
+def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> str | None:
     """Why ``result`` is not applied whatever its evidence (None: it is assessed): an estimate at
     the search bounds (inputs without information drift there), without a finite measure, one
     view's depth correction ending at its bound, started from the image shift where it cannot be
     confirmed (:func:`shifted_start_withheld`), reached by walking beyond the search box
     (:mod:`registration.core.register.walk`), or one view's estimate turning the head more than
-    ``SINGLE_PLANE_MAX_TURN_DEG``."""
+    ``SINGLE_PLANE_MAX_TURN_DEG``, or, registered from ``landmarks`` (the start they gave), an
+    estimate that moves them further than their picks allow (:meth:`LandmarkStart.veto`)."""
     at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
     if at_bounds:
         return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
@@ -84,6 +86,8 @@ def veto(result: RegistrationResult) -> str | None:
             f"one view's estimate turns the head {turn:.0f} deg from where the search started, more than one view "
             "can confirm: check it by eye before applying it"
         )
+    if landmarks is not None:
+        return landmarks.veto(result.patient_motion)
     return None
 
 
@@ -94,14 +98,15 @@ def assess(
     *,
     single_plane_motion: ArrayLike | None = None,
     rule: ConfidenceRule = DEFAULT_RULE,
+    landmarks: LandmarkStart | None = None,
 ) -> Assessment:
     """The confidence in ``result`` (a registration of ``views`` with ``preparation``), the
     decision and why: :func:`assess_on` the preparation's probe levels."""
-    why_not = veto(result)
+    why_not = veto(result, landmarks)
     if why_not is not None:
         return Assessment(0.0, False, why_not, Evidence(veto=why_not))
     return assess_on(result, views, preparation.volume, preparation.probe_renderer(),
-                     single_plane_motion=single_plane_motion, rule=rule)  # fmt: skip
+                     single_plane_motion=single_plane_motion, rule=rule, landmarks=landmarks)  # fmt: skip
 
 
 def assess_on(
@@ -112,6 +117,7 @@ def assess_on(
     *,
     single_plane_motion: ArrayLike | None = None,
     rule: ConfidenceRule = DEFAULT_RULE,
+    landmarks: LandmarkStart | None = None,
 ) -> Assessment:
     """:func:`assess` with the probes rendered by ``renderer`` (of ``volume``).
 
@@ -124,7 +130,7 @@ def assess_on(
     not applied."""
     start = time.perf_counter()
     views = (views,) if isinstance(views, XRayImage) else tuple(views)
-    why_not = veto(result)
+    why_not = veto(result, landmarks)
     if why_not is not None:
         return Assessment(0.0, False, why_not, Evidence(veto=why_not))
     evidence, probe, scan = _evidence(result, views, volume, renderer, rule)

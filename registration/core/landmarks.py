@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import rq
 from scipy.optimize import least_squares
 
@@ -33,6 +33,12 @@ MIN_PAIRS = 4
 RANSAC_PAIRS = 6
 #: A pair whose reprojection error exceeds this (pixels) is an outlier for RANSAC.
 RANSAC_THRESHOLD_PX = 12.0
+#: A registration from a landmark start that moves the kept landmarks' projections more than
+#: this (mm at the iso-center, root mean square) from where the start put them is not applied
+#: automatically: two or more views, and one view, whose start is looser
+#: (docs/decisions/2026-12-04-landmark-check.md).
+LANDMARK_MOVE_MM = 3.5
+LANDMARK_MOVE_MM_ONE_VIEW = 5.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +63,40 @@ class LandmarkStart:
     errors_px: Array
     rms_px: float
     inliers: NDArray[np.bool_]
+    #: The pairs and the views' C-arms the start was computed from (for :meth:`moved_mm`).
+    landmarks: tuple[Landmark, ...] = ()
+    geometries: tuple[CArm, ...] = ()
+
+    def moved_mm(self, motion: ArrayLike) -> float:
+        """How far ``motion`` moves the kept landmarks' projections from where the start put
+        them: the root mean square over the kept pairs of the shift on their view's image, in
+        mm at the iso-center. 0.0 without the pairs."""
+        kept = [lm for lm, keep in zip(self.landmarks, self.inliers, strict=False) if keep]
+        if not kept or not self.geometries:
+            return 0.0
+        m = np.asarray(motion, dtype=np.float64)
+        shifts = []
+        for lm in kept:
+            g = self.geometries[lm.plane]
+            p = np.asarray(lm.volume_mm, dtype=np.float64)
+            a = g.project(self.patient_motion[:3, :3] @ p + self.patient_motion[:3, 3])
+            b = g.project(m[:3, :3] @ p + m[:3, 3])
+            shifts.append(float(np.linalg.norm(a - b)) * float(np.mean(g.pixel_mm)) / g.magnification)
+        return float(np.sqrt(np.mean(np.square(shifts))))
+
+    def veto(self, motion: ArrayLike) -> str | None:
+        """Why an estimate registered from this start is not applied automatically: it moves the
+        landmarks' projections more than :data:`LANDMARK_MOVE_MM` (one view:
+        :data:`LANDMARK_MOVE_MM_ONE_VIEW`) from where the picks put them (the image-based search
+        settled away from what the landmarks say). None: it agrees."""
+        moved = self.moved_mm(motion)
+        limit = LANDMARK_MOVE_MM if len(self.geometries) > 1 else LANDMARK_MOVE_MM_ONE_VIEW
+        if moved <= limit:
+            return None
+        return (
+            f"the estimate moves the landmarks {moved:.1f} mm (rms, at the iso-center) from where their picks put "
+            f"them, more than {limit:g} mm: check the landmarks and the estimate by eye before applying it"
+        )
 
     def to_dict(self) -> dict:
         return {
@@ -65,6 +105,11 @@ class LandmarkStart:
             "reprojection_errors_px": [round(float(e), 3) for e in self.errors_px],
             "inliers": [bool(i) for i in self.inliers],
         }
+
+    def report(self, motion: ArrayLike) -> dict:
+        """:meth:`to_dict` with how far ``motion`` (the registration's estimate) moves the
+        landmarks (``estimate_moved_mm``)."""
+        return {**self.to_dict(), "estimate_moved_mm": round(self.moved_mm(motion), 3)}
 
 
 def camera_of(geometry: CArm) -> tuple[Array, Array]:
@@ -181,7 +226,16 @@ def landmark_start(geometries: CArm | Sequence[CArm], landmarks: Sequence[Landma
     motion = rigid(rotation_matrix(fit.x[:3]), fit.x[3:])
     errors = _reprojection(motion, geometries, landmarks)
     rms = float(np.sqrt(np.mean(errors[inliers] ** 2)))
-    return LandmarkStart(motion, errors, rms, inliers)
+    return LandmarkStart(motion, errors, rms, inliers, tuple(landmarks), geometries)
 
 
-__all__ = ["MIN_PAIRS", "Landmark", "LandmarkStart", "camera_of", "landmark_start", "read_landmarks"]
+__all__ = [
+    "LANDMARK_MOVE_MM",
+    "LANDMARK_MOVE_MM_ONE_VIEW",
+    "MIN_PAIRS",
+    "Landmark",
+    "LandmarkStart",
+    "camera_of",
+    "landmark_start",
+    "read_landmarks",
+]

@@ -489,6 +489,9 @@ def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None
     # exact picks give the true motion as the start (to rounding), and the registration keeps it
     np.testing.assert_allclose(result["landmark_start"]["patient_motion"], truth, atol=1e-6)
     assert result["success"] is True
+    # a right estimate leaves exact picks where they were: under a millimetre (the success criterion)
+    assert result["landmark_start"]["estimate_moved_mm"] < 1.0
+    assert "landmarks: the estimate moves them" in out
     code, _, err = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks),
                         "--initial-motion", str(result_path)], capsys)  # fmt: skip
     assert code == 2 and "--landmarks and --initial-motion" in err

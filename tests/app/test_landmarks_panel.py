@@ -58,6 +58,7 @@ def test_picked_pairs_start_the_roadmap_at_the_patient(fresh: RoadmapApp) -> Non
     r = s.residual()
     assert r.inplane_mm < 2.0 and r.rotation_deg < 2.0, r
     assert "reprojection error" in app.status.content
+    assert s.landmark_start is start  # the registration from this pose is checked against the picks
     # Register refines it: the paper's in-plane criterion (< 1 mm, < 3 deg) against the truth
     assert app.start_registration()
     assert s.wait(120)

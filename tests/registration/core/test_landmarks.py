@@ -121,3 +121,49 @@ def test_a_biplane_patient_far_beyond_the_search_range_is_registered_from_landma
     result = register(volume, images, initial_motion=start.patient_motion, seed=0, truth=truth)
     # The biplane criterion (CONVENTIONS §6): 3-D translation < 1 mm, rotation < 3 deg
     assert result.residual.translation_mm < 1.0 and result.residual.rotation_deg < 3.0, result.residual
+
+
+def _moved_by(motion: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
+    out = motion.copy()
+    out[:3, 3] += shift_mm
+    return out
+
+
+def test_the_landmarks_measure_how_far_an_estimate_moves_them() -> None:
+    g = CArm(primary_deg=0.0, rows=256, cols=256, pixel_mm=(1.5, 1.5))
+    truth = offsets_to_matrix(FAR, g)
+    rng = np.random.default_rng(4)
+    start = landmark_start(g, _picks(g, truth, rng.uniform(-60, 60, (5, 3)), rng, 0.0))
+    assert start.moved_mm(truth) < 1e-6  # exact picks: the truth moves nothing
+    across = np.cross(g.direction, [0.0, 0.0, 1.0])
+    across /= np.linalg.norm(across)
+    moved = start.moved_mm(_moved_by(truth, 10.0 * across))
+    # 10 mm across the beam moves every point 10 mm at its own depth: within the points' +-60 mm
+    # of depth about the iso-center their magnification differs from the iso-center's by < 10 %
+    assert 9.0 < moved < 11.0
+    assert start.report(truth)["estimate_moved_mm"] == 0.0
+
+
+def test_an_estimate_far_from_what_the_landmarks_say_is_not_applied() -> None:
+    from types import SimpleNamespace
+
+    from registration.core.assess import veto
+    from registration.core.landmarks import LANDMARK_MOVE_MM, LANDMARK_MOVE_MM_ONE_VIEW
+
+    a = CArm(primary_deg=0.0, rows=256, cols=256, pixel_mm=(1.5, 1.5))
+    b = CArm(primary_deg=90.0, rows=256, cols=256, pixel_mm=(1.5, 1.5))
+    truth = offsets_to_matrix(FAR, a)
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-60, 60, (4, 3))
+    both = landmark_start((a, b), _picks(a, truth, points, rng, 0.0) + _picks(b, truth, points, rng, 0.0, plane=1))
+    one = landmark_start(a, _picks(a, truth, points, rng, 0.0))
+    up = np.array([0.0, 0.0, 1.0])  # across both beams (they lie in the axial plane)
+    # a pose moved within the limit passes, beyond it the landmarks withhold it, naming why
+    # (exact picks: the move of every point is the shift, within the points' magnification spread)
+    assert veto(SimpleNamespace(patient_motion=_moved_by(truth, 0.8 * LANDMARK_MOVE_MM * up)), both) is None
+    reason = veto(SimpleNamespace(patient_motion=_moved_by(truth, 1.3 * LANDMARK_MOVE_MM * up)), both)
+    assert reason is not None and "landmarks" in reason
+    # one view's looser start allows more
+    assert veto(SimpleNamespace(patient_motion=_moved_by(truth, 1.3 * LANDMARK_MOVE_MM * up)), one) is None
+    assert veto(SimpleNamespace(patient_motion=_moved_by(truth, 1.3 * LANDMARK_MOVE_MM_ONE_VIEW * up)), one)
+    assert veto(SimpleNamespace(patient_motion=truth), None) is None  # no landmarks: nothing to check
