@@ -25,10 +25,12 @@ import numpy as np
 from registration.core.assess import assess
 from registration.core.geometry import apply
 from registration.core.landmarks import Landmark, landmark_start
-from registration.core.register import RegistrationOptions
+from registration.core.register import RegistrationOptions, StartOptions
 from registration.studies.biplane import _offset_motion, case_views, study_volume
 from registration.studies.capture import CaptureConfig, capture_tasks
 from registration.studies.cases import register_prepared
+
+FROM_LANDMARKS = RegistrationOptions(start=StartOptions(from_landmarks=True))
 
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, -1, 0.3], [0, 1, 0.3], [0, 0, 1], [0.7, -0.7, 0.3],
                        [-0.7, -0.7, 0.3], [0, -0.6, -0.8]], dtype=float)  # fmt: skip
@@ -77,7 +79,7 @@ def main() -> int:
             start = landmark_start([v.geometry for v in vs], lms)
             images = vs if len(vs) > 1 else vs[0]
             r, prepared = register_prepared(volume, images, initial_motion=start.patient_motion, truth=truth,
-                                            seed=case.seed, options=RegistrationOptions())  # fmt: skip
+                                            seed=case.seed, options=FROM_LANDMARKS)  # fmt: skip
             decided = assess(r, images, prepared, landmarks=start)
             ok = bool(r.residual.success_total if name == "biplane" else r.residual.success)
             rows[name].append((ok, bool(decided.applied)))
@@ -97,6 +99,7 @@ def main() -> int:
                         "rotation_deg": round(r.residual.rotation_deg, 3),
                         "success": ok,
                         "estimate_moved_mm": round(start.moved_mm(r.patient_motion), 3),
+                        "start_offset_mm": round(start.start_offset_mm(), 2),
                         "applied": bool(decided.applied),
                         "withheld_reason": decided.reason,
                     }

@@ -272,7 +272,7 @@ def _estimate_geometry(result: Any, views: list, renderer: Any, inputs: Inputs) 
 
 def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Outcome:
     """Prepare the volume for the views (cached), register, and run what was asked after it."""
-    from registration.core.register import RegistrationOptions, register, registration_plan
+    from registration.core.register import RegistrationOptions, StartOptions, register, registration_plan
 
     compiling = kernels_to_compile()
     clock.lap("loading the engine")
@@ -285,11 +285,13 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     # a first run writes the prepared volume to disk while it registers (flushed below)
     prepared, store = prepare_for_registration(vol, views, m_init, cache=cache)
     clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
+    # a landmark start is not the machine-based pose: two views' estimate from it is fine-polished
+    engine = RegistrationOptions(start=StartOptions(from_landmarks=inputs.landmark_start is not None))
     if options.explain:
-        plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer)
-        _say("plan:\n" + plan.describe() + "\naround it:\n" + RegistrationOptions().start.describe())
+        plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer, options=engine)
+        _say("plan:\n" + plan.describe() + "\naround it:\n" + engine.start.describe())
     result = register(vol, views, initial_motion=m_init, seed=options.seed, truth=inputs.truth,
-                      vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer)  # fmt: skip
+                      vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer, options=engine)  # fmt: skip
     if store is not None:
         store.flush()
     clock.lap("registration")

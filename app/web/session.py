@@ -361,6 +361,7 @@ class Session:
                 truth=truth,
                 vessel_points_mm=data.vessel_points_mm(),
                 renderer=renderer,
+                options=_from_landmarks() if landmarks is not None else None,
             )
             skull_spine = None
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
@@ -489,3 +490,11 @@ class Session:
             return True
         worker.join(timeout)
         return not worker.is_alive()
+
+
+def _from_landmarks() -> Any:
+    """The engine's options for a registration from a landmark start (fine-polished as a start away
+    from the machine-based pose)."""
+    from registration.core.register import RegistrationOptions, StartOptions
+
+    return RegistrationOptions(start=StartOptions(from_landmarks=True))

@@ -39,6 +39,10 @@ RANSAC_THRESHOLD_PX = 12.0
 #: (docs/decisions/2026-12-04-landmark-check.md).
 LANDMARK_MOVE_MM = 3.5
 LANDMARK_MOVE_MM_ONE_VIEW = 5.0
+#: One view's estimate from a landmark start this far (mm at the iso-center) or further from the
+#: machine-based pose is not applied automatically: one view sees the depth only through
+#: magnification (the same limit as a one-view start from the image shift).
+ONE_VIEW_MAX_START_MM = 25.0
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,14 @@ class LandmarkStart:
             shifts.append(float(np.linalg.norm(a - b)) * float(np.mean(g.pixel_mm)) / g.magnification)
         return float(np.sqrt(np.mean(np.square(shifts))))
 
+    def start_offset_mm(self) -> float:
+        """How far the start puts the patient from the machine-based pose (no motion) at the first
+        view's iso-center, mm. 0.0 without the views."""
+        if not self.geometries:
+            return 0.0
+        iso = np.asarray(self.geometries[0].isocenter_mm, dtype=np.float64)
+        return float(np.linalg.norm(self.patient_motion[:3, :3] @ iso + self.patient_motion[:3, 3] - iso))
+
     def veto(self, motion: ArrayLike) -> str | None:
         """Why an estimate registered from this start is not applied automatically: it moves the
         landmarks' projections more than :data:`LANDMARK_MOVE_MM` (one view:
@@ -91,12 +103,18 @@ class LandmarkStart:
         settled away from what the landmarks say). None: it agrees."""
         moved = self.moved_mm(motion)
         limit = LANDMARK_MOVE_MM if len(self.geometries) > 1 else LANDMARK_MOVE_MM_ONE_VIEW
-        if moved <= limit:
-            return None
-        return (
-            f"the estimate moves the landmarks {moved:.1f} mm (rms, at the iso-center) from where their picks put "
-            f"them, more than {limit:g} mm: check the landmarks and the estimate by eye before applying it"
-        )
+        if moved > limit:
+            return (
+                f"the estimate moves the landmarks {moved:.1f} mm (rms, at the iso-center) from where their picks "
+                f"put them, more than {limit:g} mm: check the landmarks and the estimate by eye before applying it"
+            )
+        far = self.start_offset_mm()
+        if len(self.geometries) == 1 and far >= ONE_VIEW_MAX_START_MM:
+            return (
+                f"the landmarks put the patient {far:.0f} mm from the machine-based pose, where one view cannot "
+                "confirm the depth: check the estimate by eye before applying it"
+            )
+        return None
 
     def to_dict(self) -> dict:
         return {
@@ -109,7 +127,8 @@ class LandmarkStart:
     def report(self, motion: ArrayLike) -> dict:
         """:meth:`to_dict` with how far ``motion`` (the registration's estimate) moves the
         landmarks (``estimate_moved_mm``)."""
-        return {**self.to_dict(), "estimate_moved_mm": round(self.moved_mm(motion), 3)}
+        return {**self.to_dict(), "estimate_moved_mm": round(self.moved_mm(motion), 3),
+                "start_offset_mm": round(self.start_offset_mm(), 3)}  # fmt: skip
 
 
 def camera_of(geometry: CArm) -> tuple[Array, Array]:

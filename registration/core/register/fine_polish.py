@@ -56,14 +56,15 @@ def fine_polish(
     vessel_points_mm: ArrayLike | None = None,
 ) -> RegistrationResult:
     """``result`` polished on the views' full images and the volume's level 0 when it holds two or
-    more views' six parameters, started away from the machine-based pose, and was not stopped;
+    more views' six parameters, started away from the machine-based pose (or from landmarks:
+    ``StartOptions.from_landmarks``), and was not stopped;
     otherwise ``result`` itself. The result keeps every cost, the polish's stage last."""
     if (
         len(inputs.views) < 2
         or "tz" not in result.parameters
         or not options.start.fine_polish_evaluations
         or result.stopped
-        or not started_away(result)
+        or not (started_away(result) or options.start.from_landmarks)
     ):
         return result
     estimate = np.asarray(result.patient_motion, dtype=np.float64)

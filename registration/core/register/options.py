@@ -251,6 +251,10 @@ class StartOptions:
     fine_polish_reach_deg: float = 2.0
     #: Its final trust-region radius, in first steps (0.5 mm, 0.3 deg) (default 0.05, > 0).
     fine_polish_xtol: float = 0.05
+    #: The initial motion is a landmark start (:mod:`registration.core.landmarks`), not the
+    #: machine-based pose: two views' estimate is then fine-polished as one from a start away
+    #: from the machine-based pose (default False).
+    from_landmarks: bool = False
 
     def __post_init__(self) -> None:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
@@ -276,8 +280,9 @@ class StartOptions:
                 f"{SINGLE_PLANE_MAX_TURN_DEG:g} deg (the better fit kept)"
             )
         if self.fine_polish_evaluations:
+            away = "landmarks" if self.from_landmarks else "a start away from the machine-based pose"
             lines.append(
-                f"two views' estimate from a start away from the machine-based pose: a fine polish at "
+                f"two views' estimate from {away}: a fine polish at "
                 f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "
                 f"+-{self.fine_polish_reach_mm:g} mm / {self.fine_polish_reach_deg:g} deg (COBYQA)"
             )

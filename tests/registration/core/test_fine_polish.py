@@ -64,5 +64,10 @@ def test_the_polish_runs_only_after_a_start_away_with_two_views(pair) -> None:
     assert fine_polish(inputs, stopped, options, callback=None, start_s=now) is stopped
     one = check_inputs(volume, xrays[:1], None, truth, None, options)
     assert fine_polish(one, walked, options, callback=None, start_s=now) is walked
+    # a landmark start is not the machine-based pose: its estimate is polished like one from away
+    landmarks = RegistrationOptions(start=StartOptions(from_landmarks=True))
+    polished = fine_polish(inputs, right, landmarks, callback=None, start_s=now)
+    assert polished is not right and polished.fine_polished
+    assert "from landmarks: a fine polish" in landmarks.start.describe()
     with pytest.raises(ValueError, match="fine_polish_px must be >= 16"):
         StartOptions(fine_polish_px=8)

@@ -148,7 +148,7 @@ def test_an_estimate_far_from_what_the_landmarks_say_is_not_applied() -> None:
     from types import SimpleNamespace
 
     from registration.core.assess import veto
-    from registration.core.landmarks import LANDMARK_MOVE_MM, LANDMARK_MOVE_MM_ONE_VIEW
+    from registration.core.landmarks import LANDMARK_MOVE_MM, LANDMARK_MOVE_MM_ONE_VIEW, ONE_VIEW_MAX_START_MM
 
     a = CArm(primary_deg=0.0, rows=256, cols=256, pixel_mm=(1.5, 1.5))
     b = CArm(primary_deg=90.0, rows=256, cols=256, pixel_mm=(1.5, 1.5))
@@ -156,7 +156,8 @@ def test_an_estimate_far_from_what_the_landmarks_say_is_not_applied() -> None:
     rng = np.random.default_rng(5)
     points = rng.uniform(-60, 60, (4, 3))
     both = landmark_start((a, b), _picks(a, truth, points, rng, 0.0) + _picks(b, truth, points, rng, 0.0, plane=1))
-    one = landmark_start(a, _picks(a, truth, points, rng, 0.0))
+    near = offsets_to_matrix([8.0, -5.0, 6.0, 4.0, -3.0, 5.0], a)  # within the clinical offsets
+    one = landmark_start(a, _picks(a, near, points, rng, 0.0))
     up = np.array([0.0, 0.0, 1.0])  # across both beams (they lie in the axial plane)
     # a pose moved within the limit passes, beyond it the landmarks withhold it, naming why
     # (exact picks: the move of every point is the shift, within the points' magnification spread)
@@ -164,6 +165,12 @@ def test_an_estimate_far_from_what_the_landmarks_say_is_not_applied() -> None:
     reason = veto(SimpleNamespace(patient_motion=_moved_by(truth, 1.3 * LANDMARK_MOVE_MM * up)), both)
     assert reason is not None and "landmarks" in reason
     # one view's looser start allows more
-    assert veto(SimpleNamespace(patient_motion=_moved_by(truth, 1.3 * LANDMARK_MOVE_MM * up)), one) is None
-    assert veto(SimpleNamespace(patient_motion=_moved_by(truth, 1.3 * LANDMARK_MOVE_MM_ONE_VIEW * up)), one)
+    assert veto(SimpleNamespace(patient_motion=_moved_by(near, 1.3 * LANDMARK_MOVE_MM * up)), one) is None
+    assert veto(SimpleNamespace(patient_motion=_moved_by(near, 1.3 * LANDMARK_MOVE_MM_ONE_VIEW * up)), one)
     assert veto(SimpleNamespace(patient_motion=truth), None) is None  # no landmarks: nothing to check
+    # one view from a start far from the machine-based pose cannot confirm the depth: withheld
+    # even where the estimate keeps the landmarks in place; two views can
+    far = landmark_start(a, _picks(a, truth, points, rng, 0.0))
+    assert far.start_offset_mm() >= ONE_VIEW_MAX_START_MM and one.start_offset_mm() < ONE_VIEW_MAX_START_MM
+    assert "cannot confirm the depth" in veto(SimpleNamespace(patient_motion=truth), far)
+    assert veto(SimpleNamespace(patient_motion=truth), both) is None
