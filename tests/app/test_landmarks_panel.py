@@ -62,8 +62,14 @@ def test_picked_pairs_start_the_roadmap_at_the_patient(fresh: RoadmapApp) -> Non
     # Register refines it: the paper's in-plane criterion (< 1 mm, < 3 deg) against the truth
     assert app.start_registration()
     assert s.wait(120)
-    r = s.residual()
+    result = s.run.result
+    r = result.residual
     assert r.inplane_mm < 1.0 and r.rotation_deg < 3.0, r
+    # one view, the patient 38 mm from the machine-based pose: the estimate is shown, not applied,
+    # and the roadmap stays at the landmarks' pose
+    assert s.run.assessment is not None and not s.run.assessment["applied"]
+    assert "cannot confirm the depth" in s.run.assessment["withheld_reason"]
+    np.testing.assert_allclose(s.estimate, start.patient_motion)
 
 
 def test_clicks_that_miss_and_too_few_pairs_are_told(fresh: RoadmapApp) -> None:
