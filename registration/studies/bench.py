@@ -104,7 +104,8 @@ def bench_registration(*, seed: int = 0, rounds: int = 3) -> dict:
 
 def bench_biplane(*, seed: int = 0, repeats: int = 4) -> dict:
     """Biplane registration time: the first moments of the biplane study (27 cm 3DRA, plane A
-    512 px, plane B 384 px, clinical offsets), after a warm-up registration."""
+    512 px, plane B 384 px, clinical offsets), after a warm-up registration; per stage of the
+    plan, the median DRRs, rays and seconds (:func:`stage_costs`)."""
     from registration.studies.biplane import BiplaneConfig, biplane_tasks, run_biplane_case
 
     tasks = biplane_tasks(BiplaneConfig(patients=((0, 27.0),), registrations_per_patient=repeats + 1, seed=seed))
@@ -113,6 +114,7 @@ def bench_biplane(*, seed: int = 0, repeats: int = 4) -> dict:
     return {
         "seconds_median": float(np.median([r["seconds"] for r in runs])),
         "success_rate": float(np.mean([r["success"] for r in runs])),
+        "stages": stage_costs(runs),
         "runs": [
             {
                 "seconds": r["seconds"],

@@ -282,6 +282,7 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
         # plane A's estimate as offsets from the start (tx, ty, rx, ry, rz in its view frame)
         "single_offsets": dict(zip(single.parameters, np.asarray(single.offsets).tolist(), strict=True)),
         "prepare_seconds": pair.seconds,
+        "stages": [c.to_dict() for c in both.stages],
         "volume_label": volume.label,
         "image_source": image_source,
         "pixels": list(case.pixels),

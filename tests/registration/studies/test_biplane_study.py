@@ -45,3 +45,7 @@ def test_real_ct_moment_registers_through_the_prepared_volume() -> None:
     # issue 13: every record carries the confidence and whether the estimate would be applied
     assert 0.0 <= record["confidence"] <= 1.0 and isinstance(record["applied"], bool)
     assert np.isfinite(record["prepare_seconds"]) and "same CT" in record["image_source"]
+    # per stage of the plan, what it cost: the stages' DRRs add up to the registration's
+    stages = record["stages"]
+    assert stages[0]["stage"].startswith("each plane's own capture")
+    assert sum(s["drrs"] for s in stages) == record["drr_count"]
