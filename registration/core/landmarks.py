@@ -100,7 +100,8 @@ class LandmarkStart:
         """Why an estimate registered from this start is not applied automatically: it moves the
         landmarks' projections more than :data:`LANDMARK_MOVE_MM` (one view:
         :data:`LANDMARK_MOVE_MM_ONE_VIEW`) from where the picks put them (the image-based search
-        settled away from what the landmarks say). None: it agrees."""
+        settled away from what the landmarks say), or, with one view, the start lies
+        :data:`ONE_VIEW_MAX_START_MM` or more from the machine-based pose. None: it agrees."""
         moved = self.moved_mm(motion)
         limit = LANDMARK_MOVE_MM if len(self.geometries) > 1 else LANDMARK_MOVE_MM_ONE_VIEW
         if moved > limit:
@@ -126,7 +127,8 @@ class LandmarkStart:
 
     def report(self, motion: ArrayLike) -> dict:
         """:meth:`to_dict` with how far ``motion`` (the registration's estimate) moves the
-        landmarks (``estimate_moved_mm``)."""
+        landmarks (``estimate_moved_mm``) and how far the start lies from the machine-based pose
+        (``start_offset_mm``)."""
         return {**self.to_dict(), "estimate_moved_mm": round(self.moved_mm(motion), 3),
                 "start_offset_mm": round(self.start_offset_mm(), 3)}  # fmt: skip
 
