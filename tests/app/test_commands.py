@@ -482,9 +482,10 @@ def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None
     result_path = tmp_path / "result.json"
     truth_file = str(exported / pc.PHANTOM_TRUTH)
     code, out, _ = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks),
-                        "--truth", truth_file, "--out", str(result_path)], capsys)  # fmt: skip
+                        "--truth", truth_file, "--out", str(result_path), "--explain"], capsys)  # fmt: skip
     assert code == 0
     assert "start: " in out and "5 landmarks, reprojection error 0.0 px rms" in out  # exact picks
+    assert "estimate from landmarks: a fine polish" in out  # the plan says how a landmark start is treated
     result = json.loads(result_path.read_text())
     # exact picks give the true motion as the start (to rounding), and the registration keeps it
     np.testing.assert_allclose(result["landmark_start"]["patient_motion"], truth, atol=1e-6)
