@@ -28,9 +28,20 @@ from registration.core.geometry import (
     matrix_to_offsets,
     offsets_to_matrix,
 )
+from registration.core.landmarks import LandmarkStart
 from registration.core.metrics import Residual, residuals
-from registration.core.register import Progress, RegistrationResult, register, registration_plan
+from registration.core.register import (
+    Progress,
+    RegistrationOptions,
+    RegistrationResult,
+    StartOptions,
+    register,
+    registration_plan,
+)
 
+#: The engine's options for a registration from a landmark start (polished finely, as a start away
+#: from the machine-based pose).
+FROM_LANDMARKS = RegistrationOptions(start=StartOptions(from_landmarks=True))
 log = logging.getLogger(__name__)
 
 Array = np.ndarray
@@ -60,7 +71,7 @@ class Session:
         self.estimate: Array = np.eye(4)
         #: The landmark start the roadmap was put at (start_from); the registration from that pose
         #: is checked against its landmarks.
-        self.landmark_start: Any = None
+        self.landmark_start: LandmarkStart | None = None
         self.run = RunState()
         #: bumped on every change of settings, motion or estimate (the presenter watches it)
         self.version = 0
@@ -262,7 +273,7 @@ class Session:
                 self.run = RunState()
             self._changed()
 
-    def start_from(self, motion: Array, landmarks: Any = None) -> None:
+    def start_from(self, motion: Array, landmarks: LandmarkStart | None = None) -> None:
         """Put the roadmap at ``motion`` (a start found another way, e.g. from landmarks: their
         :class:`~registration.core.landmarks.LandmarkStart`); the next registration refines it
         and, from landmarks, is checked against them."""
@@ -338,7 +349,7 @@ class Session:
         truth: Array | None,
         volume_format: float,
         on_done: Callable[[], None] | None,
-        landmarks: Any = None,
+        landmarks: LandmarkStart | None = None,
     ) -> None:
         callback = self._progress_recorder(run)
         assessment = None
@@ -361,7 +372,7 @@ class Session:
                 truth=truth,
                 vessel_points_mm=data.vessel_points_mm(),
                 renderer=renderer,
-                options=_from_landmarks() if landmarks is not None else None,
+                options=FROM_LANDMARKS if landmarks is not None else None,
             )
             skull_spine = None
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
@@ -441,7 +452,7 @@ class Session:
         result: RegistrationResult,
         volume_format: float,
         initial: Array,
-        landmarks: Any = None,
+        landmarks: LandmarkStart | None = None,
     ) -> dict | None:
         """The estimate's confidence and decision, as ``register --confidence`` and the studies
         assess it (:func:`registration.core.assess.assess_on`); None (the estimate is
@@ -490,11 +501,3 @@ class Session:
             return True
         worker.join(timeout)
         return not worker.is_alive()
-
-
-def _from_landmarks() -> Any:
-    """The engine's options for a registration from a landmark start (fine-polished as a start away
-    from the machine-based pose)."""
-    from registration.core.register import RegistrationOptions, StartOptions
-
-    return RegistrationOptions(start=StartOptions(from_landmarks=True))

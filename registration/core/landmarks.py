@@ -254,6 +254,7 @@ __all__ = [
     "LANDMARK_MOVE_MM",
     "LANDMARK_MOVE_MM_ONE_VIEW",
     "MIN_PAIRS",
+    "ONE_VIEW_MAX_START_MM",
     "Landmark",
     "LandmarkStart",
     "camera_of",
