@@ -1,19 +1,24 @@
-"""The same draws registered with the capture level's annealing schedule as it is and shortened
-(fewer temperature stages, or fewer moves per stage); each estimate assessed as
-``register --confidence``.
+"""The same draws registered with the capture level as it is and changed (a shorter annealing
+schedule: fewer temperature stages or fewer moves per stage; or other images and volume level);
+each estimate assessed as ``register --confidence``.
 
 python scripts/capture_schedule_study.py runs --seed 50 --cases 10 --out tune-runs.jsonl
 python scripts/capture_schedule_study.py volume --seed 80 --cases 20 --out tune-ct.jsonl
 python scripts/capture_schedule_study.py table1 --seed 0 --out tune-t1.jsonl
+python scripts/capture_schedule_study.py biplane --seed 3 --cases 12 --out fresh-biplane.jsonl
 python scripts/capture_schedule_study.py capture --seed 9 --cases 10 --mm 50 --out fresh-50mm.jsonl
 
 ``runs``: the rotational-run study (``roadmap3d validate clinical --quick``, ``--cases``
 registrations per patient); ``volume``: the shared real CT's clinical-looking images
 (``roadmap3d validate volume --realism clinical``, single plane, ``--strength``); ``table1``:
 Table I's four offsets on the phantom (27 cm, fluoro), ``--cases`` seeds from ``--seed``;
-``capture``: the capture-range study's phantom moments at a translation of ``--mm`` (and a
+``biplane``: the biplane study's quick moments (``roadmap3d validate biplane --quick``: the
+phantom, both planes and plane A alone, ``--cases`` moments); ``capture``: the capture-range
+study's phantom moments at a translation of ``--mm`` (and a
 rotation of ``--deg``), registered biplane and on plane A alone, ``--cases`` moments.
-``--variants``: which schedules, as NAME=STAGESxMOVES (the default: 14x14, 11x14, 14x10, 10x12).
+``--variants``: which schedules, as NAME=STAGESxMOVES (the default: 14x14, 11x14, 14x10, 10x12),
+optionally at another image size and volume level, NAME=STAGESxMOVES@PIXELS/LEVEL (``c64=14x14@64/2``:
+the default schedule on 64-pixel images of the volume's level 2).
 """
 
 from __future__ import annotations
@@ -36,13 +41,20 @@ CAPTURE_KEYS = ("success", "applied", "translation_residual_mm", "single_success
                 "single_inplane_residual_mm", "drr_count", "seconds", "withheld_reason")  # fmt: skip
 
 
+BIPLANE_KEYS = (*CAPTURE_KEYS, "rotation_residual_deg", "single_rotation_residual_deg")
+
+
 def variants(spec: list[str]) -> dict[str, RegistrationOptions]:
     base = RegistrationOptions()
     out = {}
     for item in spec:
-        name, _, shape = item.partition("=")
+        name, _, spec_ = item.partition("=")
+        shape, _, where = spec_.partition("@")
         stages, moves = (int(v) for v in shape.split("x"))
         capture = base.levels[0]
+        if where:
+            px, level = (int(v) for v in where.split("/"))
+            capture = replace(capture, image_px=px, volume_level=level)
         schedule = replace(capture.schedule, stages=stages, moves_per_stage=moves)
         out[name] = replace(base, levels=(replace(capture, schedule=schedule), *base.levels[1:]))
     return out
@@ -50,7 +62,7 @@ def variants(spec: list[str]) -> dict[str, RegistrationOptions]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("study", choices=("runs", "volume", "table1", "capture"))
+    ap.add_argument("study", choices=("runs", "volume", "table1", "biplane", "capture"))
     ap.add_argument("--seed", type=int, required=True)
     ap.add_argument("--cases", type=int, default=10)
     ap.add_argument("--strength", type=float, default=1.0)
@@ -79,6 +91,17 @@ def main() -> int:
                     line[name] = {k: record.get(k) for k in CAPTURE_KEYS}
             for line in lines.values():
                 fh.write(json.dumps(line) + "\n")
+        elif args.study == "biplane":
+            from registration.studies.biplane import BiplaneConfig, biplane_tasks
+
+            config = replace(BiplaneConfig.quick_config(seed=args.seed), registrations_per_patient=args.cases)
+            for task in biplane_tasks(config):
+                line = {"case_id": task.case_id, "study": "biplane", "seed": args.seed}
+                for name, o in options.items():
+                    record = task.case.run(options=o)
+                    line[name] = {k: record.get(k) for k in BIPLANE_KEYS}
+                fh.write(json.dumps(line) + "\n")
+                fh.flush()
         elif args.study == "table1":
             from registration.core.geometry import TABLE_I
             from registration.studies.cases import Case, run_case

@@ -171,7 +171,7 @@ def beyond_box(result: RegistrationResult, machine_motion: np.ndarray, options: 
 def _matched_intensities(inputs: Inputs, options: RegistrationOptions) -> tuple[Inputs, tuple[dict | None, ...]]:
     """The views with their intensities matched to the DRR's as ``options.intensity`` asks
     (:mod:`registration.core.intensity`), and what each assumed (None: as read)."""
-    level = coarse_level(inputs.renderer, options)
+    level = coarse_level(inputs.renderer, options, len(inputs.views))
     margin = options.margin_mm(0) or 0.0
     views, infos = match_views(
         inputs.renderer, inputs.views, inputs.initial_motion, options.intensity, level=level,

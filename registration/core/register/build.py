@@ -20,9 +20,10 @@ def build_plan(inputs: Inputs, options: RegistrationOptions) -> Plan:
     if pair:
         stages += biplane_stages(options)
     else:
+        levels = (options.capture_level(n_views), *options.levels[1:])
         if multi and options.biplane.plane_a_capture:
-            stages.append(PlaneACapture(options.levels[0], options.margin_mm(0)))
-        stages += [anneal(options, lv, n, n_views) for n, lv in enumerate(options.levels)]
+            stages.append(PlaneACapture(levels[0], options.margin_mm(0)))
+        stages += [anneal(options, lv, n, n_views) for n, lv in enumerate(levels)]
     if options.polish.enabled:
         stages += polish_stages(options, pair)
         single = n_views == 1 and not options.optimizes_tz(n_views)
@@ -44,9 +45,10 @@ def biplane_stages(options: RegistrationOptions) -> list[Stage]:
     start and the levels after it; when they agree the pair's levels (by default none)."""
     b, levels = options.biplane, options.levels
     last = len(levels) - 1
+    capture = options.capture_level(2)
     stages: list[Stage] = [
-        PlaneCaptures(levels[0], b.plane_capture_runs, options.margin_mm(0)),
-        AnnealLevel(levels[0], options.margin_mm(0), None, PLANES_DISAGREE),
+        PlaneCaptures(capture, b.plane_capture_runs, options.margin_mm(0)),
+        AnnealLevel(capture, options.margin_mm(0), None, PLANES_DISAGREE),
     ]
     if b.pair_levels is None:  # the levels after the capture, whatever the planes say
         return stages + [anneal(options, lv, n, 2) for n, lv in enumerate(levels[1:], 1)]
@@ -62,7 +64,7 @@ def polish_stages(options: RegistrationOptions, pair: bool) -> list[Stage]:
     if pair and b.coarse_polish_evaluations:
         coarse = PolishBudget(b.coarse_polish_evaluations, b.coarse_polish_reach_mm, b.coarse_polish_reach_deg,
                               b.polish_xtol, p.step_mm, p.step_deg)  # fmt: skip
-        first = levels[0]
+        first = options.capture_level(2)
         stages.append(Polish("coarse polish", first.image_px, first.volume_level, options.margin_mm(len(levels) - 1),
                              coarse))  # fmt: skip
     if pair:

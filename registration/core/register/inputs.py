@@ -95,7 +95,8 @@ def scans_level0(volume: Volume, n_views: int, options: RegistrationOptions) -> 
     return n_views == 1 and d.enabled and 0 < volume.data.size <= d.level0_max_voxels
 
 
-def coarse_level(renderer: DRRRenderer, options: RegistrationOptions) -> int:
-    """The coarsest annealing level's volume level, or the nearest finer one ``renderer`` has."""
-    coarsest = max(lv.volume_level for lv in options.levels)
+def coarse_level(renderer: DRRRenderer, options: RegistrationOptions, n_views: int) -> int:
+    """The coarsest annealing level's volume level for ``n_views`` views, or the nearest finer one
+    ``renderer`` has."""
+    coarsest = max(lv.volume_level for lv in (options.capture_level(n_views), *options.levels[1:]))
     return next((k for k in range(coarsest, -1, -1) if renderer.has_level(k)), 0)

@@ -34,11 +34,21 @@ class Level:
     restarts: int = 1
 
 
+#: The capture's annealing schedule. Steps are for (tx, ty, rx, ry, rz); a six-parameter search
+#: steps tz as tx.
+CAPTURE_SCHEDULE = Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per_stage=14, cooling=0.75)
+
+#: Four capture runs at 64 px on the quarter-resolution volume: each biplane plane's capture and
+#: the pair's, and the tracker's re-capture (docs/decisions/2026-12-02-registration-levels.md).
+CAPTURE_64 = Level(64, 2, CAPTURE_SCHEDULE, restarts=4)
+
+
 def _default_levels() -> tuple[Level, ...]:
-    # capture: four runs at 64 px on the quarter-resolution volume; refine: about 96 px
-    # (docs/decisions/2026-12-02-registration-levels.md). Steps are for (tx, ty, rx, ry, rz).
+    # capture: four runs at 32 px on the eighth-resolution volume (one view;
+    # docs/decisions/2026-12-05-capture-level.md); refine: about 96 px on the quarter-resolution
+    # volume (docs/decisions/2026-12-02-registration-levels.md).
     return (
-        Level(64, 2, Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per_stage=14, cooling=0.75), restarts=4),
+        Level(32, 3, CAPTURE_SCHEDULE, restarts=4),
         Level(96, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
     )
 
@@ -104,6 +114,9 @@ class BiplaneOptions:
     #: Each of the first two planes runs its own single-plane capture, side by side, combined
     #: geometrically into the pair's start (default True; replaces ``plane_a_capture``).
     plane_captures: bool = True
+    #: The level of each plane's capture, of the pair's capture when the planes disagree and of
+    #: the coarse polish (default :data:`CAPTURE_64`; None: the first of the registration's levels).
+    capture: Level | None = CAPTURE_64
     #: Capture runs per plane and round (default 2, >= 1).
     plane_capture_runs: int = 2
     #: At most this many capture runs per pair level (default 2, >= 1; None: as the level says).
@@ -134,7 +147,7 @@ class BiplaneOptions:
         _reach("BiplaneOptions.polish", self.polish_reach_mm, self.polish_reach_deg, optional=True)
         _reach("BiplaneOptions.coarse_polish", self.coarse_polish_reach_mm, self.coarse_polish_reach_deg,
                optional=True)  # fmt: skip
-        for level in self.pair_levels or ():
+        for level in (*(self.pair_levels or ()), *([self.capture] if self.capture is not None else [])):
             _check_level(level)
 
 
@@ -351,7 +364,8 @@ class RegistrationOptions:
     ``rotation_check=False`` switch a stage off) and read back as attributes.
     """
 
-    #: The annealing levels, coarse to fine (default: a 64 px capture, a 96 px refinement).
+    #: The annealing levels, coarse to fine (default: a 32 px capture, a 96 px refinement; two or
+    #: more views capture at :attr:`BiplaneOptions.capture`).
     levels: tuple[Level, ...] = field(default_factory=_default_levels)
     #: Search range either side of the initial pose, mm (default 30, > 0).
     bound_mm: float = 30.0
@@ -457,9 +471,19 @@ class RegistrationOptions:
     @property
     def pyramid_levels(self) -> int:
         """Volume pyramid levels the search uses (finest 0 to the coarsest level named)."""
-        return max([lv.volume_level for lv in self.levels] + [self.polish.volume_level]) + 1
+        return max([*self.volume_levels(), self.polish.volume_level]) + 1
+
+    def capture_level(self, n_views: int) -> Level:
+        """The capture level of a registration on ``n_views`` views: the first of ``levels``, or
+        for two or more the biplane's own (:attr:`BiplaneOptions.capture`)."""
+        if n_views > 1 and self.biplane.capture is not None:
+            return self.biplane.capture
+        return self.levels[0]
 
     def volume_levels(self) -> list[int]:
-        """The renderer's pyramid levels the search renders (the levels' and the polish's)."""
+        """The renderer's pyramid levels the search renders (the levels', the biplane capture's
+        and the polish's)."""
         levels = {lv.volume_level for lv in self.levels}
+        if self.biplane.capture is not None:
+            levels.add(self.biplane.capture.volume_level)
         return sorted(levels | ({self.polish.volume_level} if self.polish.enabled else set()))

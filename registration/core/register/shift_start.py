@@ -117,7 +117,7 @@ def shifted_start(
         return inputs, 0.0
     renderer, views = inputs.renderer, tuple(inputs.views)
     start = np.asarray(inputs.initial_motion, dtype=np.float64)
-    level = coarse_level(renderer, options)
+    level = coarse_level(renderer, options, len(views))
     coarse = tuple(_coarse(v) for v in views)
     shifts = [view_shift_mm(renderer, v, start, level, coarse=c) for v, c in zip(views, coarse, strict=True)]
     candidates = shifts + ([_combined(views, shifts)] if len(views) > 1 else [])
@@ -142,7 +142,7 @@ def shift_left_mm(inputs: Inputs, result: RegistrationResult, options: Registrat
     iso-center; one DRR per view): about 0 when the estimate is right (within 0.4 mm on the
     shared real CT's draws), several mm when the search settled in a wrong minimum."""
     renderer, views = inputs.renderer, tuple(inputs.views)
-    level = coarse_level(renderer, options)
+    level = coarse_level(renderer, options, len(views))
     motion = np.asarray(result.patient_motion, dtype=np.float64)
     shifts = [view_shift_mm(renderer, v, motion, level) for v in views]
     left = shifts[0] if len(views) == 1 else _combined(views, shifts)
