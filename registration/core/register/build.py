@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from registration.core.drr import DRRRenderer
 from registration.core.register.biplane import PlaneCaptures
 from registration.core.register.depth import depth_resolvable, depth_stage
 from registration.core.register.inputs import Inputs
-from registration.core.register.options import Level, RegistrationOptions
+from registration.core.register.options import CAPTURE_64, Level, RegistrationOptions
 from registration.core.register.plan import PLANES_AGREE, PLANES_DISAGREE, Plan, Stage
 from registration.core.register.rotation_check import rotation_check_stage
 from registration.core.register.stages import AnnealLevel, PlaneACapture, Polish, PolishBudget
@@ -20,7 +21,7 @@ def build_plan(inputs: Inputs, options: RegistrationOptions) -> Plan:
     if pair:
         stages += biplane_stages(options)
     else:
-        levels = (options.capture_level(n_views), *options.levels[1:])
+        levels = (capture_level(inputs.renderer, options, n_views), *options.levels[1:])
         if multi and options.biplane.plane_a_capture:
             stages.append(PlaneACapture(levels[0], options.margin_mm(0)))
         stages += [anneal(options, lv, n, n_views) for n, lv in enumerate(levels)]
@@ -33,6 +34,14 @@ def build_plan(inputs: Inputs, options: RegistrationOptions) -> Plan:
             if options.rotation_check.enabled:
                 stages.append(rotation_check_stage(options, len(options.levels)))
     return Plan(tuple(stages))
+
+
+def capture_level(renderer: DRRRenderer, options: RegistrationOptions, n_views: int) -> Level:
+    """The capture level for ``n_views`` views (:meth:`RegistrationOptions.capture_level`), or the
+    64 px capture (:data:`CAPTURE_64`) when ``renderer`` lacks its volume level (a volume too small
+    for it: :func:`registration.core.register.inputs.supports_level`)."""
+    level = options.capture_level(n_views)
+    return level if renderer.has_level(level.volume_level) else CAPTURE_64
 
 
 def anneal(options: RegistrationOptions, level: Level, margin_index: int, n_views: int,

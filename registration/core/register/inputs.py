@@ -12,7 +12,7 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import check_rigid
 from registration.core.images import XRayImage
 from registration.core.prepare import PreparationStore, PreparedVolume, Reach, prepare_volume
-from registration.core.register.options import RegistrationOptions
+from registration.core.register.options import CAPTURE_64, RegistrationOptions
 from registration.core.volume import Volume
 
 Array = NDArray[np.float64]
@@ -81,10 +81,21 @@ def prepared_volume(
         isocenter_mm=views[0].geometry.isocenter_mm,
         translations=3 if options.optimizes_tz(len(views)) else 2,
     )
-    levels = options.volume_levels()
+    levels = [k for k in options.volume_levels() if k <= CAPTURE_64.volume_level or supports_level(volume, k)]
     if scans_level0(volume, len(views), options):
         levels = [0, *levels]
     return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=levels, store=store)
+
+
+#: A pyramid level coarser than the 64 px capture's is prepared only with at least this many
+#: voxels along the volume's longest axis (a coarser capture falls back to that capture).
+MIN_LEVEL_VOXELS = 16
+
+
+def supports_level(volume: Volume, level: int) -> bool:
+    """Whether ``volume`` has at least :data:`MIN_LEVEL_VOXELS` voxels along its longest axis at
+    pyramid ``level`` (each level halves the grid)."""
+    return max(volume.shape) >> level >= MIN_LEVEL_VOXELS
 
 
 def scans_level0(volume: Volume, n_views: int, options: RegistrationOptions) -> bool:
