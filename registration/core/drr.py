@@ -44,13 +44,14 @@ from registration.core.drr_kernels import (
     _ROW_CHUNK,
     _SERIAL_SAMPLES,
     _empty_distance,
+    _fill_level,
     _rays_in_index_space,
     _render_joseph,
     _render_joseph_serial,
     _render_trilinear,
 )
 from registration.core.geometry import CArm
-from registration.core.volume import Volume, hu_to_mu_per_mm
+from registration.core.volume import MU_WATER_PER_MM, Volume, hu_to_mu_per_mm
 
 FloatImage = NDArray[np.float32]
 
@@ -66,19 +67,22 @@ class _Level:
 
     def __init__(self, volume: Volume) -> None:
         self.volume = volume
-        mu = hu_to_mu_per_mm(volume.data)  # (nk, nj, ni)
-        padded = np.pad(mu, _PAD)
-        self.mu = padded.reshape(-1)
-        # copy with j fastest, for rays dominated by the i axis
-        self.mu_t = np.ascontiguousarray(padded.transpose(0, 2, 1)).reshape(-1)
         nk, nj, ni = volume.shape
+        # attenuation (hu_to_mu_per_mm) padded with zeros, and a copy with j fastest for rays
+        # dominated by the i axis: both written in one pass, no intermediate copies
+        padded = np.zeros((nk + 2 * _PAD, nj + 2 * _PAD, ni + 2 * _PAD), dtype=np.float32)
+        padded_t = np.zeros((nk + 2 * _PAD, ni + 2 * _PAD, nj + 2 * _PAD), dtype=np.float32)
+        any_kj = np.zeros((nk, nj), dtype=np.bool_)
+        any_ki = np.zeros((nk, ni), dtype=np.bool_)
+        _fill_level(np.ascontiguousarray(volume.data), MU_WATER_PER_MM, padded, padded_t, any_kj, any_ki)
+        self.mu = padded.reshape(-1)
+        self.mu_t = padded_t.reshape(-1)
         self.shape_ijk = np.array([ni, nj, nk], dtype=np.int64)
         self.index_from_world = np.ascontiguousarray(volume.index_from_world)
         self.index_to_world3 = np.ascontiguousarray(volume.index_to_world[:3, :3])
-        # box of voxels that can contribute: non-zero attenuation, padded by one voxel
-        positive = mu > 0
-        # the extent along each axis (k, j, i) of the voxels with attenuation
-        nz = [np.flatnonzero(positive.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
+        # box of voxels that can contribute: non-zero attenuation, padded by one voxel; the
+        # extent along each axis (k, j, i) of the voxels with attenuation
+        nz = [np.flatnonzero(a) for a in (any_kj.any(axis=1), any_kj.any(axis=0), any_ki.any(axis=0))]
         if nz[0].size == 0:
             self.lo = np.zeros(3)
             self.hi = -np.ones(3)  # empty box: every ray misses

@@ -25,6 +25,7 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import check_rigid
 from registration.core.images import XRayImage
 from registration.core.prepare import PreparationStore, PreparedVolume, mask_outside_body, probe_blocks
+from registration.core.prepare.body import body_region
 from registration.core.prepare.params import MIN_LEVEL0_MM
 from registration.core.volume import Volume
 
@@ -111,19 +112,25 @@ def _probe_renderer(prepared: PreparedVolume, planes: int) -> DRRRenderer:
         return renderer
     volume = prepared.volume
     lo, hi = np.asarray(prepared.box_lo), np.asarray(prepared.box_hi)  # (i, j, k), inclusive
-    affine = volume.index_to_world.copy()
-    affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
-    data = np.ascontiguousarray(volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1])
-    level0 = _no_finer_than(Volume(data, affine, label=volume.label, meta=volume.meta), MIN_LEVEL0_MM)
+    blocks = None
     if prepared.body:
         blocks = prepared.blocks if prepared.blocks is not None else probe_blocks(volume)
-        level0 = mask_outside_body(level0, volume, blocks)
+    factors = _floor_factors(volume, MIN_LEVEL0_MM)
+    if blocks is not None and factors == (1, 1, 1):
+        level0 = body_region(volume, lo, hi, blocks)  # the crop and its mask in one pass
+    else:
+        affine = volume.index_to_world.copy()
+        affine[:3, 3] = volume.index_to_world[:3, :3] @ lo + volume.index_to_world[:3, 3]
+        data = volume.data[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+        level0 = Volume(data, affine, label=volume.label, meta=volume.meta).downsample(factors)
+        if blocks is not None:
+            level0 = mask_outside_body(level0, volume, blocks)
     return renderer.with_levels({0: level0})  # the prepared levels shared, not converted again
 
 
-def _no_finer_than(volume: Volume, floor_mm: float) -> Volume:
-    """``volume`` with each axis finer than ``floor_mm`` block-averaged by the whole factor that
-    keeps it at most that coarse (a 0.5 x 0.5 x 2.5 mm grid becomes 1 x 1 x 2.5 mm, as the
-    prepared levels ignore a grid finer than the floor); itself when no axis is."""
+def _floor_factors(volume: Volume, floor_mm: float) -> tuple[int, int, int]:
+    """Per axis (i, j, k), the whole factor that block-averages an axis finer than ``floor_mm``
+    to at most that coarse (a 0.5 x 0.5 x 2.5 mm grid becomes 1 x 1 x 2.5 mm, as the prepared
+    levels ignore a grid finer than the floor); 1 for an axis that is not."""
     fi, fj, fk = (max(1, int(floor_mm / s + 1e-6)) for s in volume.spacing_mm)
-    return volume.downsample((fi, fj, fk))
+    return fi, fj, fk

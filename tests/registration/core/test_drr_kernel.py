@@ -14,6 +14,7 @@ from scipy import ndimage
 
 from registration.core import drr
 from registration.core.drr import DRRRenderer
+from registration.core.drr_kernels import _BLOCK
 from registration.core.geometry import CArm, offsets_to_matrix
 from registration.core.volume import Volume, hu_to_mu_per_mm
 
@@ -129,3 +130,31 @@ def test_kernel_equals_its_definition(islands, name, monkeypatch):
         # share of a ray, ~1e-2).
         np.testing.assert_allclose(fast, expected, rtol=0, atol=1e-5 * scale)
         assert np.array_equal(fast == 0, expected == 0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.int16, np.float64])
+def test_level_arrays_equal_their_definition(dtype):
+    """A level's padded attenuation, its transposed copy, its clip box and its empty-space
+    distances, written in one compiled pass, are exactly what ``hu_to_mu_per_mm``, ``np.pad``,
+    a transposed copy and a block-wise any() of the padded array give (bit for bit: the
+    kernels' sums depend on nothing else)."""
+    rng = np.random.default_rng(7)
+    hu = np.full((23, 31, 44), -1000.0)
+    hu[5:12, 8:20, 10:30] = rng.normal(-300.0, 600.0, (7, 12, 20))  # some voxels at or below air
+    hu[18, 27, 40] = 200.0  # an island far from the rest: empty space between them
+    hu = hu.astype(dtype)
+    level = drr._Level(Volume(hu, np.diag([0.7, 0.7, 2.0, 1.0])))
+    mu = hu_to_mu_per_mm(hu.astype(np.float32))
+    padded = np.pad(mu, drr._PAD)
+    assert np.array_equal(level.mu, padded.reshape(-1))
+    assert np.array_equal(level.mu_t, np.ascontiguousarray(padded.transpose(0, 2, 1)).reshape(-1))
+    positive = np.argwhere(mu > 0)  # (k, j, i)
+    assert np.array_equal(level.lo, np.maximum(positive.min(axis=0) - 1, 0)[::-1])
+    assert np.array_equal(level.hi, np.minimum(positive.max(axis=0) + 1, np.array(mu.shape) - 1)[::-1])
+    b = _BLOCK
+    grid = np.zeros(tuple(-(-n // b) * b for n in padded.shape), dtype=bool)
+    grid[: padded.shape[0], : padded.shape[1], : padded.shape[2]] = padded > 0
+    blocks = grid.reshape(grid.shape[0] // b, b, grid.shape[1] // b, b, grid.shape[2] // b, b).any(axis=(1, 3, 5))
+    distance = ndimage.distance_transform_cdt(~blocks, metric="chessboard")
+    assert level.use_empty
+    assert np.array_equal(level.empty, np.minimum(distance, 255).astype(np.uint8).reshape(-1))

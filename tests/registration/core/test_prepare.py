@@ -252,15 +252,47 @@ def test_a_finer_scanner_grid_gets_the_same_levels_and_rays() -> None:
         assert sizes[0] == sizes[1]
 
 
+def test_the_probes_level_0_is_the_crop_with_its_body_mask() -> None:
+    """The confidence's level 0 of a CT on a grid coarser than the floor (the crop and the
+    body's mask written in one pass) is exactly the crop of the volume with
+    ``mask_outside_body`` applied: the couch set to air, the head kept."""
+    from registration.core.prepare import mask_outside_body, probe_blocks
+    from registration.core.prepare.body import body_region
+
+    rng = np.random.default_rng(3)
+    data = np.full((40, 60, 60), -1000.0, dtype=np.float32)
+    data[8:32, 15:45, 15:45] = rng.normal(40.0, 200.0, (24, 30, 30)).astype(np.float32)  # the head
+    data[:, 52:56, 5:55] = 300.0  # a couch plate under it, joined to nothing
+    vol = Volume.from_grid(data, (2.0, 2.0, 3.0))
+    blocks = probe_blocks(vol)
+    assert blocks.body is not None
+    lo, hi = np.array([3, 4, 2]), np.array([57, 58, 37])  # (i, j, k)
+    crop = Volume(data[2:38, 4:59, 3:58], vol.index_to_world @ _shifted(lo))
+    expected = mask_outside_body(crop, vol, blocks)
+    got = body_region(vol, lo, hi, blocks)
+    np.testing.assert_array_equal(got.index_to_world, expected.index_to_world)
+    np.testing.assert_array_equal(got.data, expected.data)
+    assert (got.data[:, 48:, :] == -1000.0).all()  # the couch is gone
+    assert (got.data[6:30, 11:41, 12:42] == crop.data[6:30, 11:41, 12:42]).mean() > 0.99  # the head is not
+
+
+def _shifted(lo: np.ndarray) -> np.ndarray:
+    """The index affine that starts at index ``lo`` ((i, j, k))."""
+    t = np.eye(4)
+    t[:3, 3] = lo
+    return t
+
+
 def test_the_probes_level_0_is_not_finer_than_the_floor() -> None:
     """The confidence's level 0 of a 0.5 x 0.5 x 2.5 mm grid: 1 x 1 x 2.5 mm block averages, each
     placed at its block's centre (a ramp along x keeps its values where they were)."""
-    from registration.core.preparation import _no_finer_than
+    from registration.core.preparation import _floor_factors
 
     x = np.arange(9) * 0.5 + 3.0  # the ramp's value is the world x
     data = np.broadcast_to(x, (4, 6, 9)).astype(np.float32).copy()
     vol = Volume.from_grid(data, (0.5, 0.5, 2.5), center_mm=(5.0, 0.0, 0.0))
-    coarse = _no_finer_than(vol, 1.0)
+    assert _floor_factors(vol, 1.0) == (2, 2, 1)
+    coarse = vol.downsample(_floor_factors(vol, 1.0))
     np.testing.assert_allclose(coarse.spacing_mm, (1.0, 1.0, 2.5))
     assert coarse.shape == (4, 3, 4)
     world_x = (coarse.index_to_world @ np.stack([np.arange(4), np.zeros(4), np.zeros(4), np.ones(4)]))[0]
@@ -268,7 +300,7 @@ def test_the_probes_level_0_is_not_finer_than_the_floor() -> None:
     # each block's value (the mean of its two source voxels) sits at their mean position
     np.testing.assert_allclose(coarse.data[0, 0], (data[0, 0, 0:8:2] + data[0, 0, 1:8:2]) / 2)
     np.testing.assert_allclose(world_x, (world_x_src[0:8:2] + world_x_src[1:8:2]) / 2)
-    assert _no_finer_than(coarse, 1.0) is coarse
+    assert _floor_factors(coarse, 1.0) == (1, 1, 1)
 
 
 def test_an_isotropic_3dra_finer_than_the_floor_keeps_its_own_pyramid() -> None:
