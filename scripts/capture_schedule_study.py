@@ -18,7 +18,8 @@ study's phantom moments at a translation of ``--mm`` (and a
 rotation of ``--deg``), registered biplane and on plane A alone, ``--cases`` moments.
 ``--variants``: which schedules, as NAME=STAGESxMOVES (the default: 14x14, 11x14, 14x10, 10x12),
 optionally at another image size and volume level, NAME=STAGESxMOVES@PIXELS/LEVEL (``c64=14x14@64/2``:
-the default schedule on 64-pixel images of the volume's level 2).
+the default schedule on 64-pixel images of the volume's level 2); NAME=refine@PIXELS/LEVEL: the
+capture as it is and the refinement level (the annealing after it) at other images and volume level.
 """
 
 from __future__ import annotations
@@ -50,6 +51,11 @@ def variants(spec: list[str]) -> dict[str, RegistrationOptions]:
     for item in spec:
         name, _, spec_ = item.partition("=")
         shape, _, where = spec_.partition("@")
+        if shape == "refine":  # the refinement level at other images and volume level
+            px, level = (int(v) for v in where.split("/"))
+            refine = replace(base.levels[1], image_px=px, volume_level=level)
+            out[name] = replace(base, levels=(base.levels[0], refine, *base.levels[2:]))
+            continue
         stages, moves = (int(v) for v in shape.split("x"))
         capture = base.levels[0]
         if where:

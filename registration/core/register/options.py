@@ -45,11 +45,11 @@ CAPTURE_64 = Level(64, 2, CAPTURE_SCHEDULE, restarts=4)
 
 def _default_levels() -> tuple[Level, ...]:
     # capture: four runs at 32 px on the eighth-resolution volume (one view;
-    # docs/decisions/2026-12-05-capture-level.md); refine: about 96 px on the quarter-resolution
-    # volume (docs/decisions/2026-12-02-registration-levels.md).
+    # docs/decisions/2026-12-05-capture-level.md); refine: about 64 px on the quarter-resolution
+    # volume (docs/decisions/2026-12-05-refinement-images.md).
     return (
         Level(32, 3, CAPTURE_SCHEDULE, restarts=4),
-        Level(96, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
+        Level(64, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
     )
 
 
@@ -364,7 +364,7 @@ class RegistrationOptions:
     ``rotation_check=False`` switch a stage off) and read back as attributes.
     """
 
-    #: The annealing levels, coarse to fine (default: a 32 px capture, a 96 px refinement; two or
+    #: The annealing levels, coarse to fine (default: a 32 px capture, a 64 px refinement; two or
     #: more views capture at :attr:`BiplaneOptions.capture`).
     levels: tuple[Level, ...] = field(default_factory=_default_levels)
     #: Search range either side of the initial pose, mm (default 30, > 0).
