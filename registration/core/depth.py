@@ -63,9 +63,10 @@ DEPTH_EVALUATIONS = 120
 SCAN_TZ_MM = tuple(float(v) for v in np.arange(-24.0, 24.1, 2.0))
 SCAN_IMAGE_PX = 256
 SCAN_VOLUME_LEVEL = 0
-#: The confidence's scan evaluates every third offset, then climbs offset by offset to the peak
-#: (:func:`depth_scan`'s ``stride``): the same peak as the full scan where the measure has one.
-SCAN_STRIDE = 3
+#: The confidence's scan evaluates every sixth offset (12 mm apart), then climbs offset by offset
+#: to the peak (:func:`depth_scan`'s ``stride``): the same peak as the full scan where the
+#: measure has one (docs/decisions/2026-12-05-scan-stride.md).
+SCAN_STRIDE = 6
 #: The depth-corrected registration's scan (:func:`scan_level`): the prepared level whose voxel
 #: is nearest this size (mm, in ratio), compared at about the polish's image size.
 CORRECTION_VOXEL_MM = 1.0

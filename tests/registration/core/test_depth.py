@@ -82,7 +82,7 @@ def test_depth_scan_finds_the_offset_along_the_beam(scene):
         motion = offsets_to_matrix([0.0, 0.0, tz, 0.0, 0.0, 0.0], g)
         full, strided = depth_scan(renderer, xray, motion), depth_scan(renderer, xray, motion, stride=SCAN_STRIDE)
         assert strided.tz_mm == full.tz_mm, (tz, full, strided)
-        assert strided.drr_count < 0.7 * full.drr_count  # measured here: 11-12 of 25
+        assert strided.drr_count < 0.5 * full.drr_count, (strided.drr_count, full.drr_count)  # here 8-10 of 25
         values = dict(zip(full.offsets_mm, full.similarity, strict=True))
         assert all(values[o] == v for o, v in zip(strided.offsets_mm, strided.similarity, strict=True))
 
