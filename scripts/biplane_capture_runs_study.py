@@ -19,6 +19,8 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from variant_draws import write_biplane, write_capture
+
 from registration.core.register import RegistrationOptions
 
 KEYS = ("success", "applied", "translation_residual_mm", "rotation_residual_deg", "drr_count", "seconds",
@@ -43,31 +45,9 @@ def main() -> int:
     options = variants()
     with args.out.open("a") as fh:
         if args.study == "quick":
-            from registration.studies.biplane import BiplaneConfig, biplane_tasks
-
-            config = replace(BiplaneConfig.quick_config(seed=args.seed), registrations_per_patient=args.cases)
-            for task in biplane_tasks(config):
-                line = {"case_id": task.case_id, "seed": args.seed}
-                for name, o in options.items():
-                    record = task.case.run(options=o)
-                    line[name] = {k: record.get(k) for k in KEYS}
-                fh.write(json.dumps(line) + "\n")
-                fh.flush()
+            write_biplane(fh, args.seed, args.cases, options, KEYS)
         elif args.study == "capture":
-            from registration.studies.capture import CaptureConfig, capture_tasks
-            from registration.studies.execution import execute
-
-            sweep = "combined" if args.mm and args.deg else "rotation" if args.deg else "translation"
-            config = replace(CaptureConfig.quick_config(seed=args.seed), sweeps=(sweep,), translations_mm=(args.mm,),
-                             rotations_deg=(args.deg,), registrations_per_level=args.cases)  # fmt: skip
-            lines: dict[str, dict] = {}
-            for name, o in options.items():
-                for task in capture_tasks(config, o):
-                    record = execute(task)
-                    first = {"case_id": task.case_id, "seed": args.seed, "mode": f"capture {args.mm} {args.deg}"}
-                    lines.setdefault(task.case_id, first)[name] = {k: record.get(k) for k in KEYS}
-            for line in lines.values():
-                fh.write(json.dumps(line) + "\n")
+            write_capture(fh, args.seed, args.cases, args.mm, args.deg, options, KEYS)
         else:
             import registration.studies.volume as study
             from registration.io import dicom

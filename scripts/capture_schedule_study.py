@@ -30,7 +30,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from variant_draws import write_runs, write_volume
+from variant_draws import write_biplane, write_capture, write_runs, write_volume
 
 from registration.core.register import RegistrationOptions
 
@@ -82,32 +82,9 @@ def main() -> int:
         if args.study == "runs":
             write_runs(fh, args.seed, args.cases, options, KEYS)
         elif args.study == "capture":
-            from registration.studies.capture import CaptureConfig, capture_tasks
-            from registration.studies.execution import execute
-
-            sweep = "combined" if args.mm and args.deg else "rotation" if args.deg else "translation"
-            config = replace(CaptureConfig.quick_config(seed=args.seed), sweeps=(sweep,), translations_mm=(args.mm,),
-                             rotations_deg=(args.deg,), registrations_per_level=args.cases)  # fmt: skip
-            lines: dict[str, dict] = {}
-            for name, o in options.items():
-                for task in capture_tasks(config, o):
-                    record = execute(task)
-                    first = {"case_id": task.case_id, "study": "capture", "seed": args.seed}
-                    line = lines.setdefault(task.case_id, first)
-                    line[name] = {k: record.get(k) for k in CAPTURE_KEYS}
-            for line in lines.values():
-                fh.write(json.dumps(line) + "\n")
+            write_capture(fh, args.seed, args.cases, args.mm, args.deg, options, CAPTURE_KEYS)
         elif args.study == "biplane":
-            from registration.studies.biplane import BiplaneConfig, biplane_tasks
-
-            config = replace(BiplaneConfig.quick_config(seed=args.seed), registrations_per_patient=args.cases)
-            for task in biplane_tasks(config):
-                line = {"case_id": task.case_id, "study": "biplane", "seed": args.seed}
-                for name, o in options.items():
-                    record = task.case.run(options=o)
-                    line[name] = {k: record.get(k) for k in BIPLANE_KEYS}
-                fh.write(json.dumps(line) + "\n")
-                fh.flush()
+            write_biplane(fh, args.seed, args.cases, options, BIPLANE_KEYS)
         elif args.study == "table1":
             from registration.core.geometry import TABLE_I
             from registration.studies.cases import Case, run_case

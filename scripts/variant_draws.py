@@ -4,7 +4,9 @@ variant's record (``keys`` of it): the study scripts' shared loop.
 ``write_runs``: the rotational-run study (``roadmap3d validate clinical --quick``, ``cases``
 registrations per patient), a line as each draw ends; ``write_volume``: the shared real CT's
 clinical-looking images (``roadmap3d validate volume --realism clinical``, single plane, at
-``strength``), written when every variant has run.
+``strength``), written when every variant has run; ``write_capture``: the capture-range study's
+phantom moments at ``mm`` and ``deg`` (both planes and plane A alone), written when every variant
+has run; ``write_biplane``: the biplane study's quick moments, a line as each draw ends.
 """
 
 from __future__ import annotations
@@ -45,3 +47,34 @@ def write_volume(fh: IO[str], seed: int, cases: int, strength: float, variants: 
         for name, records in passes.items():
             line[name] = {k: records[n].get(k) for k in keys}
         fh.write(json.dumps(line) + "\n")
+
+
+def write_capture(fh: IO[str], seed: int, cases: int, mm: float, deg: float, variants: Variants,
+                  keys: Sequence[str]) -> None:  # fmt: skip
+    from registration.studies.capture import CaptureConfig, capture_tasks
+    from registration.studies.execution import execute
+
+    sweep = "combined" if mm and deg else "rotation" if deg else "translation"
+    config = replace(CaptureConfig.quick_config(seed=seed), sweeps=(sweep,), translations_mm=(mm,),
+                     rotations_deg=(deg,), registrations_per_level=cases)  # fmt: skip
+    lines: dict[str, dict] = {}
+    for name, options in variants.items():
+        for task in capture_tasks(config, options):
+            record = execute(task)
+            first = {"case_id": task.case_id, "study": "capture", "seed": seed}
+            lines.setdefault(task.case_id, first)[name] = {k: record.get(k) for k in keys}
+    for line in lines.values():
+        fh.write(json.dumps(line) + "\n")
+
+
+def write_biplane(fh: IO[str], seed: int, cases: int, variants: Variants, keys: Sequence[str]) -> None:
+    from registration.studies.biplane import BiplaneConfig, biplane_tasks
+
+    config = replace(BiplaneConfig.quick_config(seed=seed), registrations_per_patient=cases)
+    for task in biplane_tasks(config):
+        line = {"case_id": task.case_id, "study": "biplane", "seed": seed}
+        for name, options in variants.items():
+            record = task.case.run(options=options)
+            line[name] = {k: record.get(k) for k in keys}
+        fh.write(json.dumps(line) + "\n")
+        fh.flush()
