@@ -188,9 +188,9 @@ class DepthOptions:
     #: reaches this (default 0.008, the rotation check's): its rotation is not in doubt, and tz
     #: stays (None: always polish).
     first_polish_skip_margin: float | None = 0.008
-    #: The scans evaluate every this-th offset, then climb offset by offset to the peak (default 3;
-    #: 1: every offset).
-    scan_stride: int = 3
+    #: The scans evaluate every this-th offset, then climb offset by offset to the peak (default 6,
+    #: docs/decisions/2026-12-05-scan-stride.md; 1: every offset).
+    scan_stride: int = 6
 
     def __post_init__(self) -> None:
         _at_least("DepthOptions", 1, rounds=self.rounds, polish_evaluations=self.polish_evaluations)
