@@ -32,6 +32,7 @@ spanned by the outer voxel centers.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
 
 import numba
@@ -63,23 +64,52 @@ REFERENCE_STEP_VOXELS = 0.5
 # The fast renderer
 # --------------------------------------------------------------------------------------
 class _Level:
-    """One pyramid level ready for the kernels: padded attenuation arrays and the clip box."""
+    """One pyramid level ready for the kernels: padded attenuation arrays and the clip box.
 
-    def __init__(self, volume: Volume) -> None:
+    ``lazy``: the two arrays (``mu``, and ``mu_t`` for rays dominated by the i axis) are written
+    when a render first needs them (:meth:`ensure`), each only if some ray of that render reads
+    it: a level rendered for one view seldom needs both (the confidence's level 0)."""
+
+    def __init__(self, volume: Volume, *, lazy: bool = False) -> None:
         self.volume = volume
         nk, nj, ni = volume.shape
-        # attenuation (hu_to_mu_per_mm) padded with zeros, and a copy with j fastest for rays
-        # dominated by the i axis: both written in one pass, no intermediate copies
-        padded = np.zeros((nk + 2 * _PAD, nj + 2 * _PAD, ni + 2 * _PAD), dtype=np.float32)
-        padded_t = np.zeros((nk + 2 * _PAD, ni + 2 * _PAD, nj + 2 * _PAD), dtype=np.float32)
-        any_kj = np.zeros((nk, nj), dtype=np.bool_)
-        any_ki = np.zeros((nk, ni), dtype=np.bool_)
-        _fill_level(np.ascontiguousarray(volume.data), MU_WATER_PER_MM, padded, padded_t, any_kj, any_ki)
-        self.mu = padded.reshape(-1)
-        self.mu_t = padded_t.reshape(-1)
         self.shape_ijk = np.array([ni, nj, nk], dtype=np.int64)
         self.index_from_world = np.ascontiguousarray(volume.index_from_world)
         self.index_to_world3 = np.ascontiguousarray(volume.index_to_world[:3, :3])
+        self.mu = self.mu_t = np.zeros(1, dtype=np.float32)  # placeholders until written
+        self.has_mu = self.has_mu_t = False
+        self._lock = threading.Lock()
+        if not lazy:
+            self.ensure(True, True)
+
+    @property
+    def complete(self) -> bool:
+        return self.has_mu and self.has_mu_t
+
+    def ensure(self, mu: bool, mu_t: bool) -> None:
+        """Write the arrays asked for that are missing (the clip box and the empty space with the
+        first of them)."""
+        with self._lock:
+            want, want_t = mu and not self.has_mu, mu_t and not self.has_mu_t
+            if not (want or want_t):
+                return
+            first = not (self.has_mu or self.has_mu_t)
+            ni, nj, nk = (int(n) for n in self.shape_ijk)
+            dummy = np.zeros((1, 1, 1), dtype=np.float32)
+            padded = np.zeros((nk + 2 * _PAD, nj + 2 * _PAD, ni + 2 * _PAD), dtype=np.float32) if want else dummy
+            padded_t = np.zeros((nk + 2 * _PAD, ni + 2 * _PAD, nj + 2 * _PAD), dtype=np.float32) if want_t else dummy
+            any_kj = np.zeros((nk, nj), dtype=np.bool_)
+            any_ki = np.zeros((nk, ni), dtype=np.bool_)
+            data = np.ascontiguousarray(self.volume.data)
+            _fill_level(data, MU_WATER_PER_MM, padded, padded_t, any_kj, any_ki, want, want_t)
+            if first:
+                self._clip_and_leaps(any_kj, any_ki, padded if want else padded_t, transposed=not want)
+            if want:
+                self.mu, self.has_mu = padded.reshape(-1), True
+            if want_t:
+                self.mu_t, self.has_mu_t = padded_t.reshape(-1), True
+
+    def _clip_and_leaps(self, any_kj, any_ki, padded, *, transposed: bool) -> None:  # noqa: ANN001
         # box of voxels that can contribute: non-zero attenuation, padded by one voxel; the
         # extent along each axis (k, j, i) of the voxels with attenuation
         nz = [np.flatnonzero(a) for a in (any_kj.any(axis=1), any_kj.any(axis=0), any_ki.any(axis=0))]
@@ -92,7 +122,7 @@ class _Level:
             self.lo = np.maximum(lo_kji[::-1], 0).astype(np.float64)
             self.hi = np.minimum(hi_kji[::-1], self.shape_ijk - 1).astype(np.float64)
         # empty space that rays leap over (none: every block holds attenuation or is next to it)
-        empty = _empty_distance(padded)
+        empty = _empty_distance(padded, transposed=transposed)
         self.use_empty = empty is not None
         if empty is None:
             self.empty = np.zeros(1, dtype=np.uint8)
@@ -101,6 +131,23 @@ class _Level:
             bk, bj, bi = empty.shape
             self.empty = empty.reshape(-1)
             self.empty_strides = np.array([1, bi, bi * bj], dtype=np.int64)  # (i, j, k)
+
+
+def _arrays_read(a_mat: NDArray[np.float64], rows: int, cols: int, mask: NDArray[np.bool_] | None) -> tuple[bool, bool]:
+    """Whether Joseph's rays through ``rows`` x ``cols`` pixels (directions ``a_mat @ (c, r, 1)``
+    in index space, only where ``mask`` is set) read the (k, j, i) array (a ray dominated by j or
+    k) and the transposed one (dominated by i). Ties count for both, with a margin for rounding."""
+    c = np.arange(cols, dtype=np.float64)[None, :]
+    r = np.arange(rows, dtype=np.float64)[:, None]
+    ad = [np.abs(a_mat[k, 0] * c + a_mat[k, 1] * r + a_mat[k, 2]) for k in range(3)]
+    other = np.maximum(ad[1], ad[2])
+    tol = 1.0 - 1e-6
+    reads_t = ad[0] >= tol * other
+    reads = other >= tol * ad[0]
+    if mask is not None:
+        reads_t &= mask
+        reads &= mask
+    return bool(reads.any()), bool(reads_t.any())
 
 
 class DRRRenderer:
@@ -169,15 +216,16 @@ class DRRRenderer:
         self.samples_per_level = [0] * len(self._levels)
         self._no_mask = np.zeros((1, 1), dtype=np.uint8)
 
-    def with_levels(self, levels: dict[int, Volume]) -> DRRRenderer:
+    def with_levels(self, levels: dict[int, Volume], *, lazy: bool = False) -> DRRRenderer:
         """A renderer of the same volume with ``levels`` (index -> volume) added or replaced and
-        every other prepared level shared with this one (not converted again); its own counters."""
+        every other prepared level shared with this one (not converted again); its own counters.
+        ``lazy``: the new levels' arrays are written when a render first reads them."""
         if not levels or any(not isinstance(k, int) or k < 0 for k in levels):
             raise ValueError("levels must map non-negative level indices to volumes")
         if any(not isinstance(v, Volume) for v in levels.values()):
             raise ValueError("levels must be volumes")
         n = max(len(self._levels), max(levels) + 1)
-        shared = [_Level(levels[k]) if k in levels else (self._levels[k] if k < len(self._levels) else None)
+        shared = [_Level(levels[k], lazy=lazy) if k in levels else (self._levels[k] if k < len(self._levels) else None)
                   for k in range(n)]  # fmt: skip
         out = object.__new__(DRRRenderer)
         out._set_up(self.volume, self.step_voxels, self.skip_empty, shared)
@@ -263,6 +311,8 @@ class DRRRenderer:
                 raise ValueError(f"mask must be boolean, got dtype {mask.dtype}")
             mask_u8, use_mask = np.ascontiguousarray(mask).view(np.uint8), True
         joseph = self.step_voxels == 1.0
+        if not lev.complete:  # a lazy level: write what this render's rays read
+            lev.ensure(*(_arrays_read(a_mat, *shape, mask) if joseph else (True, False)))
         # small jobs run serially: a parallel launch costs more than it saves
         serial = geometry.rows * geometry.cols * int(lev.shape_ijk.max()) < _SERIAL_SAMPLES
         if parallel is not None:

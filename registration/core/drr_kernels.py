@@ -591,10 +591,11 @@ def _chessboard_distance(occupied: np.ndarray, out: np.ndarray) -> None:
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill_level(hu, mu_water_per_mm, padded, padded_t, any_kj, any_ki) -> None:  # noqa: ANN001
+def _fill_level(hu, mu_water_per_mm, padded, padded_t, any_kj, any_ki, want, want_t) -> None:  # noqa: ANN001
     """One pass over a level's HU: attenuation per mm (``hu_to_mu_per_mm``'s operations, in the
-    same order and precision) into the interior of ``padded`` (k, j, i) and of its (k, i, j)
-    copy ``padded_t``; ``any_kj``/``any_ki`` mark the rows and columns holding attenuation."""
+    same order and precision) into the interior of ``padded`` (k, j, i; if ``want``) and of its
+    (k, i, j) copy ``padded_t`` (if ``want_t``); ``any_kj``/``any_ki`` mark the rows and columns
+    holding attenuation."""
     nk, nj, ni = hu.shape
     p = _PAD
     thousand, one, zero = np.float32(1000.0), np.float32(1.0), np.float32(0.0)
@@ -607,8 +608,10 @@ def _fill_level(hu, mu_water_per_mm, padded, padded_t, any_kj, any_ki) -> None: 
                 x = x * water
                 if x < zero:
                     x = zero
-                padded[k + p, j + p, i + p] = x
-                padded_t[k + p, i + p, j + p] = x
+                if want:
+                    padded[k + p, j + p, i + p] = x
+                if want_t:
+                    padded_t[k + p, i + p, j + p] = x
                 if x > zero:
                     any_kj[k, j] = True
                     any_ki[k, i] = True
@@ -627,14 +630,18 @@ def _occupied_blocks(padded_mu, b, out) -> None:  # noqa: ANN001
                         row[i // b] = 1
 
 
-def _empty_distance(padded_mu: NDArray[np.float32]) -> NDArray[np.uint8] | None:
+def _empty_distance(padded_mu: NDArray[np.float32], *, transposed: bool = False) -> NDArray[np.uint8] | None:
     """Per block of ``_BLOCK``^3 padded voxels (k, j, i), the chessboard distance in blocks to
     the nearest block holding attenuation (0 there); None when no block is far enough from
-    attenuation (>= 2) for a ray to leap over it."""
+    attenuation (>= 2) for a ray to leap over it. ``transposed``: ``padded_mu`` is the (k, i, j)
+    copy (the blocks are the same, their order transposed back)."""
     b = _BLOCK
     shape = tuple(-(-n // b) for n in padded_mu.shape)
     occupied = np.zeros(shape, dtype=np.uint8)
     _occupied_blocks(padded_mu, b, occupied)
+    if transposed:
+        occupied = np.ascontiguousarray(occupied.transpose(0, 2, 1))
+        shape = occupied.shape
     if occupied.all() or not occupied.any():
         return None
     distance = np.empty(shape, dtype=np.uint8)

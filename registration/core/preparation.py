@@ -125,7 +125,8 @@ def _probe_renderer(prepared: PreparedVolume, planes: int) -> DRRRenderer:
         level0 = Volume(data, affine, label=volume.label, meta=volume.meta).downsample(factors)
         if blocks is not None:
             level0 = mask_outside_body(level0, volume, blocks)
-    return renderer.with_levels({0: level0})  # the prepared levels shared, not converted again
+    # the prepared levels shared, not converted again; level 0 written as its views' rays need it
+    return renderer.with_levels({0: level0}, lazy=True)
 
 
 def _floor_factors(volume: Volume, floor_mm: float) -> tuple[int, int, int]:

@@ -158,3 +158,34 @@ def test_level_arrays_equal_their_definition(dtype):
     distance = ndimage.distance_transform_cdt(~blocks, metric="chessboard")
     assert level.use_empty
     assert np.array_equal(level.empty, np.minimum(distance, 255).astype(np.uint8).reshape(-1))
+
+
+def test_a_lazy_level_writes_only_what_its_rays_read(islands):
+    """A level built lazily renders every view exactly as the eagerly built one, and writes the
+    transposed copy only for a view with rays dominated by the i axis (a lateral view) and the
+    (k, j, i) array only for one with rays dominated by j or k (a frontal view)."""
+    eager = DRRRenderer(islands, levels=1)
+    motion = offsets_to_matrix([1.5, -2.0, 3.0, 4.0, -3.0, 2.0], VIEWS["oblique"])
+    # at LAO 60 (this volume's affine turns it 17 deg) the rays straddle the i / j diagonal
+    views = {**VIEWS, "diagonal": _view(60.0, 0.0)}
+    for name, reads, reads_t in (("frontal", True, False), ("lateral", False, True), ("diagonal", True, True)):
+        lazy = eager.with_levels({0: islands}, lazy=True)
+        level = lazy._level(0)
+        assert not level.has_mu and not level.has_mu_t
+        for parallel in (False, True):
+            got = lazy.render(views[name], motion, parallel=parallel)
+            np.testing.assert_array_equal(got, eager.render(views[name], motion, parallel=parallel))
+        assert (level.has_mu, level.has_mu_t) == (reads, reads_t), name
+        # what the first render wrote, the rest of the level holds as the eager one does
+        whole = eager._level(0)
+        np.testing.assert_array_equal(level.lo, whole.lo)
+        np.testing.assert_array_equal(level.empty, whole.empty)
+        if reads:
+            np.testing.assert_array_equal(level.mu, whole.mu)
+        if reads_t:
+            np.testing.assert_array_equal(level.mu_t, whole.mu_t)
+    # one lazy level asked for the frontal view, then the lateral: the second array joins the first
+    lazy = eager.with_levels({0: islands}, lazy=True)
+    for name in ("frontal", "lateral", "frontal"):
+        np.testing.assert_array_equal(lazy.render(VIEWS[name], motion), eager.render(VIEWS[name], motion))
+    assert lazy._level(0).complete
