@@ -105,8 +105,12 @@ def assess(
     why_not = veto(result, landmarks)
     if why_not is not None:
         return Assessment(0.0, False, why_not, Evidence(veto=why_not))
-    return assess_on(result, views, preparation.volume, preparation.probe_renderer(),
-                     single_plane_motion=single_plane_motion, rule=rule, landmarks=landmarks)  # fmt: skip
+    renderer = preparation.probe_renderer()
+    if renderer.has_level(0):  # the probes' level 0 written for these views before the probes run
+        for view in (views,) if isinstance(views, XRayImage) else views:
+            renderer.ready(view.geometry, result.patient_motion, level=0)
+    return assess_on(result, views, preparation.volume, renderer, single_plane_motion=single_plane_motion,
+                     rule=rule, landmarks=landmarks)  # fmt: skip
 
 
 def assess_on(

@@ -231,6 +231,16 @@ class DRRRenderer:
         out._set_up(self.volume, self.step_voxels, self.skip_empty, shared)
         return out
 
+    def ready(self, geometry: CArm, motion: ArrayLike | None = None, *, level: int = 0) -> None:
+        """Write what a lazy ``level`` (:meth:`with_levels`) would read to render ``geometry``
+        at ``motion`` (its rays' directions), so that the render does not; nothing for a level
+        built whole."""
+        lev = self._level(level)
+        if not lev.complete:
+            _, a_mat = _rays_in_index_space(lev.index_from_world, geometry, motion)
+            lev.ensure(*(_arrays_read(a_mat, geometry.rows, geometry.cols, None) if self.step_voxels == 1.0
+                         else (True, False)))  # fmt: skip
+
     @property
     def n_levels(self) -> int:
         return len(self._levels)

@@ -189,3 +189,8 @@ def test_a_lazy_level_writes_only_what_its_rays_read(islands):
     for name in ("frontal", "lateral", "frontal"):
         np.testing.assert_array_equal(lazy.render(VIEWS[name], motion), eager.render(VIEWS[name], motion))
     assert lazy._level(0).complete
+    # ready(): what a render of a view would read, written before it (the probes' level 0)
+    lazy = eager.with_levels({0: islands}, lazy=True)
+    lazy.ready(VIEWS["lateral"], motion, level=0)
+    assert (lazy._level(0).has_mu, lazy._level(0).has_mu_t) == (False, True)
+    np.testing.assert_array_equal(lazy.render(VIEWS["lateral"], motion), eager.render(VIEWS["lateral"], motion))
