@@ -21,6 +21,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -53,21 +54,54 @@ def support_mask(volume: Volume, geometry: CArm, motion: ArrayLike, margin_mm: f
     # Work in index units scaled to mm along each axis (the 3DRA grids are orthogonal).
     src_mm, dirs_mm = src * spacing, dirs * spacing
     n = np.array(volume.shape[::-1], dtype=np.float64)  # (ni, nj, nk)
-    near, far = _box_interval(src_mm, dirs_mm, np.full(3, margin_mm) - 0.5 * spacing, (n - 0.5) * spacing - margin_mm)
+    lo, hi = np.full(3, margin_mm) - 0.5 * spacing, (n - 0.5) * spacing - margin_mm
     # The inscribed cylinder about the k axis.
     center = (n[:2] - 1) / 2.0 * spacing[:2]
     radius = min(n[0] * spacing[0], n[1] * spacing[1]) / 2.0 - margin_mm
-    p, d = src_mm[:2] - center, dirs_mm[:, :2]
+    p, d = src_mm[:2] - center, np.ascontiguousarray(dirs_mm[:, :2])
     a = np.sum(d * d, axis=1)
     b = 2.0 * d @ p
     c = p @ p - radius * radius
-    disc = b * b - 4 * a * c
-    hit = (disc > 0) & (a > 0) & (radius > 0)
-    root = np.sqrt(np.where(hit, disc, 0.0))
-    safe_a = np.where(a > 0, a, 1.0)
-    near = np.where(hit, np.maximum(near, (-b - root) / (2 * safe_a)), near)
-    far = np.where(hit, np.minimum(far, (-b + root) / (2 * safe_a)), -np.inf)
-    return (far > near).reshape(geometry.rows, geometry.cols)
+    out = np.empty(a.shape[0], dtype=np.bool_)
+    _support_hits(src_mm, np.ascontiguousarray(dirs_mm), lo, hi, a, b, c, radius, out)
+    return out.reshape(geometry.rows, geometry.cols)
+
+
+@numba.njit(cache=True)
+def _support_hits(src, dirs, lo, hi, a, b, c, radius, out) -> None:  # noqa: ANN001
+    """Per ray ``src + t dirs``: whether it crosses the box [lo, hi] within the cylinder (``a``,
+    ``b``, ``c``: its quadratic in t; ``radius`` <= 0: no cylinder). The operations of
+    :func:`_box_interval` and the cylinder's clip, elementwise in the same order."""
+    for n in range(dirs.shape[0]):
+        near, far, outside = -np.inf, np.inf, False
+        for k in range(3):
+            t1 = (lo[k] - src[k]) / dirs[n, k]
+            t2 = (hi[k] - src[k]) / dirs[n, k]
+            if np.isfinite(t1):
+                near = max(near, _nan_min(t1, t2))
+                far = min(far, _nan_max(t1, t2))
+            if dirs[n, k] == 0.0 and (src[k] < lo[k] or src[k] > hi[k]):
+                outside = True
+        if outside:
+            far = -np.inf
+        disc = b[n] * b[n] - 4 * a[n] * c
+        if disc > 0 and a[n] > 0 and radius > 0:
+            root = math.sqrt(disc)
+            near = _nan_max(near, (-b[n] - root) / (2 * a[n]))
+            far = _nan_min(far, (-b[n] + root) / (2 * a[n]))
+        else:
+            far = -np.inf
+        out[n] = far > near
+
+
+@numba.njit(cache=True, inline="always")
+def _nan_min(x, y):  # noqa: ANN001, ANN202
+    return x if (x != x or x <= y) and y == y else y  # np.minimum: NaN if either is
+
+
+@numba.njit(cache=True, inline="always")
+def _nan_max(x, y):  # noqa: ANN001, ANN202
+    return x if (x != x or x >= y) and y == y else y  # np.maximum: NaN if either is
 
 
 def _box_interval(src: Array, dirs: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
