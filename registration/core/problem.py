@@ -70,8 +70,9 @@ def support_mask(volume: Volume, geometry: CArm, motion: ArrayLike, margin_mm: f
 @numba.njit(cache=True)
 def _support_hits(src, dirs, lo, hi, a, b, c, radius, out) -> None:  # noqa: ANN001
     """Per ray ``src + t dirs``: whether it crosses the box [lo, hi] within the cylinder (``a``,
-    ``b``, ``c``: its quadratic in t; ``radius`` <= 0: no cylinder). The operations of
-    :func:`_box_interval` and the cylinder's clip, elementwise in the same order."""
+    ``b``, ``c``: its quadratic in t; ``radius`` <= 0: no cylinder): the slab intervals of the
+    box (a ray parallel to a slab must start inside it), then the cylinder's, in the operations
+    and order of the NumPy statement (``test_support_mask_equals_its_definition``)."""
     for n in range(dirs.shape[0]):
         near, far, outside = -np.inf, np.inf, False
         for k in range(3):
@@ -102,18 +103,6 @@ def _nan_min(x, y):  # noqa: ANN001, ANN202
 @numba.njit(cache=True, inline="always")
 def _nan_max(x, y):  # noqa: ANN001, ANN202
     return x if (x != x or x >= y) and y == y else y  # np.maximum: NaN if either is
-
-
-def _box_interval(src: Array, dirs: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
-    """Ray parameters (near, far) where rays ``src + t dirs`` cross the box [lo, hi]."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (lo - src) / dirs, (hi - src) / dirs
-    near = np.nanmax(np.where(np.isfinite(t1), np.minimum(t1, t2), -np.inf), axis=1)
-    far = np.nanmin(np.where(np.isfinite(t1), np.maximum(t1, t2), np.inf), axis=1)
-    # Rays parallel to a slab must start inside it.
-    outside = (dirs == 0) & ((src < lo) | (src > hi))
-    far[np.any(outside, axis=1)] = -np.inf
-    return near, far
 
 
 def level_factor(geometry: CArm, image_px: int, voxel_mm: float) -> int:

@@ -137,12 +137,9 @@ def mask_outside_body(level: Volume, volume: Volume, blocks: ProbeBlocks) -> Vol
     for ax, n in enumerate((ni, nj, nk)):
         src = a[ax, ax] * np.arange(n) + a[ax, 3]
         idx.append(np.clip(np.floor((src + 0.5) / blocks.step[ax]).astype(np.int64), 0, nb[ax] - 1))
-    inside = blocks.body[np.ix_(idx[2], idx[1], idx[0])]
-    inside &= level.data > AIR_HU
-    if inside.all():
-        return level
-    return Volume(np.where(inside, level.data, np.float32(-1000.0)), level.index_to_world, label=level.label,
-                  meta=level.meta)  # fmt: skip
+    out = np.empty(level.shape, dtype=np.float32)
+    _masked_copy(level.data, blocks.body.view(np.uint8), idx[2], idx[1], idx[0], np.float32(AIR_HU), out)
+    return Volume(out, level.index_to_world, label=level.label, meta=level.meta)
 
 
 def body_region(volume: Volume, lo: ArrayLike, hi: ArrayLike, blocks: ProbeBlocks) -> Volume:
