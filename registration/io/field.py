@@ -16,7 +16,11 @@ unusable for registration:
   to where the step ends (the penumbra). Behind an opaque blade there is only noise (or the
   display window's black). A weaker step (less than ``BLADE_MEDIAN_STEP`` of the field's
   range) along a sharp straight edge is a semi-transparent wedge filter: the anatomy goes on
-  behind it, so only the edge is masked.
+  behind it, so only the edge is masked (all of the side behind it when nothing of the anatomy
+  shows there). A display chain can flatten a blade's shadow into the toe of its look-up table
+  and ring along its edge: a line that, moved by a few pixels across itself, shows a step to
+  less signal on nearly all of its profiles, however small against the field's range, with
+  hardly any structure behind it, is such a blade too.
 * **burned-in graphics**: text, rulers and markers drawn at the largest value (full white) in
   thin strokes that stand out from their surroundings, and lines of text at the smallest (full
   black); masked with a margin.
@@ -57,6 +61,19 @@ BLADE_SHARP_PX = 4.0
 BLADE_MIN_LENGTH = 0.25
 #: A blade never leaves less than this fraction of the field.
 BLADE_MAX_CLOSED = 0.6
+#: A blade whose shadow a display window flattened (a weak step on dark anatomy): the step keeps
+#: its sign, at least this fraction of the field's range, on this fraction of the line's profiles ...
+BAND_MIN_STEP = 0.02
+BAND_SIGN_FRACTION = 0.75
+#: ... and behind the edge at most this share of the structure in front of it (anatomy goes on
+#: behind a filter or an anatomical edge; behind an opaque blade only noise).
+BAND_MAX_STRUCTURE = 0.3
+#: ... looked for up to this many px either side of the Hough line.
+BAND_SHIFT_PX = 8
+#: A line turned less than this from a blade already found and within this many px of its edge
+#: in the field is that edge again.
+SAME_EDGE_DEG = 10.0
+SAME_EDGE_PX = 20.0
 
 
 @dataclass
@@ -241,10 +258,25 @@ def find_blades(
     center = ndimage.center_of_mass(field_mask)
     found: list[dict[str, Any]] = []
     for _, theta, rho in zip(*peaks, strict=True):
+        if any(_same_edge(inside, float(theta), float(rho), b) for b in found):
+            continue  # a weaker line through an edge already found, turned a little
         blade = _blade(signal, smooth, grad, field_mask, inside, center, span, float(theta), float(rho), min_length)
         if blade is not None:
             found.append(blade)
     return found
+
+
+def _same_edge(inside: NDArray[np.bool_], theta: float, rho: float, blade: dict[str, Any]) -> bool:
+    """Whether the line x cos(theta) + y sin(theta) = rho runs within ``SAME_EDGE_PX`` of a found
+    blade's edge somewhere in the field at an angle under ``SAME_EDGE_DEG``."""
+    turn = abs((math.degrees(theta - blade["theta"]) + 90.0) % 180.0 - 90.0)
+    if turn >= SAME_EDGE_DEG:
+        return False
+    px, py, _ = _line_points(inside, theta, rho)
+    if px.size == 0:
+        return False
+    t = blade["theta"]
+    return bool(np.min(np.abs(px * math.cos(t) + py * math.sin(t) - blade["rho"])) < SAME_EDGE_PX)
 
 
 def _blade(
@@ -274,19 +306,27 @@ def _blade(
         return None
     prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
     found = _step_along(prof, ok, offsets, span, min_length)
-    if found is None:
-        return None
-    piece, step = found
-    filter_edge = bool(np.median(step) < BLADE_MEDIAN_STEP)
-    if filter_edge and not _sharp_step(prof[piece], ok[piece], offsets):
-        return None  # a weak step: only a sharp straight edge counts (a semi-transparent filter's)
-    if (
-        not filter_edge
-        and not _shadow_persists(prof[piece], ok[piece], offsets, span)
-        and not _sharp_step(prof[piece], ok[piece], offsets)
-    ):
-        return None  # neither a persisting shadow nor a sharp edge (a display window can hide the shadow)
-    theta, rho = _refine(prof[piece], ok[piece], offsets, px[piece], py[piece], near_sign * normal, theta, rho)
+    accepted = False
+    if found is not None:
+        piece, step = found
+        filter_edge = bool(np.median(step) < BLADE_MEDIAN_STEP)
+        if filter_edge:
+            # a weak step: only a sharp straight edge counts (a semi-transparent filter's)
+            accepted = _sharp_step(prof[piece], ok[piece], offsets)
+        else:
+            # a persisting shadow or a sharp edge (a display window can hide the shadow)
+            accepted = _shadow_persists(prof[piece], ok[piece], offsets, span) or _sharp_step(
+                prof[piece], ok[piece], offsets
+            )
+    if not accepted:
+        # a shadow the display window flattened into a dark band: opaque, whatever its step's size
+        band = _dark_band(prof, ok, offsets, span, min_length, grad, field_mask, theta, rho, near_sign)
+        if band is None:
+            return None
+        filter_edge, step = False, np.array([band[0]])
+        rho += near_sign * band[1]  # onto the step; not refined: a halo's half-step points turn the line
+    else:
+        theta, rho = _refine(prof[piece], ok[piece], offsets, px[piece], py[piece], near_sign * normal, theta, rho)
     near_sign = 1.0 if cx * math.cos(theta) + cy * math.sin(theta) - rho > 0 else -1.0
     px, py, normal = _line_points(inside, theta, rho)
     prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
@@ -328,6 +368,46 @@ def _step_along(
     if np.mean(step > BLADE_MIN_STEP) < BLADE_STEP_FRACTION:
         return None
     return np.flatnonzero(valid)[run], step
+
+
+def _dark_band(
+    prof: NDArray[np.float64],
+    ok: NDArray[np.bool_],
+    offsets: NDArray[np.float64],
+    span: float,
+    min_length: float,
+    grad: NDArray[np.float64],
+    field_mask: NDArray[np.bool_],
+    theta: float,
+    rho: float,
+    near_sign: float,
+) -> tuple[float, float] | None:
+    """(the median step as a fraction of the field's range, the edge's offset from the line in
+    px) when the line, moved by up to ``BAND_SHIFT_PX`` across itself (an edge enhancement's halo
+    moves the Hough line off the edge), bounds a blade's flat dark band: a step to less signal on
+    nearly every profile along the line's chord (however small against the field's range), and
+    behind the edge hardly any of the structure in front of it; None when it does not."""
+    best: tuple[float, int, NDArray[np.float64]] | None = None
+    for shift in range(-BAND_SHIFT_PX, BAND_SHIFT_PX + 1):
+        near_cols = (offsets >= 3 + shift) & (offsets <= 8 + shift)
+        far_cols = (offsets <= -3 + shift) & (offsets >= -8 + shift)
+        valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
+        if valid.sum() * 2 < min_length:
+            continue
+        step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
+        share = float(np.mean(step > BAND_MIN_STEP))
+        if best is None or share > best[0]:
+            best = (share, shift, step)
+    if best is None or best[0] < BAND_SIGN_FRACTION:
+        return None
+    _, shift, step = best
+    rows, cols = field_mask.shape
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    distance = (xx * math.cos(theta) + yy * math.sin(theta) - rho) * near_sign - shift
+    ratio = _structure_behind(grad, field_mask, distance, (-1.0, 1.0))
+    if not 0.0 < ratio <= BAND_MAX_STRUCTURE:
+        return None
+    return float(np.median(step)), float(shift)
 
 
 def _structure_behind(
@@ -513,7 +593,8 @@ def _collimation(
     if blades and (mask & start).any():
         for blade in find_blades(signal, mask & start):
             lo, hi = blade["edge"]
-            if blade["filter"]:  # the anatomy continues behind a semi-transparent filter: its edge only
+            if blade["filter"] and blade["structure_behind"] > BAND_MAX_STRUCTURE:
+                # the anatomy continues behind a semi-transparent filter: its edge only
                 cut = mask & (blade["distance"] > lo - EDGE_MARGIN_PX) & (blade["distance"] < hi + EDGE_MARGIN_PX)
             else:
                 cut = mask & (blade["distance"] < hi - 0.5)

@@ -102,6 +102,40 @@ def test_rectangular_blades_with_noise_behind_them_are_masked_within_2_px(tmp_pa
     assert "whole image" not in image.meta["mask_from"]
 
 
+def _display_band(angle_deg: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """8-bit display-processed pixels (bone dark) whose blades' shadow the window's toe flattened:
+    a dark, noisy band with no anatomy, dense anatomy along the field's edge (a step of about a
+    tenth of the field's range), an unsharp mask's halo along the edge, and the intensifier's
+    circle darker still. Returns the stored pixels, the signed distance into the open field and
+    the open field."""
+    att = _anatomy(seed)
+    distance, open_field = _blades(angle_deg)
+    rng = np.random.default_rng(seed)
+    field = 60.0 + 180.0 * (1.0 - (att - att.min()) / (att.max() - att.min()))
+    field = 34.0 + (field - 34.0) * (0.1 + 0.9 * np.clip(np.abs(distance) / 60.0, 0.0, 1.0))
+    band = 22.0 + rng.normal(0.0, 3.0, att.shape)
+    inside = 1.0 / (1.0 + np.exp(-distance / 0.7))
+    signal = inside * field + (1.0 - inside) * band
+    signal = signal + 0.8 * (signal - ndimage.gaussian_filter(signal, 3.0))
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE]
+    circle = np.hypot(xx - 127.5, yy - 127.5) < 126
+    signal = np.where(circle, signal, rng.normal(2.0, 1.0, att.shape))
+    return np.clip(np.rint(signal), 0, 255).astype(np.uint16), distance, open_field & circle
+
+
+@pytest.mark.parametrize("angle", [0.0, 7.0, -12.0])
+def test_blades_whose_shadow_the_display_flattened_are_masked_within_3_px(tmp_path: Path, angle: float) -> None:
+    stored, distance, open_field = _display_band(angle, 5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # DISP read as LOG
+        image = dicom.read_xray(xa_file(tmp_path / "band.dcm", stored, bits_stored=8, relationship="DISP"))
+    # Within 3 px of the true edge: the penumbra (0.7 px) and the unsharp mask's halo (about 2 px).
+    wrong = image.mask != open_field
+    assert np.abs(distance[wrong]).max(initial=0.0) <= 3.0, np.abs(distance[wrong]).max()
+    assert (image.mask & ~open_field).sum() < 100  # nothing of the bands is taken for anatomy
+    assert "collimator blade" in image.meta["mask_from"]
+
+
 def test_clean_images_lose_nothing(tmp_path: Path) -> None:
     # The same anatomy without blades or text: no pixel masked (the detector sees no field edge).
     stored = _stored(_anatomy(2), 12.0, 2)
