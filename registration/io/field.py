@@ -349,18 +349,27 @@ def _blade(
     }
 
 
+def _steps(
+    prof: NDArray[np.float64], ok: NDArray[np.bool_], offsets: NDArray[np.float64], span: float, shift: int = 0
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """The profiles with both sides in the field, and their steps (fractions of the field's
+    range) from 3-8 px behind the line to 3-8 px in front of it, the line moved ``shift`` px."""
+    near_cols = (offsets >= 3 + shift) & (offsets <= 8 + shift)
+    far_cols = (offsets <= -3 + shift) & (offsets >= -8 + shift)
+    valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
+    step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
+    return valid, step
+
+
 def _step_along(
     prof: NDArray[np.float64], ok: NDArray[np.bool_], offsets: NDArray[np.float64], span: float, min_length: float
 ) -> tuple[NDArray[np.intp], NDArray[np.float64]] | None:
     """The profiles (their indices) where one step to less signal runs along most of the line's
     chord through the field, and the steps there (fractions of the field's range); None when it
     does not."""
-    near_cols = (offsets >= 3) & (offsets <= 8)
-    far_cols = (offsets <= -3) & (offsets >= -8)
-    valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
+    valid, step = _steps(prof, ok, offsets, span)
     if valid.sum() * 2 < min_length:
         return None
-    step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
     run = _longest_run(step > BLADE_MIN_STEP)
     if run.stop - run.start < max(0.5 * min_length, BLADE_RUN_FRACTION * valid.sum()):
         return None  # the edge must run along most of the line's chord through the field
@@ -389,12 +398,9 @@ def _dark_band(
     behind the edge hardly any of the structure in front of it; None when it does not."""
     best: tuple[float, int, NDArray[np.float64]] | None = None
     for shift in range(-BAND_SHIFT_PX, BAND_SHIFT_PX + 1):
-        near_cols = (offsets >= 3 + shift) & (offsets <= 8 + shift)
-        far_cols = (offsets <= -3 + shift) & (offsets >= -8 + shift)
-        valid = ok[:, near_cols].all(axis=1) & ok[:, far_cols].all(axis=1)
+        valid, step = _steps(prof, ok, offsets, span, shift)
         if valid.sum() * 2 < min_length:
             continue
-        step = (prof[valid][:, near_cols].mean(axis=1) - prof[valid][:, far_cols].mean(axis=1)) / span
         share = float(np.mean(step > BAND_MIN_STEP))
         if best is None or share > best[0]:
             best = (share, shift, step)
