@@ -331,8 +331,7 @@ def _blade(
     px, py, normal = _line_points(inside, theta, rho)
     prof, ok = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
     edge = _edge_extent(prof, ok, offsets)
-    yy, xx = np.mgrid[0:rows, 0:cols]
-    distance = (xx * math.cos(theta) + yy * math.sin(theta) - rho) * near_sign
+    distance = _signed_distance((rows, cols), theta, rho, near_sign)
     far_side = (distance < edge[1]) & field_mask
     if far_side.sum() > BLADE_MAX_CLOSED * field_mask.sum() or not far_side.any():
         return None
@@ -347,6 +346,13 @@ def _blade(
         "step": round(float(np.median(step)), 3),
         "length_px": int(step.size * 2),
     }
+
+
+def _signed_distance(shape: tuple[int, ...], theta: float, rho: float, near_sign: float) -> NDArray[np.float64]:
+    """Every pixel's signed distance (px) from the line x cos(theta) + y sin(theta) = rho,
+    positive on the side ``near_sign`` points to (the field's center)."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return (xx * math.cos(theta) + yy * math.sin(theta) - rho) * near_sign
 
 
 def _steps(
@@ -407,9 +413,7 @@ def _dark_band(
     if best is None or best[0] < BAND_SIGN_FRACTION:
         return None
     _, shift, step = best
-    rows, cols = field_mask.shape
-    yy, xx = np.mgrid[0:rows, 0:cols]
-    distance = (xx * math.cos(theta) + yy * math.sin(theta) - rho) * near_sign - shift
+    distance = _signed_distance(field_mask.shape, theta, rho, near_sign) - shift
     ratio = _structure_behind(grad, field_mask, distance, (-1.0, 1.0))
     if not 0.0 < ratio <= BAND_MAX_STRUCTURE:
         return None
