@@ -33,6 +33,10 @@ from registration.core.volume import Volume
 #: depth along the beam may lie beyond the depth correction's reach, and one view cannot confirm it
 #: (docs/decisions/2026-12-04-second-search.md).
 SINGLE_PLANE_MAX_SHIFT_MM = 25.0
+#: One view's estimate of a volume with a cervical spine is probed on the head alone
+#: (:func:`registration.core.skull_spine.spine_pull`) when fewer than this fraction of its capture
+#: runs agreed (docs/decisions/2026-12-05-spine-pull.md).
+SPINE_PROBE_BELOW_AGREEMENT = 0.5
 
 
 def shifted_start_withheld(result: RegistrationResult) -> bool:
@@ -105,12 +109,40 @@ def assess(
     why_not = veto(result, landmarks)
     if why_not is not None:
         return Assessment(0.0, False, why_not, Evidence(veto=why_not))
+    start = time.perf_counter()
     renderer = preparation.probe_renderer()
     if renderer.has_level(0):  # the probes' level 0 written for these views before the probes run
         for view in (views,) if isinstance(views, XRayImage) else views:
             renderer.ready(view.geometry, result.patient_motion, level=0)
-    return assess_on(result, views, preparation.volume, renderer, single_plane_motion=single_plane_motion,
-                     rule=rule, landmarks=landmarks)  # fmt: skip
+    decided = assess_on(result, views, preparation.volume, renderer, single_plane_motion=single_plane_motion,
+                        rule=rule, landmarks=landmarks)  # fmt: skip
+    pull = _spine_pull(result, views, preparation, decided.evidence, rule)
+    if pull is None:
+        return decided
+    again = rule.assess(replace(decided.evidence, spine_pull_mm=pull.shift_mm))
+    return replace(again, depth_probe=decided.depth_probe, depth_scan=decided.depth_scan, spine_pull=pull,
+                   seconds=time.perf_counter() - start)  # fmt: skip
+
+
+def _spine_pull(
+    result: RegistrationResult,
+    views: XRayImage | Sequence[XRayImage],
+    preparation: Preparation,
+    evidence: Evidence,
+    rule: ConfidenceRule,
+) -> object | None:
+    """The head-alone probe of one view's estimate (:func:`registration.core.skull_spine.spine_pull`)
+    when its capture runs disagreed and the volume is not a region already; None otherwise."""
+    views = (views,) if isinstance(views, XRayImage) else tuple(views)
+    one_view = len(views) == 1 and "tz" not in tuple(result.parameters)
+    agreement = evidence.agreement
+    if not (one_view and rule.spine_weight and agreement is not None and agreement < SPINE_PROBE_BELOW_AGREEMENT):
+        return None
+    if "roi" in preparation.volume.meta:  # a region's estimate: the skull-and-spine check's business
+        return None
+    from registration.core.skull_spine import spine_pull
+
+    return spine_pull(preparation.prepared, views[0], result.patient_motion)
 
 
 def assess_on(

@@ -52,6 +52,15 @@ The confidence is a logistic function of what the engine knows about the estimat
     bias lives in the coarse scales); removing those scales and holding the in-plane fit
     brings the peak at the true pose within 0-5 mm of it
     (docs/validation/clinical-s6/depth_scan.md).
+``spine_pull_mm``
+    Single plane, a volume with a cervical spine: how far the estimate moves in the image plane
+    at the iso-center when a short local search from it fits the head alone (the spine below
+    the skull base turned into soft tissue: :func:`registration.core.skull_spine.spine_pull`).
+    A neck that bent relative to the head pulls the whole volume's rigid fit toward the spine's
+    place in the image; on the head alone the fit moves back. Measured only when the capture
+    runs disagree (``agreement`` below :data:`registration.core.assess.SPINE_PROBE_BELOW_AGREEMENT`):
+    on the clinical images' tuning draws every applied near miss at the typical strengths had
+    agreement 0.
 ``rival_gain``
     Single plane: the rotation check's (:func:`registration.core.register.rotation_check`)
     best other optimum against the estimate, relative (<= 0; 0 a tie; > 0: the last check
@@ -98,6 +107,7 @@ class Evidence:
     depth_tz_mm: float | None = None
     depth_scan_tz_mm: float | None = None
     rival_gain: float | None = None
+    spine_pull_mm: float | None = None
     #: A hard reason to withhold whatever the score (e.g. "no usable pixel", "stopped").
     veto: str | None = None
 
@@ -208,6 +218,13 @@ class ConfidenceRule:
     #: thin a gap to fit a term on).
     rival_weight: float = 0.0
     rival_free: float = 0.0
+    #: per mm that the head alone moves the estimate beyond ``spine_free_mm`` (revision 4): a
+    #: pull of 0.45 mm costs the bias. Chosen on the shared real CT's clinical-looking images,
+    #: seeds 120-123 and 130 (docs/decisions/2026-12-05-spine-pull.md): right estimates pulled
+    #: 0.15 mm at most at the typical strengths, 0.39 mm at the severe ones; the applied near
+    #: misses 0.49-1.37 mm but two severe ones (0.10, 0.17 mm).
+    spine_weight: float = 20.0
+    spine_free_mm: float = 0.3
     threshold: float = 0.5
 
     def terms(self, e: Evidence) -> dict[str, float]:
@@ -233,6 +250,8 @@ class ConfidenceRule:
             out["depth_scan"] = -self.scan_weight * max(0.0, self.scan_free_mm - e.depth_scan_tz_mm)
         if e.rival_gain is not None and self.rival_weight:
             out["rival"] = -self.rival_weight * max(0.0, e.rival_gain - self.rival_free)
+        if e.spine_pull_mm is not None and self.spine_weight:
+            out["spine"] = -self.spine_weight * max(0.0, e.spine_pull_mm - self.spine_free_mm)
         return out
 
     def score(self, e: Evidence) -> float:
@@ -261,6 +280,7 @@ _REASONS = {
     "depth_pull": "the measure pulls the volume away from the source (a large out-of-plane offset)",
     "depth_scan": "the measure peaks far along the beam from the estimate (a large out-of-plane offset)",
     "rival": "another out-of-plane rotation fits the image about as well (a rotation optimum)",
+    "spine": "the head alone fits elsewhere: the neck moved relative to the head (register the cranium)",
 }
 
 
@@ -278,6 +298,9 @@ class Assessment:
     depth_probe: Any = None
     depth_scan: Any = None
     seconds: float = 0.0
+    #: One view's head-alone probe (:class:`registration.core.skull_spine.SpinePull`; None when
+    #: it did not run).
+    spine_pull: Any = None
 
     def to_dict(self) -> dict:
         return {

@@ -140,7 +140,31 @@ def roi_volume(volume: Volume, roi: RegionOfInterest) -> Volume:
     ``SOFT_TISSUE_HU`` (a new volume; labelled so)."""
     if roi.mask.shape != volume.shape:
         raise ValueError(f"the region's mask {roi.mask.shape} does not match the volume {volume.shape}")
-    data = np.where(~roi.mask & (volume.data > SOFT_TISSUE_HU), np.float32(SOFT_TISSUE_HU), volume.data)
+    data = soft_outside(volume.data, roi.mask)
     meta = dict(volume.meta) | {"roi": roi.summary()}
-    return Volume(data.astype(np.float32), volume.index_to_world, label=f"{volume.label} (region: {roi.source})",
+    return Volume(data, volume.index_to_world, label=f"{volume.label} (region: {roi.source})",
                   meta=meta)  # fmt: skip
+
+
+def soft_outside(data: NDArray, mask: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """``data`` (HU) with what lies outside ``mask`` and is denser than soft tissue set to
+    ``SOFT_TISSUE_HU``."""
+    return np.where(~mask & (data > SOFT_TISSUE_HU), np.float32(SOFT_TISSUE_HU), data).astype(np.float32)
+
+
+def region_on_grid(roi: RegionOfInterest, volume: Volume, grid: Volume) -> NDArray[np.bool_]:
+    """``roi`` (on ``volume``'s grid) on ``grid``'s voxels, nearest voxel; what lies outside
+    ``volume`` is in the region."""
+    m = np.linalg.inv(volume.index_to_world) @ grid.index_to_world  # grid index -> volume index
+    nk, nj, ni = grid.shape
+    if np.allclose(m[:3, :3] - np.diag(np.diag(m[:3, :3])), 0.0, atol=1e-9):
+        axes = [np.rint(m[a, a] * np.arange(n) + m[a, 3]).astype(np.int64) for a, n in enumerate((ni, nj, nk))]
+        inside = [(ax >= 0) & (ax < size) for ax, size in zip(axes, roi.mask.shape[::-1], strict=True)]
+        clipped = [np.clip(ax, 0, size - 1) for ax, size in zip(axes, roi.mask.shape[::-1], strict=True)]
+        out = roi.mask[np.ix_(clipped[2], clipped[1], clipped[0])].copy()
+        out |= ~(inside[2][:, None, None] & inside[1][None, :, None] & inside[0][None, None, :])
+        return out
+    kk, jj, ii = np.meshgrid(np.arange(nk), np.arange(nj), np.arange(ni), indexing="ij")
+    idx = np.stack([ii, jj, kk], axis=-1).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+    coords = idx[:, ::-1].T.reshape(3, nk, nj, ni)  # (k, j, i)
+    return ndimage.map_coordinates(roi.mask.astype(np.uint8), coords, order=0, cval=1).astype(bool)

@@ -13,6 +13,7 @@ moved relative to the head, and the head's estimate (the cranium's) is the one t
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -23,7 +24,9 @@ from registration.core.anneal import Schedule
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import apply, check_rigid, invert_rigid, rotation_angle_deg
 from registration.core.images import XRayImage
+from registration.core.prepare import PreparedVolume
 from registration.core.register import Level, RegistrationOptions, StartOptions, register
+from registration.core.roi import RegionOfInterest, cranium_region, region_on_grid, soft_outside
 from registration.core.volume import Volume
 
 #: Beyond this shift at the iso-center (mm) the whole volume's fit and the cranium's disagree.
@@ -110,3 +113,88 @@ def skull_spine_check(
     agree = shift_mm <= agree_mm and rotation <= agree_deg
     return SkullSpineCheck(shift_mm, rotation, agree, motion, result.drr_count, time.perf_counter() - began,
                            criterion)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SpinePull:
+    """How far one view's estimate of the whole volume moves when the spine is left out: a
+    short local search on the cranium (``check_options``) from the estimate ends ``shift_mm``
+    from it in the image plane at the iso-center, ``rotation_deg`` turned; ``drr_count``,
+    ``seconds``: what the probe cost."""
+
+    shift_mm: float
+    rotation_deg: float
+    drr_count: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return {
+            "shift_mm": round(self.shift_mm, 3),
+            "rotation_deg": round(self.rotation_deg, 3),
+            "drr_count": self.drr_count,
+            "seconds": round(self.seconds, 3),
+        }
+
+
+#: The cranium region of the volumes probed last (by identity, the volume kept alive with it).
+_REGIONS: OrderedDict[int, tuple[Volume, RegionOfInterest]] = OrderedDict()
+
+
+def _cranium_of(volume: Volume) -> RegionOfInterest | None:
+    """The volume's cranium region (found once per volume), None when the volume has no spine
+    to leave out or is not axial."""
+    hit = _REGIONS.get(id(volume))
+    if hit is None or hit[0] is not volume:
+        try:
+            region = cranium_region(volume)
+        except ValueError:  # an oblique grid: no automatic cranium
+            region = None
+        hit = (volume, region)
+        _REGIONS[id(volume)] = hit
+        while len(_REGIONS) > 2:
+            _REGIONS.popitem(last=False)
+    region = hit[1]
+    return None if region is None or region.skull_base_z_mm is None else region
+
+
+def cranium_renderer(prepared: PreparedVolume) -> DRRRenderer | None:
+    """The prepared levels with the cervical spine below the skull base turned into soft tissue
+    (:func:`registration.core.roi.cranium_region`, :func:`~registration.core.roi.soft_outside`),
+    sharing nothing else; built once per preparation. None when the volume has no spine to leave
+    out."""
+    key = ("cranium renderer",)
+    if key not in prepared.derived:
+        region = _cranium_of(prepared.volume)
+        renderer = None
+        if region is not None:
+            base = prepared.renderer
+            levels = {}
+            for k in range(base.n_levels):
+                if base.has_level(k):
+                    grid = base.level_volume(k)
+                    mask = region_on_grid(region, prepared.volume, grid)
+                    levels[k] = Volume(soft_outside(grid.data, mask), grid.index_to_world, label=grid.label)
+            renderer = base.with_levels(levels)
+        prepared.derived[key] = renderer
+    return prepared.derived[key]
+
+
+def spine_pull(prepared: PreparedVolume, view: XRayImage, motion: ArrayLike, *, seed: int = 0) -> SpinePull | None:
+    """Whether one view's estimate (``motion``, a registration of ``prepared``'s whole volume)
+    holds for the head alone (:class:`SpinePull`); None when the volume has no spine to leave
+    out. A neck that bent relative to the head pulls a rigid fit of the whole volume toward the
+    spine's place in the image; on the head alone the fit moves back."""
+    began = time.perf_counter()
+    renderer = cranium_renderer(prepared)
+    if renderer is None:
+        return None
+    start = check_rigid(motion, name="motion")
+    result = register(prepared.volume, view, initial_motion=start, options=check_options(), seed=seed,
+                      renderer=renderer)  # fmt: skip
+    end = np.asarray(result.patient_motion, dtype=np.float64)
+    g = view.geometry
+    iso = np.asarray(g.isocenter_mm, dtype=np.float64)
+    shift = apply(end, iso) - apply(start, iso)
+    shift = shift - (shift @ g.direction) * g.direction
+    rotation = rotation_angle_deg(end @ invert_rigid(start))
+    return SpinePull(float(np.linalg.norm(shift)), rotation, result.drr_count, time.perf_counter() - began)
