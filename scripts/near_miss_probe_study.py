@@ -98,10 +98,11 @@ def main() -> int:
                      "ip": round(res.inplane_mm, 3), "rot": round(res.rotation_deg, 3),
                      "applied": found["applied"], "conf": round(found["confidence"], 3),
                      "evidence": found.get("confidence_evidence")}  # fmt: skip
-        pull = spine_pull(preparation.prepared, images[0], est, seed=case.seed)
+        pull = spine_pull(preparation.prepared, images[0], est)
         row["pull_mm"] = None if pull is None else round(pull.shift_mm, 3)
         row["pull_s"] = None if pull is None else round(pull.seconds, 3)
         row["pull_drrs"] = None if pull is None else pull.drr_count
+        row["pull_moves_mm"] = None if pull is None else [round(m, 3) for m in pull.moves_mm]
         if args.pull_only:
             with open(args.out, "a") as f:
                 f.write(json.dumps(row) + "\n")

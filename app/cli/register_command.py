@@ -320,6 +320,10 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
         outcome.assessed = assessment_fields(assess(result, outcome.views, Preparation(vol, prepared, len(views)),
                                                     landmarks=inputs.landmark_start))  # fmt: skip
         clock.lap("confidence")
+        pull = outcome.assessed.get("spine_pull")
+        if pull is not None:
+            _say(f"head alone (the capture runs disagreed): the fit without the spine moves {pull['shift_mm']:.2f} mm "
+                 f"in the image plane, {pull['rotation_deg']:.2f} deg")  # fmt: skip
         decision = "applied" if outcome.assessed["applied"] else f"withheld: {outcome.assessed['withheld_reason']}"
         _say(f"confidence {outcome.assessed['confidence']:.2f} -> {decision}")
     return outcome

@@ -117,19 +117,22 @@ def skull_spine_check(
 
 @dataclass(frozen=True)
 class SpinePull:
-    """How far one view's estimate of the whole volume moves when the spine is left out: a
-    short local search on the cranium (``check_options``) from the estimate ends ``shift_mm``
-    from it in the image plane at the iso-center, ``rotation_deg`` turned; ``drr_count``,
-    ``seconds``: what the probe cost."""
+    """How far one view's estimate of the whole volume moves when the spine is left out: short
+    local searches on the cranium (``check_options``) from the estimate end at least
+    ``shift_mm`` from it in the image plane at the iso-center (that search ``rotation_deg``
+    turned); ``drr_count``, ``seconds``: what the probe cost."""
 
     shift_mm: float
     rotation_deg: float
     drr_count: int
     seconds: float
+    #: Each search's move (mm, in-plane at the iso-center).
+    moves_mm: tuple[float, ...] = ()
 
     def to_dict(self) -> dict:
         return {
             "shift_mm": round(self.shift_mm, 3),
+            "moves_mm": [round(m, 3) for m in self.moves_mm],
             "rotation_deg": round(self.rotation_deg, 3),
             "drr_count": self.drr_count,
             "seconds": round(self.seconds, 3),
@@ -174,27 +177,39 @@ def cranium_renderer(prepared: PreparedVolume) -> DRRRenderer | None:
                     grid = base.level_volume(k)
                     mask = region_on_grid(region, prepared.volume, grid)
                     levels[k] = Volume(soft_outside(grid.data, mask), grid.index_to_world, label=grid.label)
-            renderer = base.with_levels(levels)
+            renderer = base.with_levels(levels, lazy=True)  # written as the searches' rays read them
         prepared.derived[key] = renderer
     return prepared.derived[key]
 
 
-def spine_pull(prepared: PreparedVolume, view: XRayImage, motion: ArrayLike, *, seed: int = 0) -> SpinePull | None:
+#: The head-alone probe's short searches: their seeds (the probe's shift is the smallest of theirs).
+PULL_SEEDS = (0, 1)
+
+
+def spine_pull(prepared: PreparedVolume, view: XRayImage, motion: ArrayLike) -> SpinePull | None:
     """Whether one view's estimate (``motion``, a registration of ``prepared``'s whole volume)
     holds for the head alone (:class:`SpinePull`); None when the volume has no spine to leave
     out. A neck that bent relative to the head pulls a rigid fit of the whole volume toward the
-    spine's place in the image; on the head alone the fit moves back."""
+    spine's place in the image; on the head alone the fit moves back. Two short searches
+    (``check_options``, seeds ``PULL_SEEDS``) start from the estimate; the pull is the smaller
+    of their moves: a flat measure lets one search wander, both move only when the head's fit
+    lies elsewhere."""
     began = time.perf_counter()
     renderer = cranium_renderer(prepared)
     if renderer is None:
         return None
     start = check_rigid(motion, name="motion")
-    result = register(prepared.volume, view, initial_motion=start, options=check_options(), seed=seed,
-                      renderer=renderer)  # fmt: skip
-    end = np.asarray(result.patient_motion, dtype=np.float64)
     g = view.geometry
     iso = np.asarray(g.isocenter_mm, dtype=np.float64)
-    shift = apply(end, iso) - apply(start, iso)
-    shift = shift - (shift @ g.direction) * g.direction
-    rotation = rotation_angle_deg(end @ invert_rigid(start))
-    return SpinePull(float(np.linalg.norm(shift)), rotation, result.drr_count, time.perf_counter() - began)
+    count0 = renderer.count
+    moves = []
+    for seed in PULL_SEEDS:
+        result = register(prepared.volume, view, initial_motion=start, options=check_options(), seed=seed,
+                          renderer=renderer)  # fmt: skip
+        end = np.asarray(result.patient_motion, dtype=np.float64)
+        shift = apply(end, iso) - apply(start, iso)
+        shift = shift - (shift @ g.direction) * g.direction
+        moves.append((float(np.linalg.norm(shift)), rotation_angle_deg(end @ invert_rigid(start))))
+    shift_mm, rotation = min(moves)
+    return SpinePull(shift_mm, rotation, renderer.count - count0, time.perf_counter() - began,
+                     tuple(m for m, _ in moves))  # fmt: skip

@@ -67,6 +67,7 @@ TERM_PICTURES = {
     "agreement": "the capture runs",
     "planes": "the two planes' estimates",
     "deficit": "the measure's level over the run",
+    "spine": "the head alone (the fit without the spine below the skull base)",
 }
 
 
