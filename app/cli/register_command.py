@@ -393,8 +393,8 @@ def result_document(options: Register, inputs: Inputs, outcome: Outcome) -> dict
     if outcome.skull_spine is not None:
         document["skull_spine"] = outcome.skull_spine.to_dict()
     if outcome.assessed is not None:
-        keys = ("confidence", "applied", "withheld_reason", "confidence_evidence")
-        document.update({k: outcome.assessed[k] for k in keys})
+        keys = ("confidence", "applied", "withheld_reason", "confidence_evidence", "spine_pull")
+        document.update({k: outcome.assessed[k] for k in keys if k in outcome.assessed})
     document["geometry_source"] = "nominal"  # the files' positioner tags, no calibration
     if outcome.estimated is not None:
         document["geometry_source"] = "estimated (source-image distance per plane, with the pose)"

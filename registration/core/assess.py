@@ -142,7 +142,8 @@ def _spine_pull(
         return None
     from registration.core.skull_spine import spine_pull
 
-    return spine_pull(preparation.prepared, views[0], result.patient_motion)
+    # a first search moving no more than the term's free pull decides it: the second is skipped
+    return spine_pull(preparation.prepared, views[0], result.patient_motion, enough_mm=rule.spine_free_mm)
 
 
 def assess_on(

@@ -60,7 +60,8 @@ The confidence is a logistic function of what the engine knows about the estimat
     place in the image; on the head alone the fit moves back. Measured only when the capture
     runs disagree (``agreement`` below :data:`registration.core.assess.SPINE_PROBE_BELOW_AGREEMENT`):
     on the clinical images' tuning draws every applied near miss at the typical strengths had
-    agreement 0.
+    agreement 0. Two searches, the smaller move; the second is skipped when the first moved
+    no more than ``spine_free_mm`` (the term is 0 either way).
 ``rival_gain``
     Single plane: the rotation check's (:func:`registration.core.register.rotation_check`)
     best other optimum against the estimate, relative (<= 0; 0 a tie; > 0: the last check

@@ -186,14 +186,17 @@ def cranium_renderer(prepared: PreparedVolume) -> DRRRenderer | None:
 PULL_SEEDS = (0, 1)
 
 
-def spine_pull(prepared: PreparedVolume, view: XRayImage, motion: ArrayLike) -> SpinePull | None:
+def spine_pull(
+    prepared: PreparedVolume, view: XRayImage, motion: ArrayLike, *, enough_mm: float | None = None
+) -> SpinePull | None:
     """Whether one view's estimate (``motion``, a registration of ``prepared``'s whole volume)
     holds for the head alone (:class:`SpinePull`); None when the volume has no spine to leave
     out. A neck that bent relative to the head pulls a rigid fit of the whole volume toward the
     spine's place in the image; on the head alone the fit moves back. Two short searches
     (``check_options``, seeds ``PULL_SEEDS``) start from the estimate; the pull is the smaller
     of their moves: a flat measure lets one search wander, both move only when the head's fit
-    lies elsewhere."""
+    lies elsewhere. ``enough_mm``: no further search once one moved no more than this (the
+    smallest move cannot be larger)."""
     began = time.perf_counter()
     renderer = cranium_renderer(prepared)
     if renderer is None:
@@ -210,6 +213,8 @@ def spine_pull(prepared: PreparedVolume, view: XRayImage, motion: ArrayLike) -> 
         shift = apply(end, iso) - apply(start, iso)
         shift = shift - (shift @ g.direction) * g.direction
         moves.append((float(np.linalg.norm(shift)), rotation_angle_deg(end @ invert_rigid(start))))
+        if enough_mm is not None and moves[-1][0] <= enough_mm:
+            break
     shift_mm, rotation = min(moves)
     return SpinePull(shift_mm, rotation, renderer.count - count0, time.perf_counter() - began,
                      tuple(m for m, _ in moves))  # fmt: skip

@@ -209,8 +209,10 @@ def test_the_head_alone_moves_an_estimate_off_the_head_back(real_ct) -> None:
         ClinicalImager(real_ct, iso, ClinicalEffects(neck=neck), catheter=False).image(carm, truth, seed=3).clean_xray()
     )
     preparation = Preparation.of(real_ct, view)
-    # the head's pose stays: within 0.3 mm in-plane (the local search's jitter at 2 mm voxels)
-    assert spine_pull(preparation.prepared, view, truth).shift_mm < 0.3
+    # the head's pose stays: within 0.3 mm in-plane (the local search's jitter at 2 mm voxels),
+    # and a first search that little moved is enough
+    stays = spine_pull(preparation.prepared, view, truth, enough_mm=0.3)
+    assert stays is not None and stays.shift_mm < 0.3 and len(stays.moves_mm) == 1, stays
     off = offsets_to_matrix((1.2, -0.9, 0.0, 0.0, 0.0, 1.0), carm) @ truth
     d = apply(off, c) - apply(truth, c)
     moved = float(np.linalg.norm(d - (d @ carm.direction) * carm.direction))
