@@ -21,6 +21,7 @@ import sys
 import time
 
 import numpy as np
+from variant_draws import clinical_draws, shared_real_ct
 
 from registration.core.assess import assess
 from registration.core.geometry import apply, invert_rigid, offsets_to_matrix, rotation_angle_deg
@@ -28,19 +29,8 @@ from registration.core.preparation import Preparation
 from registration.core.register import RegistrationOptions, register
 from registration.core.roi import cranium_region, roi_volume
 from registration.core.skull_spine import check_options, spine_pull
-from registration.io import dicom
-from registration.sim.clinical import EFFECT_NAMES
-from registration.sim.clinical.anatomy import patient_only
 from registration.studies.cases import assessment_fields
-from registration.studies.volume import (
-    ClinicalViews,
-    VolumeStudyConfig,
-    _views,
-    case_motion,
-    find_real_ct,
-    head_isocenter_mm,
-    volume_cases,
-)
+from registration.studies.volume import _views, case_motion, volume_cases
 
 #: (tx, ty, tz mm, rx, ry, rz deg) in the view frame: where the restarts begin, relative to the estimate.
 PATTERN = (
@@ -68,15 +58,11 @@ def main() -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--pull-only", action="store_true", help="only the shipped probe (skull_spine.spine_pull)")
     args = ap.parse_args()
-    path = find_real_ct()
-    if path is None:
-        print("the shared real CT is not here (ROADMAP3D_REAL_CT)", file=sys.stderr)
+    found = shared_real_ct()
+    if found is None:
         return 2
-    volume = dicom.read_volume(path)
-    iso = head_isocenter_mm(volume)
-    config = VolumeStudyConfig(cases=args.cases, seed=args.seed, realism="clinical", strengths=(args.strength,))
-    views = ClinicalViews(volume, iso, EFFECT_NAMES, args.strength, catheter=config.catheter,
-                          base=patient_only(volume)[0])  # fmt: skip
+    volume, iso = found
+    config, views = clinical_draws(volume, iso, args.seed, args.cases, args.strength)
     cranium = roi_volume(volume, cranium_region(volume))
     only = {int(n) for n in args.only.split(",") if n}
     options = RegistrationOptions()

@@ -14,20 +14,13 @@ import json
 import sys
 
 import numpy as np
+from variant_draws import shared_real_ct
 
 from registration.core.register import RegistrationOptions, register
 from registration.core.roi import cranium_region, roi_volume
 from registration.core.skull_spine import skull_spine_check
-from registration.io import dicom
 from registration.sim.clinical import ClinicalEffects, ClinicalImager, Neck
-from registration.studies.volume import (
-    VolumeStudyConfig,
-    _views,
-    case_motion,
-    find_real_ct,
-    head_isocenter_mm,
-    volume_cases,
-)
+from registration.studies.volume import VolumeStudyConfig, _views, case_motion, volume_cases
 
 
 def main() -> int:
@@ -37,12 +30,10 @@ def main() -> int:
     ap.add_argument("--flexion", type=float, default=5.0)
     ap.add_argument("--rotation", type=float, default=0.0)
     args = ap.parse_args()
-    path = find_real_ct()
-    if path is None:
-        print("the shared real CT is not here (ROADMAP3D_REAL_CT)", file=sys.stderr)
+    found = shared_real_ct()
+    if found is None:
         return 2
-    volume = dicom.read_volume(path)
-    iso = head_isocenter_mm(volume)
+    volume, iso = found
     roi = cranium_region(volume)
     arms = {"whole": volume, "cranium": roi_volume(volume, roi)}
     neck = Neck(flexion_deg=args.flexion, rotation_deg=args.rotation)

@@ -78,3 +78,32 @@ def write_biplane(fh: IO[str], seed: int, cases: int, variants: Variants, keys: 
             line[name] = {k: record.get(k) for k in keys}
         fh.write(json.dumps(line) + "\n")
         fh.flush()
+
+
+def shared_real_ct() -> tuple[object, tuple[float, float, float]] | None:
+    """The shared real CT and its head's iso-center; None (said on stderr) when it is not here."""
+    import sys
+
+    import registration.studies.volume as study
+    from registration.io import dicom
+
+    path = study.find_real_ct()
+    if path is None:
+        print("the shared real CT is not here (ROADMAP3D_REAL_CT)", file=sys.stderr)
+        return None
+    volume = dicom.read_volume(path)
+    return volume, study.head_isocenter_mm(volume)
+
+
+def clinical_draws(volume, iso, seed: int, cases: int, strength: float, *, biplane: bool = False) -> tuple:  # noqa: ANN001
+    """`validate volume --realism clinical`'s draws on ``volume``: its config and the clinical
+    views (every effect at ``strength``, written as XA files and read back)."""
+    import registration.studies.volume as study
+    from registration.sim.clinical import EFFECT_NAMES
+    from registration.sim.clinical.anatomy import patient_only
+
+    config = study.VolumeStudyConfig(cases=cases, seed=seed, realism="clinical", strengths=(strength,),
+                                     biplane=biplane)  # fmt: skip
+    views = study.ClinicalViews(volume, iso, EFFECT_NAMES, strength, catheter=config.catheter,
+                                base=patient_only(volume)[0])  # fmt: skip
+    return config, views
