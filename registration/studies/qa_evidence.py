@@ -67,8 +67,11 @@ TERM_PICTURES = {
     "agreement": "the capture runs",
     "planes": "the two planes' estimates",
     "deficit": "the measure's level over the run",
-    "spine": "the head alone (the fit without the spine below the skull base)",
+    "spine": "the evidence's spine_pull_mm (how far the head alone, without the spine below the skull base, "
+    "moves the estimate)",
 }
+#: The terms whose picture the report frames in red when they withheld an estimate.
+FRAMED_TERMS = frozenset({"margin", "rotation_margin", "rival", "depth", "depth_pull", "depth_scan"})
 
 
 @dataclass(frozen=True)

@@ -224,8 +224,9 @@ def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, 
     parts = ["<h2>Evidence</h2>"]
     if term is not None:
         where = qa_evidence.TERM_PICTURES.get(term, "the decision's veto" if term == "veto" else term)
-        parts.append(f"<p class='withheld'>Withheld because {html.escape(reason)}: read it in {html.escape(where)} "
-                     "(framed in red below).</p>")  # fmt: skip
+        framed = " (framed in red below)" if term in qa_evidence.FRAMED_TERMS else " (below)"
+        parts.append(f"<p class='withheld'>Withheld because {html.escape(reason)}: read it in {html.escape(where)}"
+                     f"{framed}.</p>")  # fmt: skip
     if ev:
         rows = [(k, number(v, f"confidence_evidence.{k}", ".5f")) for k, v in ev.items() if v is not None]
         parts.append(table(rows))
