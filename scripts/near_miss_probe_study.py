@@ -41,6 +41,24 @@ PATTERN = (
 )
 
 
+def _variants() -> dict:
+    """Cheaper searches for the head-alone probe: the annealing at 64 px and a 30-evaluation
+    polish at 96 px; the annealing at 96 px without the polish."""
+    from dataclasses import replace
+
+    from registration.core.register.options import PolishOptions
+
+    base = check_options()
+    lv = base.levels[0]
+    return {
+        "a64p96": replace(base, levels=(replace(lv, image_px=64),), polish=PolishOptions(image_px=96, evaluations=30)),
+        "a96np": replace(base, polish=PolishOptions(enabled=False)),
+    }
+
+
+VARIANTS = _variants()
+
+
 def inplane(a: np.ndarray, b: np.ndarray, geometry) -> tuple[float, float]:  # noqa: ANN001
     """In-plane distance at the iso-center (mm) and rotation (deg) between two motions."""
     iso = np.asarray(geometry.isocenter_mm, dtype=np.float64)
@@ -57,6 +75,7 @@ def main() -> int:
     ap.add_argument("--only", default="", help="comma-separated case numbers (default: every case)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--pull-only", action="store_true", help="only the shipped probe (skull_spine.spine_pull)")
+    ap.add_argument("--variants", action="store_true", help="also the probe with cheaper searches (VARIANTS)")
     args = ap.parse_args()
     found = shared_real_ct()
     if found is None:
@@ -89,6 +108,12 @@ def main() -> int:
         row["pull_s"] = None if pull is None else round(pull.seconds, 3)
         row["pull_drrs"] = None if pull is None else pull.drr_count
         row["pull_moves_mm"] = None if pull is None else [round(m, 3) for m in pull.moves_mm]
+        for name, variant in VARIANTS.items() if args.variants else ():
+            found = spine_pull(preparation.prepared, images[0], est, options=variant)
+            row[f"pull_{name}_mm"] = round(found.shift_mm, 3)
+            row[f"pull_{name}_moves_mm"] = [round(m, 3) for m in found.moves_mm]
+            row[f"pull_{name}_s"] = round(found.seconds, 3)
+            row[f"pull_{name}_drrs"] = found.drr_count
         if args.pull_only:
             with open(args.out, "a") as f:
                 f.write(json.dumps(row) + "\n")

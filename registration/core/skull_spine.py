@@ -187,7 +187,12 @@ PULL_SEEDS = (0, 1)
 
 
 def spine_pull(
-    prepared: PreparedVolume, view: XRayImage, motion: ArrayLike, *, enough_mm: float | None = None
+    prepared: PreparedVolume,
+    view: XRayImage,
+    motion: ArrayLike,
+    *,
+    enough_mm: float | None = None,
+    options: RegistrationOptions | None = None,
 ) -> SpinePull | None:
     """Whether one view's estimate (``motion``, a registration of ``prepared``'s whole volume)
     holds for the head alone (:class:`SpinePull`); None when the volume has no spine to leave
@@ -196,7 +201,7 @@ def spine_pull(
     (``check_options``, seeds ``PULL_SEEDS``) start from the estimate; the pull is the smaller
     of their moves: a flat measure lets one search wander, both move only when the head's fit
     lies elsewhere. ``enough_mm``: no further search once one moved no more than this (the
-    smallest move cannot be larger)."""
+    smallest move cannot be larger); ``options``: the searches' (``check_options()`` by default)."""
     began = time.perf_counter()
     renderer = cranium_renderer(prepared)
     if renderer is None:
@@ -206,8 +211,9 @@ def spine_pull(
     iso = np.asarray(g.isocenter_mm, dtype=np.float64)
     count0 = renderer.count
     moves = []
+    options = options or check_options()
     for seed in PULL_SEEDS:
-        result = register(prepared.volume, view, initial_motion=start, options=check_options(), seed=seed,
+        result = register(prepared.volume, view, initial_motion=start, options=options, seed=seed,
                           renderer=renderer)  # fmt: skip
         end = np.asarray(result.patient_motion, dtype=np.float64)
         shift = apply(end, iso) - apply(start, iso)
