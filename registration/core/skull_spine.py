@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.core.anneal import Schedule
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import apply, check_rigid, invert_rigid, rotation_angle_deg
+from registration.core.geometry import CArm, apply, check_rigid, invert_rigid, rotation_angle_deg
 from registration.core.images import XRayImage
 from registration.core.prepare import PreparedVolume
 from registration.core.register import Level, RegistrationOptions, StartOptions, register
@@ -101,18 +101,23 @@ def skull_spine_check(
     result = register(whole, views, initial_motion=start, options=options or check_options(), seed=seed,
                       renderer=renderer)  # fmt: skip
     motion = np.asarray(result.patient_motion, dtype=np.float64)
-    g = views[0].geometry
-    iso = np.asarray(g.isocenter_mm, dtype=np.float64)
-    shift = apply(motion, iso) - apply(start, iso)
-    criterion = "3-D"
-    if len(views) == 1:
-        shift = shift - (shift @ g.direction) * g.direction
-        criterion = "in-plane"
-    shift_mm = float(np.linalg.norm(shift))
-    rotation = rotation_angle_deg(motion @ invert_rigid(start))
+    shift_mm, rotation = _moved(motion, start, views[0].geometry, in_plane=len(views) == 1)
+    criterion = "in-plane" if len(views) == 1 else "3-D"
     agree = shift_mm <= agree_mm and rotation <= agree_deg
     return SkullSpineCheck(shift_mm, rotation, agree, motion, result.drr_count, time.perf_counter() - began,
                            criterion)  # fmt: skip
+
+
+def _moved(
+    end: NDArray[np.float64], start: NDArray[np.float64], geometry: CArm, *, in_plane: bool = True
+) -> tuple[float, float]:
+    """How far ``end`` lies from ``start`` at ``geometry``'s iso-center (mm; across its beam when
+    ``in_plane``) and how far it turns (deg)."""
+    iso = np.asarray(geometry.isocenter_mm, dtype=np.float64)
+    shift = apply(end, iso) - apply(start, iso)
+    if in_plane:
+        shift = shift - (shift @ geometry.direction) * geometry.direction
+    return float(np.linalg.norm(shift)), rotation_angle_deg(end @ invert_rigid(start))
 
 
 @dataclass(frozen=True)
@@ -207,18 +212,13 @@ def spine_pull(
     if renderer is None:
         return None
     start = check_rigid(motion, name="motion")
-    g = view.geometry
-    iso = np.asarray(g.isocenter_mm, dtype=np.float64)
     count0 = renderer.count
     moves = []
     options = options or check_options()
     for seed in PULL_SEEDS:
         result = register(prepared.volume, view, initial_motion=start, options=options, seed=seed,
                           renderer=renderer)  # fmt: skip
-        end = np.asarray(result.patient_motion, dtype=np.float64)
-        shift = apply(end, iso) - apply(start, iso)
-        shift = shift - (shift @ g.direction) * g.direction
-        moves.append((float(np.linalg.norm(shift)), rotation_angle_deg(end @ invert_rigid(start))))
+        moves.append(_moved(np.asarray(result.patient_motion, dtype=np.float64), start, view.geometry))
         if enough_mm is not None and moves[-1][0] <= enough_mm:
             break
     shift_mm, rotation = min(moves)
