@@ -20,7 +20,9 @@ unusable for registration:
   shows there). A display chain can flatten a blade's shadow into the toe of its look-up table
   and ring along its edge: a line that, moved by a few pixels across itself, shows a step to
   less signal on nearly all of its profiles, however small against the field's range, with
-  hardly any structure behind it, is such a blade too.
+  hardly any structure behind it, is such a blade too. A long straight stretch of the collimated
+  outside's boundary is a blade's edge as well (its shadow over the head fell into the window's
+  black), and the field beyond its line (air or thin tissue behind the blade) is masked.
 * **burned-in graphics**: text, rulers and markers drawn at the largest value (full white) in
   thin strokes that stand out from their surroundings, and lines of text at the smallest (full
   black); masked with a margin.
@@ -70,6 +72,12 @@ BAND_SIGN_FRACTION = 0.75
 BAND_MAX_STRUCTURE = 0.3
 #: ... looked for up to this many px either side of the Hough line.
 BAND_SHIFT_PX = 8
+#: A blade along the collimated outside (a straight stretch of the outside's boundary at least
+#: ``BLADE_MIN_LENGTH`` long): where its line crosses the field (on at least this many profiles,
+#: 2 px apart) ...
+OUTSIDE_EDGE_MIN_CROSSING = 5
+#: ... the step is to less signal behind it on at least this fraction of them.
+OUTSIDE_EDGE_STEP_FRACTION = 0.8
 #: A line turned less than this from a blade already found and within this many px of its edge
 #: in the field is that edge again.
 SAME_EDGE_DEG = 10.0
@@ -264,6 +272,73 @@ def find_blades(
         if blade is not None:
             found.append(blade)
     return found
+
+
+def find_outside_edges(
+    signal: NDArray[np.float64], outside: NDArray[np.bool_], field_mask: NDArray[np.bool_],
+    found: list[dict[str, Any]] | None = None,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """Blades whose edge runs along the collimated ``outside``: a straight stretch of the
+    outside's boundary with the field, at least ``BLADE_MIN_LENGTH`` of the image's smaller side,
+    is a blade's edge, and the field beyond its line (where X-rays came through the blade onto
+    thin tissue or air and left more signal than the outside's level) lies behind that blade
+    too. Kept when beyond the line there is field to mask, no more than ``BLADE_MAX_CLOSED`` of
+    it, and where the line crosses the field the step is to less signal behind it
+    (``OUTSIDE_EDGE_STEP_FRACTION`` of the profiles along the stretch of the line, with field in
+    front of it, that holds the outside's straight run). Entries as
+    :func:`find_blades` lists them (never filters); lines through a blade in ``found`` are skipped."""
+    from skimage.transform import hough_line, hough_line_peaks
+
+    rows, cols = signal.shape
+    boundary = outside & ndimage.binary_dilation(field_mask)
+    min_length = BLADE_MIN_LENGTH * min(rows, cols)
+    if boundary.sum() < min_length or field_mask.sum() < 100:
+        return []
+    angles = np.deg2rad(np.arange(-90.0, 90.0, 0.5))
+    hspace, thetas, dists = hough_line(boundary, theta=angles)
+    peaks = hough_line_peaks(hspace, thetas, dists, num_peaks=8, threshold=int(0.5 * min_length),
+                             min_distance=7, min_angle=6)  # fmt: skip
+    inside = ndimage.binary_erosion(field_mask, iterations=4)
+    span = _robust_range(signal, inside if inside.sum() >= 100 else field_mask)
+    smooth = ndimage.gaussian_filter(signal, 1.0)
+    cy, cx = ndimage.center_of_mass(field_mask)
+    everywhere = np.ones_like(field_mask)
+    offsets = np.arange(-12.0, 13.0)
+    near_cols, far_cols = (offsets >= 3) & (offsets <= 8), (offsets <= -3) & (offsets >= -8)
+    out: list[dict[str, Any]] = []
+    for _, theta, rho in zip(*peaks, strict=True):
+        theta, rho = float(theta), float(rho)
+        if any(_same_edge(inside, theta, rho, b) for b in [*(found or []), *out]):
+            continue
+        center_side = cx * math.cos(theta) + cy * math.sin(theta) - rho
+        if abs(center_side) < 5:
+            continue
+        near_sign = 1.0 if center_side > 0 else -1.0
+        px, py, normal = _line_points(everywhere, theta, rho)
+        prof, in_field = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
+        _, in_outside = _profiles(smooth, outside, px, py, near_sign * normal, offsets)
+        near = in_field[:, near_cols].all(axis=1)
+        bounded = near & in_outside[:, far_cols].all(axis=1)
+        crossing = near & in_field[:, far_cols].all(axis=1)
+        step = (prof[:, near_cols].mean(axis=1) - prof[:, far_cols].mean(axis=1)) / span
+        run = _longest_run(bounded)
+        if 2 * (run.stop - run.start) < min_length:
+            continue  # the outside's boundary is not straight along this line for long enough
+        distance = _signed_distance((rows, cols), theta, rho, near_sign)
+        beyond = field_mask & (distance < 0)
+        if not beyond.any() or beyond.sum() > BLADE_MAX_CLOSED * field_mask.sum():
+            continue
+        # the blade's own edge: the stretch of the line with field in front of it around that run
+        edge = np.zeros_like(near)
+        edge[_stretch(near, run)] = True
+        crossing &= edge
+        steps = step[crossing]
+        if steps.size >= OUTSIDE_EDGE_MIN_CROSSING and np.mean(steps > BLADE_MIN_STEP) < OUTSIDE_EDGE_STEP_FRACTION:
+            continue  # where the edge crosses the field, anatomy goes on across it
+        out.append({"theta": theta, "rho": rho, "distance": distance, "edge": (-0.5, 0.5), "filter": False,
+                    "structure_behind": 0.0, "step": round(float(np.median(steps)) if steps.size else 0.0, 3),
+                    "length_px": int(2 * (run.stop - run.start)), "along_outside": True})  # fmt: skip
+    return out
 
 
 def _same_edge(inside: NDArray[np.bool_], theta: float, rho: float, blade: dict[str, Any]) -> bool:
@@ -500,6 +575,22 @@ def _sharp_step(prof: NDArray[np.float64], ok: NDArray[np.bool_], offsets: NDArr
     return bool(np.nanstd(far) <= 0.25 * step and np.nanstd(near) <= 0.25 * step)
 
 
+def _stretch(flags: NDArray[np.bool_], run: slice, gap: int = 3) -> slice:
+    """The stretch of ``flags`` (gaps of up to ``gap`` samples bridged) that holds ``run``."""
+    start, stop = run.start, run.stop
+    while True:
+        before = np.flatnonzero(flags[max(0, start - gap - 1) : start])
+        if before.size == 0:
+            break
+        start = max(0, start - gap - 1) + int(before[0])
+    while True:
+        after = np.flatnonzero(flags[stop : stop + gap + 1])
+        if after.size == 0:
+            break
+        stop = stop + int(after[-1]) + 1
+    return slice(start, stop)
+
+
 def _longest_run(flags: NDArray[np.bool_], gap: int = 3) -> slice:
     """The longest stretch of ``flags`` that is True, bridging gaps of up to ``gap`` samples."""
     best, start, last = slice(0, 0), None, -(10**9)
@@ -601,7 +692,10 @@ def _collimation(
         mask &= ~grown
         parts.append({"what": "dark outside", "pixels": int(grown.sum())})
     if blades and (mask & start).any():
-        for blade in find_blades(signal, mask & start):
+        found = find_blades(signal, mask & start)
+        if outside is not None:
+            found += find_outside_edges(signal, ~mask, mask & start, found)
+        for blade in found:
             lo, hi = blade["edge"]
             if blade["filter"] and blade["structure_behind"] > BAND_MAX_STRUCTURE:
                 # the anatomy continues behind a semi-transparent filter: its edge only
@@ -619,5 +713,6 @@ def _collimation(
                     "step": blade["step"],
                     "structure_behind": blade["structure_behind"],
                 }
+                | ({"along_outside": True} if blade.get("along_outside") else {})
             )
     return mask, parts

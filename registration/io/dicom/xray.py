@@ -345,7 +345,10 @@ def field_summary(field: dict[str, Any]) -> list[str]:
         lines.append(f"shutter presentation value {field['shutter_presentation_value']} (display only)")
     for part in field.get("found_in_pixels", []):
         text = f"{part['what']}: {part['pixels']} px"
-        if "angle_deg" in part:
+        if part.get("along_outside"):
+            step = f", step {part['step']:.2f} of the field's range" if part["step"] else ""
+            text += f" (edge at {part['angle_deg']:+.1f} deg along the collimated outside{step})"
+        elif "angle_deg" in part:
             text += f" (edge at {part['angle_deg']:+.1f} deg, step {part['step']:.2f} of the field's range)"
         lines.append(text)
     for note in field.get("overlays", []):

@@ -136,6 +136,39 @@ def test_blades_whose_shadow_the_display_flattened_are_masked_within_3_px(tmp_pa
     assert "collimator blade" in image.meta["mask_from"]
 
 
+def _air_behind_blades(angle_deg: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """8-bit display-processed pixels of a head that leaves air inside the intensifier's circle:
+    behind the 8 % blades the head falls into the window's toe (black, joined to the circle's
+    outside) while the air behind them keeps as much signal as dense bone in the field, so a
+    blade's edge runs along the outside for most of its length and past thin tissue or air for
+    the rest. Returns the stored pixels, the signed distance into the open field and the open
+    field."""
+    att = _anatomy(seed)
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    att = np.where(np.hypot((xx - 140) / 115, (yy - 100) / 150) < 1.0, att, 0.05)
+    distance, open_field = _blades(angle_deg)
+    rng = np.random.default_rng(seed)
+    total = att + math.log(12.5) / (1.0 + np.exp(distance / 0.7))
+    signal = 255.0 * np.clip((3.2 - total) / 3.0, 0.0, 1.0) + rng.normal(0.0, 1.5, att.shape)
+    circle = np.hypot(xx - 127.5, yy - 127.5) < 126
+    signal = np.where(circle, signal, rng.normal(2.0, 1.0, att.shape))
+    return np.clip(np.rint(signal), 0, 255).astype(np.uint16), distance, open_field & circle
+
+
+@pytest.mark.parametrize("angle", [0.0, 7.0, -12.0])
+def test_air_behind_blades_along_the_outside_is_masked_within_3_px(tmp_path: Path, angle: float) -> None:
+    stored, distance, open_field = _air_behind_blades(angle, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # DISP read as LOG
+        image = dicom.read_xray(xa_file(tmp_path / "air.dcm", stored, bits_stored=8, relationship="DISP"))
+    # Within 3 px of the true edge: the penumbra (0.7 px) and the outside's margin (2 px). Without
+    # the blades' lines along the outside, about 3,900 px of air behind them stay in the mask.
+    wrong = image.mask != open_field
+    assert np.abs(distance[wrong]).max(initial=0.0) <= 3.0, np.abs(distance[wrong]).max()
+    assert (image.mask & ~open_field).sum() < 100
+    assert image.mask.sum() >= open_field.sum() - 3 * 4 * 150  # at most ~3 px lost along the edges
+
+
 def test_clean_images_lose_nothing(tmp_path: Path) -> None:
     # The same anatomy without blades or text: no pixel masked (the detector sees no field edge).
     stored = _stored(_anatomy(2), 12.0, 2)
