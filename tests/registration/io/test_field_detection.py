@@ -21,6 +21,7 @@ from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 from scipy import ndimage
 
+from registration.core.images import XRayImage
 from registration.io import dicom
 from registration.io.dicom import DicomError
 from registration.io.field import find_field
@@ -117,18 +118,29 @@ def _display_band(angle_deg: float, seed: int) -> tuple[np.ndarray, np.ndarray, 
     inside = 1.0 / (1.0 + np.exp(-distance / 0.7))
     signal = inside * field + (1.0 - inside) * band
     signal = signal + 0.8 * (signal - ndimage.gaussian_filter(signal, 3.0))
+    stored, circle = _in_circle(signal, rng)
+    return stored, distance, open_field & circle
+
+
+def _in_circle(signal: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """8-bit stored pixels: ``signal`` inside the intensifier's circle, a dark noisy outside."""
     yy, xx = np.mgrid[0:SIZE, 0:SIZE]
     circle = np.hypot(xx - 127.5, yy - 127.5) < 126
-    signal = np.where(circle, signal, rng.normal(2.0, 1.0, att.shape))
-    return np.clip(np.rint(signal), 0, 255).astype(np.uint16), distance, open_field & circle
+    signal = np.where(circle, signal, rng.normal(2.0, 1.0, signal.shape))
+    return np.clip(np.rint(signal), 0, 255).astype(np.uint16), circle
+
+
+def _read_disp(path: Path, stored: np.ndarray) -> XRayImage:
+    """``stored`` written as an 8-bit DISP XA file and read back."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # DISP read as LOG
+        return dicom.read_xray(xa_file(path, stored, bits_stored=8, relationship="DISP"))
 
 
 @pytest.mark.parametrize("angle", [0.0, 7.0, -12.0])
 def test_blades_whose_shadow_the_display_flattened_are_masked_within_3_px(tmp_path: Path, angle: float) -> None:
     stored, distance, open_field = _display_band(angle, 5)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # DISP read as LOG
-        image = dicom.read_xray(xa_file(tmp_path / "band.dcm", stored, bits_stored=8, relationship="DISP"))
+    image = _read_disp(tmp_path / "band.dcm", stored)
     # Within 3 px of the true edge: the penumbra (0.7 px) and the unsharp mask's halo (about 2 px).
     wrong = image.mask != open_field
     assert np.abs(distance[wrong]).max(initial=0.0) <= 3.0, np.abs(distance[wrong]).max()
@@ -150,17 +162,14 @@ def _air_behind_blades(angle_deg: float, seed: int) -> tuple[np.ndarray, np.ndar
     rng = np.random.default_rng(seed)
     total = att + math.log(12.5) / (1.0 + np.exp(distance / 0.7))
     signal = 255.0 * np.clip((3.2 - total) / 3.0, 0.0, 1.0) + rng.normal(0.0, 1.5, att.shape)
-    circle = np.hypot(xx - 127.5, yy - 127.5) < 126
-    signal = np.where(circle, signal, rng.normal(2.0, 1.0, att.shape))
-    return np.clip(np.rint(signal), 0, 255).astype(np.uint16), distance, open_field & circle
+    stored, circle = _in_circle(signal, rng)
+    return stored, distance, open_field & circle
 
 
 @pytest.mark.parametrize("angle", [0.0, 7.0, -12.0])
 def test_air_behind_blades_along_the_outside_is_masked_within_3_px(tmp_path: Path, angle: float) -> None:
     stored, distance, open_field = _air_behind_blades(angle, 3)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # DISP read as LOG
-        image = dicom.read_xray(xa_file(tmp_path / "air.dcm", stored, bits_stored=8, relationship="DISP"))
+    image = _read_disp(tmp_path / "air.dcm", stored)
     # Within 3 px of the true edge: the penumbra (0.7 px) and the outside's margin (2 px). Without
     # the blades' lines along the outside, about 3,900 px of air behind them stay in the mask.
     wrong = image.mask != open_field
