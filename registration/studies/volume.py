@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -426,6 +427,7 @@ def arm_summaries(records: list[dict], *, biplane: bool) -> list[dict]:
             "worst_residual_mm": float(max(r[key] for r in rs)),
             "rotation_residual_deg_median": float(np.median([r["rotation_residual_deg"] for r in rs])),
             "mask_from": sorted({str(r.get("mask_from")) for r in rs if r.get("mask_from")}),
+            "mask_parts": mask_parts([r.get("mask_from") for r in rs]),
             "intensity_note": sorted({str(r.get("intensity_note")) for r in rs if r.get("intensity_note")}),
             "mask_false_px_median": (
                 float(np.median([r["mask_false_px"] for r in rs])) if "mask_false_px" in rs[0] else None
@@ -433,6 +435,19 @@ def arm_summaries(records: list[dict], *, biplane: bool) -> list[dict]:
             "seconds_median": float(np.median([r["seconds"] for r in rs])),
         })  # fmt: skip
     return out
+
+
+def mask_parts(found: list[str | None]) -> dict[str, int]:
+    """On how many images each part of the field was found, from the reader's ``mask_from``
+    texts ("dark outside, collimator blade x2, ..."), in the order the reader lists them."""
+    counts: dict[str, int] = {}
+    places: dict[str, list[int]] = {}
+    for text in found:
+        parts = [re.sub(r" x\d+$", "", p.strip()) for p in (text or "").split(", ") if p.strip()]
+        for place, part in enumerate(dict.fromkeys(parts)):
+            counts[part] = counts.get(part, 0) + 1
+            places.setdefault(part, []).append(place)
+    return {part: counts[part] for part in sorted(counts, key=lambda p: float(np.mean(places[p])))}
 
 
 def run_volume_study(

@@ -62,7 +62,7 @@ def report_markdown(records: list[dict], summary: dict) -> str:
                 f"| {a['arm']} | {a['strength']:g} | {a['runs']} | {pct(a['success_rate'])} | "
                 f"{'-' if a['applied'] is None else a['applied']} | {pct(a['applied_precision'])} | "
                 f"{pct(a['applied_recall'])} | {worst_applied} | {a['residual_mm_median']:.2f} | "
-                f"{a['worst_residual_mm']:.2f} | {', '.join(a['mask_from']) or '-'} |"
+                f"{a['worst_residual_mm']:.2f} | {_field_from(a)} |"
             )
         lines.append("")
     lines += [
@@ -82,3 +82,11 @@ def report_markdown(records: list[dict], summary: dict) -> str:
             f"{r['seconds']:.2f} | {'yes' if r['success'] else 'NO'} | {decision} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _field_from(arm: dict) -> str:
+    """How the reader found the field: each part with the number of images it was found on."""
+    parts = arm.get("mask_parts")
+    if parts is None:  # a summary written before the parts were counted
+        return ", ".join(arm.get("mask_from") or []) or "-"
+    return ", ".join(f"{part} ({n} of {arm['runs']})" for part, n in parts.items()) or "-"

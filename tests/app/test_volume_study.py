@@ -11,7 +11,7 @@ import pytest
 from app.cli import main
 from registration.io.dicom import write_npz
 from registration.sim.phantom import make_head_phantom, registration_volume
-from registration.studies.volume import SUMMARY_KEYS, head_isocenter_mm
+from registration.studies.volume import SUMMARY_KEYS, head_isocenter_mm, mask_parts
 
 
 @pytest.fixture(scope="module")
@@ -116,6 +116,20 @@ def test_validate_volume_with_clinical_images(
     assert clinical["effects"] == ["blades", "display", "text"]
     report = (out / "report.md").read_text()
     assert "| blades+display+text | 0.5 | 1 |" in report
+    # how the field was found: each part once, on the one image
+    parts = arms["blades+display+text"]["mask_parts"]
+    assert parts and set(parts.values()) == {1}
+    assert all(f"{part} (1 of 1)" in report for part in parts)
+
+
+def test_the_field_parts_are_counted_per_image_in_the_readers_order() -> None:
+    found = ["dark outside, collimator blade x2, burned-in graphics",
+             "dark outside, filter edge, collimator blade, burned-in graphics", None,
+             "constant border, burned-in graphics"]  # fmt: skip
+    parts = mask_parts(found)
+    assert parts == {"constant border": 1, "dark outside": 2, "filter edge": 1, "collimator blade": 2,
+                     "burned-in graphics": 3}  # fmt: skip
+    assert list(parts)[-1] == "burned-in graphics"  # listed last by the reader, every time
 
 
 def test_validate_volume_refuses_an_unknown_effect(phantom_3dra: Path, capsys: pytest.CaptureFixture[str]) -> None:
