@@ -222,14 +222,28 @@ def _profiles(
     offsets: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Signal at ``offsets`` along the normal from each point, and whether each sample is in the field."""
-    rows, cols = smooth.shape
+    xs = px[:, None] + offsets[None, :] * normal[0]
+    ys = py[:, None] + offsets[None, :] * normal[1]
+    values = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
+    return values, _in_mask(field_mask, px, py, normal, offsets)
+
+
+def _in_mask(
+    mask: NDArray[np.bool_],
+    px: NDArray[np.float64],
+    py: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    offsets: NDArray[np.float64],
+) -> NDArray[np.bool_]:
+    """Whether each sample of :func:`_profiles` (``offsets`` along the normal from each point)
+    lies in the image and in ``mask``."""
+    rows, cols = mask.shape
     xs = px[:, None] + offsets[None, :] * normal[0]
     ys = py[:, None] + offsets[None, :] * normal[1]
     inb = (xs >= 0) & (xs <= cols - 1) & (ys >= 0) & (ys <= rows - 1)
     xi = np.clip(np.rint(xs).astype(int), 0, cols - 1)
     yi = np.clip(np.rint(ys).astype(int), 0, rows - 1)
-    values = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
-    return values, inb & field_mask[yi, xi]
+    return inb & mask[yi, xi]
 
 
 def find_blades(
@@ -316,7 +330,7 @@ def find_outside_edges(
         near_sign = 1.0 if center_side > 0 else -1.0
         px, py, normal = _line_points(everywhere, theta, rho)
         prof, in_field = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
-        _, in_outside = _profiles(smooth, outside, px, py, near_sign * normal, offsets)
+        in_outside = _in_mask(outside, px, py, near_sign * normal, offsets)
         near = in_field[:, near_cols].all(axis=1)
         bounded = near & in_outside[:, far_cols].all(axis=1)
         crossing = near & in_field[:, far_cols].all(axis=1)
