@@ -222,10 +222,16 @@ def _profiles(
     offsets: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Signal at ``offsets`` along the normal from each point, and whether each sample is in the field."""
-    xs = px[:, None] + offsets[None, :] * normal[0]
-    ys = py[:, None] + offsets[None, :] * normal[1]
+    xs, ys = _samples(px, py, normal, offsets)
     values = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
     return values, _in_mask(field_mask, px, py, normal, offsets)
+
+
+def _samples(
+    px: NDArray[np.float64], py: NDArray[np.float64], normal: NDArray[np.float64], offsets: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The columns and rows of the samples ``offsets`` along the normal from each point."""
+    return px[:, None] + offsets[None, :] * normal[0], py[:, None] + offsets[None, :] * normal[1]
 
 
 def _in_mask(
@@ -235,11 +241,9 @@ def _in_mask(
     normal: NDArray[np.float64],
     offsets: NDArray[np.float64],
 ) -> NDArray[np.bool_]:
-    """Whether each sample of :func:`_profiles` (``offsets`` along the normal from each point)
-    lies in the image and in ``mask``."""
+    """Whether each sample of :func:`_samples` lies in the image and in ``mask``."""
     rows, cols = mask.shape
-    xs = px[:, None] + offsets[None, :] * normal[0]
-    ys = py[:, None] + offsets[None, :] * normal[1]
+    xs, ys = _samples(px, py, normal, offsets)
     inb = (xs >= 0) & (xs <= cols - 1) & (ys >= 0) & (ys <= rows - 1)
     xi = np.clip(np.rint(xs).astype(int), 0, cols - 1)
     yi = np.clip(np.rint(ys).astype(int), 0, rows - 1)
