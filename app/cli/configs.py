@@ -101,8 +101,9 @@ class Register:
     {"landmarks": [{"image_px": [col, row], "volume_mm": [x, y, z], "plane": "A"}, ...]}, at least 4 on one image
     (docs/landmarks.md)."""
     roi: Literal["none", "cranium"] = "none"
-    """The part of the volume the registration follows: "cranium" leaves out the cervical spine below the skull
-    base (found in the volume), which follows a head's motion only partly; "none" the whole volume."""
+    """The part of the volume the registration follows: "none" (default) the whole volume; "cranium" leaves out the
+    cervical spine below the skull base (found in the volume; the whole volume when it has no spine), which follows
+    a head's motion only partly (docs/clinical-images.md)."""
     roi_mask: Path | None = None
     """A label mask on the volume's grid (.npz with an array "mask", NIfTI, or a DICOM SEG): the registration
     follows the labelled voxels only (outside them, bone is rendered as soft tissue)."""

@@ -117,19 +117,19 @@ def use_volume_reader(read: Any) -> None:
     _volume_reader[:] = [read]
 
 
-def _region_of_interest(vol: Any, roi: str, roi_mask: Path | None) -> Any:
-    """The region the registration follows (None: the whole volume)."""
+def _region_of_interest(vol: Any, roi: str, roi_mask: Path | None, *, cache: bool) -> Any:
+    """The region the registration follows (None: the whole volume); a found cranium is kept in
+    the preparation cache with the volume's preparation."""
     if roi_mask is not None:
         from registration.io.roi_masks import read_roi_mask
 
         return read_roi_mask(roi_mask, vol)
-    if roi == "cranium":
-        from registration.core.roi import cranium_region
+    from registration.core.roi import REGIONS, followed_region
+    from registration.io.cache import PreparationCache
 
-        return cranium_region(vol)
-    if roi != "none":
-        raise ValueError(f"--roi must be 'none' or 'cranium', got {roi!r}")
-    return None
+    if roi not in REGIONS:
+        raise ValueError(f"--roi must be one of {', '.join(REGIONS)}, got {roi!r}")
+    return followed_region(vol, roi, store=PreparationCache() if cache else None)
 
 
 def _read_views(options: Register, iso: tuple[float, float, float]) -> list:
@@ -166,7 +166,7 @@ def read_inputs(options: Register, clock: _Stopwatch) -> Inputs:
         warnings.simplefilter("always")
         vol = _volume_reader[0](options.volume)
         clock.lap("reading the volume")
-        region = _region_of_interest(vol, options.roi, options.roi_mask)
+        region = _region_of_interest(vol, options.roi, options.roi_mask, cache=not options.no_cache)
         iso, iso_from = resolve_isocenter(options.isocenter, vol)
         views = _read_views(options, iso)
         clock.lap("reading the image" + ("s" if len(views) > 1 else ""))
@@ -187,9 +187,9 @@ def read_inputs(options: Register, clock: _Stopwatch) -> Inputs:
     if options.truth is not None:
         inputs.truth, inputs.vessel_points = _read_truth(options.truth, volume_for)
     if region is not None:
-        from registration.core.roi import roi_volume
+        from registration.core.roi import region_volume
 
-        inputs.volume = roi_volume(vol, region)
+        inputs.volume = region_volume(vol, region)
     return inputs
 
 
@@ -218,11 +218,7 @@ def describe_inputs(options: Register, inputs: Inputs) -> None:
         _say(f"start: {options.landmarks}'s {len(start.inliers)} landmarks, reprojection error {start.rms_px:.1f} "
              "px rms" + (f" ({left_out} left out as disagreeing)" if left_out else "")
              + f": {_format_offsets(start.patient_motion, views[0].geometry)}")  # fmt: skip
-    region = inputs.region
-    if region is not None:
-        base = region.skull_base_z_mm
-        _say(f"region: {region.source}" + (f", the spine below z {base:.0f} mm left out ({region.left_out_ml:.0f} ml)"
-                                           if base is not None else " (the whole volume: no spine found)"))  # fmt: skip
+    _say("region: " + (inputs.region.describe() if inputs.region is not None else "the whole volume (--roi none)"))
 
 
 @dataclass

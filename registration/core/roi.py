@@ -18,12 +18,16 @@ the skull base) left out, everything else in. :func:`read_roi_mask`: a label mas
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
 from registration.core.volume import Volume
+
+if TYPE_CHECKING:
+    from registration.core.prepare.store import PreparationStore
 
 #: Voxels above this HU are bone for the spine's tracking.
 BONE_HU = 250.0
@@ -50,34 +54,120 @@ class RegionOfInterest:
     source: str
     skull_base_z_mm: float | None = None
     left_out_ml: float = 0.0
+    #: Why the automatic region is the whole volume ("no spine found", "oblique slices"), else "".
+    note: str = ""
 
     def summary(self) -> dict:
-        return {
+        out = {
             "source": self.source,
             "skull_base_z_mm": self.skull_base_z_mm,
-            "left_out_ml": round(self.left_out_ml, 1),
+            "left_out_ml": round(float(self.left_out_ml), 1),
             "voxels": int(self.mask.sum()),
         }
+        return out | ({"note": self.note} if self.note else {})
+
+    def describe(self) -> str:
+        """One line: what the registration follows."""
+        if self.source == "cranium":
+            if self.skull_base_z_mm is None:
+                return f"cranium: the whole volume ({self.note or 'no spine found'})"
+            return (f"cranium: the spine below z {self.skull_base_z_mm:.0f} mm left out "
+                    f"({self.left_out_ml:.0f} ml)")  # fmt: skip
+        return f"{self.source}: {int(self.mask.sum()):,} voxels ({self.left_out_ml:.0f} ml of dense tissue left out)"
+
+
+class ObliqueSlices(ValueError):
+    """The volume's slices are not axial: the automatic cranium cannot track the spine."""
 
 
 def _axial(volume: Volume) -> tuple[NDArray[np.float64], float, float]:
     """Slice z (world mm, per k), the in-slice pixel sizes (mm); refuses oblique grids."""
     a = volume.index_to_world
     if abs(a[2, 0]) > 1e-6 or abs(a[2, 1]) > 1e-6 or abs(a[0, 2]) > 1e-6 or abs(a[1, 2]) > 1e-6:
-        raise ValueError("the automatic cranium needs axial slices (the volume's k axis along the patient's z)")
+        raise ObliqueSlices("the automatic cranium needs axial slices (the volume's k axis along the patient's z)")
     z = a[2, 2] * np.arange(volume.shape[0]) + a[2, 3]
     return z, float(np.hypot(a[0, 0], a[1, 0])), float(np.hypot(a[0, 1], a[1, 1]))
 
 
-def cranium_region(volume: Volume) -> RegionOfInterest:
+#: The regions a registration follows by name: "none" (the whole volume) or "cranium" (found).
+REGIONS = ("none", "cranium")
+#: Bump when the automatic cranium's rule changes (stored regions are found again).
+CRANIUM_VERSION = 1
+
+
+def followed_region(
+    volume: Volume, roi: str, *, store: PreparationStore | None = None
+) -> RegionOfInterest | None:
+    """The region named by ``roi`` (``REGIONS``): the cranium found in ``volume`` (the whole
+    volume, with a note, when it has no spine or is not axial), or None for "none". ``store``:
+    where a found cranium is kept by the volume's content (:mod:`registration.core.prepare.store`)."""
+    if roi == "none":
+        return None
+    if roi != "cranium":
+        raise ValueError(f"the region must be one of {', '.join(REGIONS)}, got {roi!r}")
+    try:
+        return cranium_region(volume, store=store)
+    except ObliqueSlices:  # no automatic cranium
+        return RegionOfInterest(np.ones(volume.shape, dtype=bool), "cranium", None, 0.0,
+                                note="oblique slices: the spine is tracked on axial slices only")  # fmt: skip
+
+
+def region_volume(volume: Volume, roi: RegionOfInterest | None) -> Volume:
+    """What the registration renders: ``volume`` itself when ``roi`` is None or leaves nothing
+    dense out (the same voxels, the same stored preparation), else :func:`roi_volume`."""
+    if roi is None or roi.left_out_ml <= 0:
+        return volume
+    return roi_volume(volume, roi)
+
+
+def cranium_region(volume: Volume, *, store: PreparationStore | None = None) -> RegionOfInterest:
     """The volume without its cervical spine below the skull base (see the module). When no
-    spine is found (a cranium-only 3DRA) the whole volume."""
+    spine is found (a cranium-only 3DRA) the whole volume. ``store``: the tracked column is kept
+    there by the volume's content and read back instead of tracked again."""
+    key = None
+    if store is not None:
+        from registration.core.prepare.store import volume_digest
+
+        rule = [BONE_HU, TRACK_RADIUS_MM, COLUMN_RADIUS_MM, SKULL_BASE_WIDTH_MM, MIN_SPINE_AREA_MM2]
+        key = {"volume_sha256": volume_digest(volume), "version": CRANIUM_VERSION, "rule": rule}
+        found = store.load("cranium", key)
+        if found is not None and found.get("column") is not None and found["column"].ndim == 2:
+            base = float(found["skull_base_z_mm"][0])
+            return _region_of_column(volume, [tuple(c) for c in found["column"]], None if np.isnan(base) else base)
+    column, base_z = _spine_column(volume)
+    region = _region_of_column(volume, column, base_z)
+    if store is not None and key is not None:
+        store.save("cranium", key, {"column": np.asarray(column, dtype=np.float64).reshape(-1, 3),
+                                    "skull_base_z_mm": np.array([np.nan if base_z is None else base_z])})  # fmt: skip
+    return region
+
+
+def _region_of_column(volume: Volume, column: list, base_z: float | None) -> RegionOfInterest:
+    """The region that leaves out ``column`` (slice k, centre i, centre j) below ``base_z``."""
+    _, di, dj = _axial(volume)
+    data = volume.data
+    keep = np.ones(data.shape, dtype=bool)
+    if base_z is None or len(column) < 3:
+        return RegionOfInterest(keep, "cranium", None, 0.0, note="no spine found")
+    nj, ni = data.shape[1:]
+    jj, ii = np.mgrid[0:nj, 0:ni]
+    voxel_ml = di * dj * abs(volume.index_to_world[2, 2]) / 1000.0
+    left = 0
+    for k, ci, cj in column:
+        out = ((ii - ci) * di) ** 2 + ((jj - cj) * dj) ** 2 <= COLUMN_RADIUS_MM**2
+        keep[int(k)] &= ~out
+        left += int((out & (data[int(k)] > SOFT_TISSUE_HU)).sum())
+    return RegionOfInterest(keep, "cranium", base_z, left * voxel_ml)
+
+
+def _spine_column(volume: Volume) -> tuple[list[tuple[int, float, float]], float | None]:
+    """The cervical spine tracked from the bottom of the scan up: (slice k, centre i, centre j)
+    per slice, and the world z of the skull base where the tracking stopped (None: not reached)."""
     z, di, dj = _axial(volume)
     order = np.argsort(z)  # from the feet up
     data = volume.data
     nk, nj, ni = data.shape
     jj, ii = np.mgrid[0:nj, 0:ni]
-    keep = np.ones(data.shape, dtype=bool)
     center: tuple[float, float] | None = None
     column: list[tuple[int, float, float]] = []
     base_z: float | None = None
@@ -118,15 +208,7 @@ def cranium_region(volume: Volume) -> RegionOfInterest:
             break
         center = (float(ii[inside].mean()), float(jj[inside].mean()))
         column.append((int(k), center[0], center[1]))
-    if base_z is None or len(column) < 3:
-        return RegionOfInterest(keep, "cranium", None, 0.0)
-    voxel_ml = di * dj * abs(volume.index_to_world[2, 2]) / 1000.0
-    left = 0
-    for k, ci, cj in column:
-        out = ((ii - ci) * di) ** 2 + ((jj - cj) * dj) ** 2 <= COLUMN_RADIUS_MM**2
-        keep[k] &= ~out
-        left += int((out & (data[k] > SOFT_TISSUE_HU)).sum())
-    return RegionOfInterest(keep, "cranium", base_z, left * voxel_ml)
+    return column, base_z
 
 
 def dense_left_out_ml(volume: Volume, mask: NDArray[np.bool_]) -> float:

@@ -26,7 +26,7 @@ from registration.core.geometry import CArm, apply, check_rigid, invert_rigid, r
 from registration.core.images import XRayImage
 from registration.core.prepare import PreparedVolume
 from registration.core.register import Level, RegistrationOptions, StartOptions, register
-from registration.core.roi import RegionOfInterest, cranium_region, region_on_grid, soft_outside
+from registration.core.roi import ObliqueSlices, RegionOfInterest, cranium_region, region_on_grid, soft_outside
 from registration.core.volume import Volume
 
 #: Beyond this shift at the iso-center (mm) the whole volume's fit and the cranium's disagree.
@@ -155,7 +155,7 @@ def _cranium_of(volume: Volume) -> RegionOfInterest | None:
     if hit is None or hit[0] is not volume:
         try:
             region = cranium_region(volume)
-        except ValueError:  # an oblique grid: no automatic cranium
+        except ObliqueSlices:  # no automatic cranium
             region = None
         hit = (volume, region)
         _REGIONS[id(volume)] = hit

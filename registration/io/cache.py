@@ -27,7 +27,7 @@ CACHE_VERSION = 1
 #: least recently used go first); one real CT's entry is ~25 MB.
 PREPARED_MAX_BYTES = 512 * 1024**2
 #: The kinds of entry a :class:`PreparationCache` writes (file name prefixes).
-PREPARED_KINDS = ("prepared-blocks", "prepared-levels")
+PREPARED_KINDS = ("prepared-blocks", "prepared-levels", "cranium")
 
 log = logging.getLogger(__name__)
 

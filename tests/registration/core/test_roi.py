@@ -10,7 +10,7 @@ import pytest
 
 from registration.core.geometry import CArm, rigid
 from registration.core.register import RegistrationOptions, register
-from registration.core.roi import RegionOfInterest, cranium_region, roi_volume
+from registration.core.roi import RegionOfInterest, cranium_region, followed_region, region_volume, roi_volume
 from registration.core.volume import Volume
 from registration.io.roi_masks import read_roi_mask
 from registration.studies.runs import axis_angle_matrix
@@ -74,6 +74,32 @@ def test_the_cranium_leaves_out_the_cervical_spine_only(real_ct) -> None:
     assert bone_left.sum() * 3e-3 > 80.0
     ii = np.nonzero(bone_left)[2]
     assert np.abs(ii - real_ct.shape[2] / 2).max() < 90
+
+
+def test_the_region_by_name_and_on_oblique_slices() -> None:
+    volume = _small_volume()
+    assert followed_region(volume, "none") is None and region_volume(volume, None) is volume
+    with pytest.raises(ValueError, match="one of none, cranium"):
+        followed_region(volume, "neck")
+    # a grid turned about z: no axial slices to track the spine on, so the whole volume, said so
+    c, s = np.cos(np.radians(20.0)), np.sin(np.radians(20.0))
+    oblique = Volume(volume.data, np.array([[c, 0, -s, 0], [0, 1, 0, 0], [s, 0, c, 0], [0, 0, 0, 1.0]]), label="tilted")
+    region = followed_region(oblique, "cranium")
+    assert region is not None and region.mask.all() and region.skull_base_z_mm is None
+    assert "oblique" in region.describe() and region_volume(oblique, region) is oblique
+
+
+@pytest.mark.slow
+def test_a_found_cranium_is_stored_and_read_back(real_ct, tmp_path) -> None:
+    from registration.io.cache import PreparationCache
+
+    store = PreparationCache(tmp_path)
+    found = followed_region(real_ct, "cranium", store=store)
+    assert len(list(tmp_path.glob("cranium-*.npz"))) == 1
+    again = followed_region(real_ct, "cranium", store=store)
+    assert np.array_equal(found.mask, again.mask) and again.skull_base_z_mm == found.skull_base_z_mm
+    assert again.left_out_ml == pytest.approx(found.left_out_ml) and found.left_out_ml > 100.0
+    assert "the spine below z -132 mm left out" in again.describe()
 
 
 @pytest.mark.slow
