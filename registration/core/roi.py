@@ -95,9 +95,7 @@ REGIONS = ("none", "cranium")
 CRANIUM_VERSION = 1
 
 
-def followed_region(
-    volume: Volume, roi: str, *, store: PreparationStore | None = None
-) -> RegionOfInterest | None:
+def followed_region(volume: Volume, roi: str, *, store: PreparationStore | None = None) -> RegionOfInterest | None:
     """The region named by ``roi`` (``REGIONS``): the cranium found in ``volume`` (the whole
     volume, with a note, when it has no spine or is not axial), or None for "none". ``store``:
     where a found cranium is kept by the volume's content (:mod:`registration.core.prepare.store`)."""
