@@ -100,13 +100,14 @@ class Register:
     """JSON of picked point pairs to start from instead of the machine-based pose, for a patient far from it:
     {"landmarks": [{"image_px": [col, row], "volume_mm": [x, y, z], "plane": "A"}, ...]}, at least 4 on one image
     (docs/landmarks.md)."""
-    roi: Literal["none", "cranium"] = "none"
-    """The part of the volume the registration follows: "none" (default) the whole volume; "cranium" leaves out the
-    cervical spine below the skull base (found in the volume; the whole volume when it has no spine), which follows
-    a head's motion only partly (docs/clinical-images.md)."""
+    roi: Literal["cranium", "none"] = "cranium"
+    """The part of the patient the registration follows: "cranium" (default) the head above the skull base (found in
+    the volume): the image's pixels that see mostly the neck below it, which follows a head's motion only partly, are
+    left out of the measure (the whole image when the volume has no neck); "none" every pixel of the field
+    (docs/clinical-images.md)."""
     roi_mask: Path | None = None
-    """A label mask on the volume's grid (.npz with an array "mask", NIfTI, or a DICOM SEG): the registration
-    follows the labelled voxels only (outside them, bone is rendered as soft tissue)."""
+    """A label mask on the volume's grid (.npz with an array "mask", NIfTI, or a DICOM SEG) instead of the cranium:
+    the registration follows the labelled voxels only (outside them bone is rendered as soft tissue)."""
     estimate_geometry: bool = False
     """With two planes, estimate each plane's source-image distance together with the pose, for a C-arm nobody
     calibrated or a file whose distances are nominal (docs/landmarks.md)."""

@@ -211,5 +211,8 @@ class VolumeStudy:
     effects joined by + (blades, text, overlay, display, contrast, scatter, heel, table, neck); comma-separated arms."""
     strengths: str = "1"
     """Strengths of the effects, comma-separated (0 none, 1 typical, 2 severe): each arm runs at each (a sweep)."""
+    roi: Literal["cranium", "none"] = "cranium"
+    """The part of the patient the registration follows, as register --roi: "cranium" leaves the image's pixels that
+    see mostly the neck below the skull base out of the measure; "none" every pixel of the field."""
     quick: bool = False
     """A few minutes: 8 cases per arm (unless --cases is given)."""

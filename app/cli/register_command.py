@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import sys
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -100,12 +100,16 @@ class Inputs:
     volume: Any
     region: Any
     views: list
+    #: The views with their whole fields (``views`` without the region's narrowing): the skull-and-spine check's.
+    full_views: list
     isocenter: tuple[float, float, float]
     isocenter_from: str
     initial_motion: np.ndarray | None = None
     landmark_start: Any = None
     truth: np.ndarray | None = None
     vessel_points: np.ndarray | None = None
+    #: What the region left out of each view's field (:class:`registration.core.roi.RegionField`).
+    region_fields: list = field(default_factory=list)
 
 
 #: How ``register`` reads a volume (a worker reads through its memory of recent volumes).
@@ -171,7 +175,8 @@ def read_inputs(options: Register, clock: _Stopwatch) -> Inputs:
         views = _read_views(options, iso)
         clock.lap("reading the image" + ("s" if len(views) > 1 else ""))
     _show_warnings(caught)
-    inputs = Inputs(whole=vol, volume=vol, region=region, views=views, isocenter=iso, isocenter_from=iso_from)
+    inputs = Inputs(whole=vol, volume=vol, region=region, views=views, full_views=views, isocenter=iso,
+                    isocenter_from=iso_from)  # fmt: skip
     volume_for = str(vol.meta.get("frame_of_reference_uid") or "") or None
     if options.initial_motion is not None:
         inputs.initial_motion, _ = read_motion(
@@ -187,9 +192,12 @@ def read_inputs(options: Register, clock: _Stopwatch) -> Inputs:
     if options.truth is not None:
         inputs.truth, inputs.vessel_points = _read_truth(options.truth, volume_for)
     if region is not None:
-        from registration.core.roi import region_volume
+        from registration.core.roi import region_views, region_volume
 
-        inputs.volume = region_volume(vol, region)
+        if region.source != "cranium":  # a user's mask: its outside rendered as soft tissue too
+            inputs.volume = region_volume(vol, region)
+        inputs.views, inputs.region_fields = region_views(vol, region, views, inputs.initial_motion)
+        clock.lap("the region's pixels")
     return inputs
 
 
@@ -218,7 +226,15 @@ def describe_inputs(options: Register, inputs: Inputs) -> None:
         _say(f"start: {options.landmarks}'s {len(start.inliers)} landmarks, reprojection error {start.rms_px:.1f} "
              "px rms" + (f" ({left_out} left out as disagreeing)" if left_out else "")
              + f": {_format_offsets(start.patient_motion, views[0].geometry)}")  # fmt: skip
-    _say("region: " + (inputs.region.describe() if inputs.region is not None else "the whole volume (--roi none)"))
+    region = inputs.region
+    _say("region: " + (region.describe() if region is not None else "every pixel of the field (--roi none)"))
+    for view, found in zip(inputs.views, inputs.region_fields, strict=False):
+        plane = f" ({view.meta.get('plane')})" if len(inputs.views) == 2 and view.meta.get("plane") else ""
+        if found.kept_whole:
+            _say(f"region{plane}: the image sees mostly what lies outside the region: its whole field is used")
+        else:
+            _say(f"region{plane}: {found.left_out_px:,} of the field's {found.field_px:,} px see mostly what lies "
+                 "outside the region: left out of the measure")  # fmt: skip
 
 
 @dataclass
@@ -235,12 +251,21 @@ class Outcome:
     assessed: dict | None = None
 
 
+def _region_left_something_out(inputs: Inputs) -> bool:
+    """Whether the region narrowed a view's field or (a user's mask) rendered dense tissue as soft."""
+    region = inputs.region
+    rendered = region is not None and region.source != "cranium" and region.left_out_ml > 0
+    return rendered or any(not f.kept_whole for f in inputs.region_fields)
+
+
 def _skull_spine(inputs: Inputs, views: list, result: Any, *, seed: int, cache: bool) -> Any:
     """Whether the whole volume (its spine included) fits where the region's estimate says
     (:func:`registration.core.skull_spine.skull_spine_check`)."""
     from registration.core.skull_spine import skull_spine_check
 
     whole = inputs.whole
+    # the whole field: the neck's pixels too (the views' estimated geometry, if any, kept)
+    views = [replace(v, mask=full.mask) for v, full in zip(views, inputs.full_views, strict=True)]
     prepared, store = prepare_for_registration(whole, views, np.asarray(result.patient_motion), cache=cache)
     check = skull_spine_check(whole, views, result.patient_motion, renderer=prepared.renderer, seed=seed)
     if store is not None:
@@ -297,8 +322,7 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
         clock.lap("estimating the geometry")
     _say(f"patient motion: {_format_offsets(result.patient_motion, views[0].geometry)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
-    region = inputs.region
-    if region is not None and region.left_out_ml > 0 and not result.at_bounds:
+    if _region_left_something_out(inputs) and not result.at_bounds:
         outcome.skull_spine = _skull_spine(inputs, outcome.views, result, seed=options.seed, cache=cache)
         clock.lap("skull and spine")
         _say(outcome.skull_spine.message())
@@ -385,7 +409,7 @@ def result_document(options: Register, inputs: Inputs, outcome: Outcome) -> dict
     if inputs.landmark_start is not None:
         document["landmark_start"] = inputs.landmark_start.report(outcome.result.patient_motion)
     if inputs.region is not None:
-        document["region"] = inputs.region.summary()
+        document["region"] = inputs.region.summary() | {"fields": [f.to_dict() for f in inputs.region_fields]}
     if outcome.skull_spine is not None:
         document["skull_spine"] = outcome.skull_spine.to_dict()
     if outcome.assessed is not None:

@@ -356,7 +356,7 @@ def run_volume_validation(args: VolumeStudy) -> int:
         raise ValueError(f"--strengths takes numbers separated by commas, got {args.strengths!r}") from None
     cases = QUICK_VOLUME_CASES if args.quick and args.cases == VolumeStudy.cases else args.cases
     config = VolumeStudyConfig(cases=cases, max_mm=args.max_mm, max_deg=args.max_deg, biplane=args.biplane,
-                               seed=args.seed, realism=args.realism, strengths=strengths)  # fmt: skip
+                               seed=args.seed, realism=args.realism, strengths=strengths, roi=args.roi)  # fmt: skip
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         volume = _read_study_volume(args)

@@ -362,6 +362,12 @@ class Controller:
                 f"{g.secondary_deg:+.1f}°, SID {g.sid_mm:.0f} mm, SOD {g.sod_mm:.0f} mm; "
                 "no C-arm calibration applied)</small>"
             )
+        region = getattr(data, "region", None)
+        if region is not None:  # what the registration follows (docs/clinical-images.md)
+            ui.volume_info.content += f"  \n<small>Region: {region.describe()}" + (
+                "; the image's pixels that see mostly the neck below it are left out</small>"
+                if region.skull_base_z_mm is not None else "</small>"
+            )  # fmt: skip
         ui.phantom_button.visible = data is not self.phantom
         ui.show_ghost.disabled = not self.session.has_truth
         self.show_isocenter()

@@ -20,6 +20,7 @@ import trimesh
 
 from registration.core.drr import DRRRenderer
 from registration.core.images import XRayImage
+from registration.core.roi import followed_region
 from registration.core.volume import Volume
 from registration.io.meshes import cached_surface_meshes, surface_meshes
 from registration.sim.phantom import HeadPhantom, make_head_phantom
@@ -272,8 +273,9 @@ class FileData:
         self._volume = volume
         #: The volume as read: the meshes and a new region of interest start from it.
         self._full_volume = volume
-        #: The region the registration follows (None: the whole volume).
-        self.region: RegionOfInterest | None = None
+        #: The region the registration follows (as ``register --roi cranium``: the image's pixels
+        #: that see mostly the neck below the skull base are left out; a user's mask replaces it).
+        self.region: RegionOfInterest | None = followed_region(volume, "cranium")
         self.fixed_xray = xray
         #: Where the iso-center came from: "--isocenter", the volume's IsocenterPosition tag, the
         #: center of its grid, the world origin (default), the Data tab.
@@ -299,6 +301,15 @@ class FileData:
             geometry = replace(self.fixed_xray.geometry, isocenter_mm=tuple(float(v) for v in isocenter_mm))
             self.fixed_xray = replace(self.fixed_xray, geometry=geometry)
             self.isocenter_from = source
+
+    def region_views(self, views: list[XRayImage], initial_motion: np.ndarray | None) -> list[XRayImage]:
+        """``views`` with the pixels that see mostly what lies outside the region left out of their
+        fields (:func:`registration.core.roi.region_views`)."""
+        from registration.core.roi import region_views
+
+        with self._lock:
+            region = self.region
+        return region_views(self._full_volume, region, views, initial_motion)[0]
 
     @property
     def whole_volume(self) -> Volume:

@@ -354,9 +354,11 @@ class Session:
         callback = self._progress_recorder(run)
         assessment = None
         try:
-            views = self.views()  # biplane: plane A first, offsets in its view frame
-            run.views = views
+            full_views = self.views()  # biplane: plane A first, offsets in its view frame
             data = self.data
+            region_views = getattr(data, "region_views", None)  # the user's data: the neck's pixels left out
+            views = region_views(full_views, initial) if region_views is not None else full_views
+            run.views = views
             volume = data.volume(volume_format)
             # the user's volume: prepared for these views and this start (app.data.FileData.prepared)
             renderer = data.renderer(volume_format, views=views, initial_motion=initial)
@@ -377,7 +379,7 @@ class Session:
             skull_spine = None
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
                 assessment = self._assess(views, result, volume_format, initial, landmarks)
-                skull_spine = self._skull_spine(views, result)
+                skull_spine = self._skull_spine(views, full_views, result)
         except Exception as exc:  # shown in the page, never a dead worker thread
             with self.lock:
                 if run.abandoned:
@@ -436,15 +438,17 @@ class Session:
         run.running = False
         self._changed()
 
-    def _skull_spine(self, views: list[XRayImage], result: RegistrationResult) -> Any:
-        """The skull-and-spine check after a registration on the user's region that leaves dense
-        tissue out (as ``register --roi-mask`` runs it); None without such a region."""
+    def _skull_spine(self, views: list[XRayImage], full_views: list[XRayImage], result: RegistrationResult) -> Any:
+        """The skull-and-spine check after a registration on the user's region (as ``register``
+        runs it: the whole volume on the whole fields near the estimate); None when the region
+        left nothing out."""
         region = getattr(self.data, "region", None)
-        if region is None or region.left_out_ml <= 0:
+        narrowed = any(v.mask.sum() != f.mask.sum() for v, f in zip(views, full_views, strict=True))
+        if region is None or not (narrowed or (region.source != "cranium" and region.left_out_ml > 0)):
             return None
         from registration.core.skull_spine import skull_spine_check
 
-        return skull_spine_check(self.data.whole_volume, views, result.patient_motion, seed=self.config.seed)
+        return skull_spine_check(self.data.whole_volume, full_views, result.patient_motion, seed=self.config.seed)
 
     def _assess(
         self,

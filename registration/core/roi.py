@@ -17,13 +17,15 @@ the skull base) left out, everything else in. :func:`read_roi_mask`: a label mas
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from registration.core.geometry import CArm
+from registration.core.images import XRayImage
 from registration.core.volume import Volume
 
 if TYPE_CHECKING:
@@ -71,8 +73,7 @@ class RegionOfInterest:
         if self.source == "cranium":
             if self.skull_base_z_mm is None:
                 return f"cranium: the whole volume ({self.note or 'no spine found'})"
-            return (f"cranium: the spine below z {self.skull_base_z_mm:.0f} mm left out "
-                    f"({self.left_out_ml:.0f} ml)")  # fmt: skip
+            return f"cranium: the head above the skull base at z {self.skull_base_z_mm:.0f} mm"
         return f"{self.source}: {int(self.mask.sum()):,} voxels ({self.left_out_ml:.0f} ml of dense tissue left out)"
 
 
@@ -248,3 +249,95 @@ def region_on_grid(roi: RegionOfInterest, volume: Volume, grid: Volume) -> NDArr
     idx = np.stack([ii, jj, kk], axis=-1).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
     coords = idx[:, ::-1].T.reshape(3, nk, nj, ni)  # (k, j, i)
     return ndimage.map_coordinates(roi.mask.astype(np.uint8), coords, order=0, cval=1).astype(bool)
+
+
+#: A pixel whose ray meets more than this share of its attenuation outside the region (the neck
+#: below the skull base, for the cranium) is left out of the measure.
+OUTSIDE_SHARE = 0.5
+#: The pixels left out are grown by this much (mm at the iso-center): the patient moved from the start.
+OUTSIDE_GROW_MM = 4.0
+#: The share is taken on a coarse copy of the volume with voxels about this size (mm).
+OUTSIDE_VOXEL_MM = 4.0
+#: A view keeps its whole field when the region would leave less than this share of it.
+MIN_FIELD_SHARE = 0.25
+
+
+@dataclass(frozen=True)
+class RegionField:
+    """What the region left out of one view's field: ``left_out_px`` of its ``field_px``
+    usable pixels (0 with ``kept_whole`` when too little would have been left)."""
+
+    left_out_px: int
+    field_px: int
+    kept_whole: bool = False
+
+    def to_dict(self) -> dict:
+        return {"left_out_px": self.left_out_px, "field_px": self.field_px, "kept_whole": self.kept_whole}
+
+
+def outside_voxels(volume: Volume, roi: RegionOfInterest) -> NDArray[np.bool_]:
+    """The voxels whose edges the image should not be matched on: for the automatic cranium the
+    whole slab below the skull base (spine, neck muscles, airway and skin all move with the neck);
+    none for a user's mask (its outside is rendered as soft tissue instead, :func:`roi_volume`)."""
+    if roi.source != "cranium" or roi.skull_base_z_mm is None:
+        return np.zeros(volume.shape, dtype=bool)
+    z, _, _ = _axial(volume)
+    return np.broadcast_to((z < roi.skull_base_z_mm)[:, None, None], volume.shape)
+
+
+def region_views(
+    volume: Volume,
+    roi: RegionOfInterest | None,
+    views: XRayImage | tuple[XRayImage, ...] | list[XRayImage],
+    motion: NDArray[np.float64] | None = None,
+) -> tuple[list[XRayImage], list[RegionField]]:
+    """``views`` with the pixels that see mostly what lies outside ``roi`` left out of their
+    fields: where more than ``OUTSIDE_SHARE`` of a ray's attenuation, with the volume moved by
+    ``motion`` (the start), lies in :func:`outside_voxels`, grown by ``OUTSIDE_GROW_MM``. The
+    rest of the volume is rendered as it is: the head's edges seen through the neck still count.
+    Views unchanged (and no fields) when ``roi`` is None or leaves nothing out."""
+    from registration.core.drr import DRRRenderer
+
+    views = [views] if isinstance(views, XRayImage) else list(views)
+    if roi is None:
+        return views, []
+    outside = outside_voxels(volume, roi)
+    if not outside.any():
+        return views, []
+    step = np.maximum(1, np.rint(OUTSIDE_VOXEL_MM / np.asarray(volume.spacing_mm[::-1]))).astype(int)  # (k, j, i)
+    sl = tuple(slice(None, None, int(n)) for n in step)
+    coarse = volume.data[sl]
+    scale = np.diag([step[2], step[1], step[0], 1.0]).astype(np.float64)
+    affine = volume.index_to_world @ scale
+    air = np.float32(-1000.0)
+    out_part = np.where(outside[sl], coarse, air).astype(np.float32)
+    in_part = np.where(outside[sl], air, coarse).astype(np.float32)
+    renderers = [DRRRenderer(Volume(part, affine, label=name), levels=1)
+                 for part, name in ((out_part, "outside"), (in_part, "inside"))]  # fmt: skip
+    narrowed, fields = [], []
+    for view in views:
+        g = view.geometry
+        rows, cols = max(1, g.rows // 2), max(1, g.cols // 2)
+        small = g.resized(rows, cols)
+        seen_out, seen_in = (r.render(small, motion) for r in renderers)
+        away = seen_out > OUTSIDE_SHARE * np.maximum(seen_out + seen_in, 1e-6)
+        away = ndimage.zoom(away.astype(np.uint8), (g.rows / rows, g.cols / cols), order=0).astype(bool)
+        away = away[: g.rows, : g.cols]
+        grow = int(round(OUTSIDE_GROW_MM / _pixel_mm_at_iso(g)))
+        if grow > 0 and away.any():
+            away = ndimage.binary_dilation(away, iterations=grow)
+        field = np.asarray(view.mask, dtype=bool)
+        left = field & away
+        kept = field & ~away
+        if kept.sum() < MIN_FIELD_SHARE * field.sum():
+            narrowed.append(view)
+            fields.append(RegionField(0, int(field.sum()), kept_whole=True))
+            continue
+        narrowed.append(replace(view, mask=kept))
+        fields.append(RegionField(int(left.sum()), int(field.sum())))
+    return narrowed, fields
+
+
+def _pixel_mm_at_iso(g: CArm) -> float:
+    """A detector pixel's size at the iso-center (mm)."""
+    return float(min(g.pixel_mm)) * g.sod_mm / g.sid_mm

@@ -34,6 +34,7 @@ from registration.core.images import XRayImage
 from registration.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION_MM
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationOptions, register
+from registration.core.roi import RegionOfInterest
 from registration.core.volume import Volume
 from registration.sim.volume_xray import IMAGES_FROM_VOLUME, VolumeAttenuator, catheter_devices, default_catheter_path
 from registration.sim.xray import simulate_xray
@@ -78,9 +79,16 @@ class VolumeStudyConfig:
     #: Assess each estimate's confidence (applied / withheld) as ``register --confidence`` does;
     #: always on (for every arm) when an arm has clinical effects.
     confidence: bool = False
+    #: The part of the patient the registration follows (``register --roi``): "cranium" (the
+    #: pixels that see mostly the neck below the skull base left out) or "none".
+    roi: str = "cranium"
 
     def __post_init__(self) -> None:
+        from registration.core.roi import REGIONS
         from registration.sim.clinical import parse_realism
+
+        if self.roi not in REGIONS:
+            raise ValueError(f"--roi must be one of {', '.join(REGIONS)}, got {self.roi!r}")
 
         parse_realism(self.realism)  # a bad word is refused here, by name
         if not self.strengths or any(not (math.isfinite(s) and 0 <= s <= 3) for s in self.strengths):
@@ -306,16 +314,23 @@ def run_volume_case(
     *,
     options: RegistrationOptions | None = None,
     confidence: bool = False,
+    region: RegionOfInterest | None = None,
 ) -> dict:
     """Form the case's image(s), prepare the volume for its view(s), register and score.
     ``imager``: a :class:`VolumeImager` (clean images in memory) or :class:`ClinicalViews` (XA
-    files written and read back); ``confidence``: assess the estimate as ``register --confidence``."""
+    files written and read back); ``confidence``: assess the estimate as ``register --confidence``;
+    ``region``: the part of the patient followed (:func:`registration.core.roi.region_views`, as
+    ``register --roi`` narrows the fields)."""
+    from registration.core.roi import region_views
+
     options = options or RegistrationOptions()
     geometries = _views(config, case, isocenter_mm)
     truth = case_motion(case, isocenter_mm)
     t0 = time.perf_counter()
     images, notes = _case_images(imager, geometries, truth, config.kind, case.seed)
     geometries = [im.geometry for im in images]
+    images, fields = region_views(volume, region, images)
+    notes["region_left_out_px"] = [f.left_out_px for f in fields]
     image_s = time.perf_counter() - t0
     # the volume prepared as `roadmap3d register` prepares it (crop, body, mm levels)
     preparation = Preparation.of(volume, images, options=options)
@@ -460,12 +475,16 @@ def run_volume_study(
     log: Callable[[str], None] | None = None,
 ) -> tuple[list[dict], dict]:
     """Every case of the study in this process; ``out``: results.jsonl, summary.json, report.md."""
+    from registration.core.roi import followed_region
     from registration.studies.report_kit import source_revision
 
     say = log or (lambda _msg: None)
     records = []
     cases = volume_cases(config)
     arms = study_arms(config)
+    region = followed_region(volume, config.roi)
+    if region is not None:
+        say(f"region: {region.describe()}")
     base = None
     # decisions for every arm (the clean one too, as the baseline) once any arm is clinical
     confidence = config.confidence or any(effects for _, effects, _ in arms)
@@ -481,7 +500,8 @@ def run_volume_study(
                                    base=base if "table" in effects else None)  # fmt: skip
         label = arm if len(arms) == 1 or not effects else f"{arm} @ {strength:g}"
         for case in cases:
-            record = run_volume_case(volume, imager, case, config, isocenter_mm, options=options, confidence=confidence)
+            record = run_volume_case(volume, imager, case, config, isocenter_mm, options=options, confidence=confidence,
+                                     region=region)  # fmt: skip
             record.update(arm=arm, effects=list(effects), strength=strength)
             records.append(record)
             decision = ""
