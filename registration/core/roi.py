@@ -17,6 +17,7 @@ the skull base) left out, everything else in. :func:`read_roi_mask`: a label mas
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -29,6 +30,7 @@ from registration.core.images import XRayImage
 from registration.core.volume import Volume
 
 if TYPE_CHECKING:
+    from registration.core.drr import DRRRenderer
     from registration.core.prepare.store import PreparationStore
 
 #: Voxels above this HU are bone for the spine's tracking.
@@ -104,11 +106,23 @@ def followed_region(volume: Volume, roi: str, *, store: PreparationStore | None 
         return None
     if roi != "cranium":
         raise ValueError(f"the region must be one of {', '.join(REGIONS)}, got {roi!r}")
+    hit = _FOUND.get(id(volume))
+    if hit is not None and hit[0] is volume:
+        return hit[1]
     try:
-        return cranium_region(volume, store=store)
+        region = cranium_region(volume, store=store)
     except ObliqueSlices:  # no automatic cranium
-        return RegionOfInterest(np.ones(volume.shape, dtype=bool), "cranium", None, 0.0,
-                                note="oblique slices: the spine is tracked on axial slices only")  # fmt: skip
+        region = RegionOfInterest(np.ones(volume.shape, dtype=bool), "cranium", None, 0.0,
+                                  note="oblique slices: the spine is tracked on axial slices only")  # fmt: skip
+    _FOUND[id(volume)] = (volume, region)
+    while len(_FOUND) > 2:
+        _FOUND.popitem(last=False)
+    return region
+
+
+#: The cranium found for the volumes seen last (by identity, the volume kept alive with it): a
+#: process that registers one volume many times (the app, a worker, a study) finds it once.
+_FOUND: OrderedDict[int, tuple[Volume, RegionOfInterest]] = OrderedDict()
 
 
 def region_volume(volume: Volume, roi: RegionOfInterest | None) -> Volume:
@@ -296,24 +310,10 @@ def region_views(
     ``motion`` (the start), lies in :func:`outside_voxels`, grown by ``OUTSIDE_GROW_MM``. The
     rest of the volume is rendered as it is: the head's edges seen through the neck still count.
     Views unchanged (and no fields) when ``roi`` is None or leaves nothing out."""
-    from registration.core.drr import DRRRenderer
-
     views = [views] if isinstance(views, XRayImage) else list(views)
-    if roi is None:
+    renderers = None if roi is None else _outside_renderers(volume, roi)
+    if renderers is None:
         return views, []
-    outside = outside_voxels(volume, roi)
-    if not outside.any():
-        return views, []
-    step = np.maximum(1, np.rint(OUTSIDE_VOXEL_MM / np.asarray(volume.spacing_mm[::-1]))).astype(int)  # (k, j, i)
-    sl = tuple(slice(None, None, int(n)) for n in step)
-    coarse = volume.data[sl]
-    scale = np.diag([step[2], step[1], step[0], 1.0]).astype(np.float64)
-    affine = volume.index_to_world @ scale
-    air = np.float32(-1000.0)
-    out_part = np.where(outside[sl], coarse, air).astype(np.float32)
-    in_part = np.where(outside[sl], air, coarse).astype(np.float32)
-    renderers = [DRRRenderer(Volume(part, affine, label=name), levels=1)
-                 for part, name in ((out_part, "outside"), (in_part, "inside"))]  # fmt: skip
     narrowed, fields = [], []
     for view in views:
         g = view.geometry
@@ -336,6 +336,38 @@ def region_views(
         narrowed.append(replace(view, mask=kept))
         fields.append(RegionField(int(left.sum()), int(field.sum())))
     return narrowed, fields
+
+
+#: The coarse outside and inside of the regions used last: (volume, region, renderers or None).
+_PARTS: OrderedDict[tuple[int, int], tuple[Volume, RegionOfInterest, tuple[DRRRenderer, DRRRenderer] | None]] = (
+    OrderedDict()
+)
+
+
+def _outside_renderers(volume: Volume, roi: RegionOfInterest) -> tuple[DRRRenderer, DRRRenderer] | None:
+    """Renderers of what lies outside ``roi`` and what lies inside, on a coarse copy of
+    ``volume`` (``OUTSIDE_VOXEL_MM``); None when nothing lies outside. Kept for the last few."""
+    from registration.core.drr import DRRRenderer
+
+    key = (id(volume), id(roi))
+    hit = _PARTS.get(key)
+    if hit is not None and hit[0] is volume and hit[1] is roi:
+        return hit[2]
+    outside = outside_voxels(volume, roi)
+    renderers = None
+    if outside.any():
+        step = np.maximum(1, np.rint(OUTSIDE_VOXEL_MM / np.asarray(volume.spacing_mm[::-1]))).astype(int)  # k, j, i
+        sl = tuple(slice(None, None, int(n)) for n in step)
+        coarse, away = volume.data[sl], outside[sl]
+        affine = volume.index_to_world @ np.diag([step[2], step[1], step[0], 1.0]).astype(np.float64)
+        air = np.float32(-1000.0)
+        parts = (np.where(away, coarse, air), np.where(away, air, coarse))
+        renderers = tuple(DRRRenderer(Volume(p.astype(np.float32), affine, label=n), levels=1)
+                          for p, n in zip(parts, ("outside", "inside"), strict=True))  # fmt: skip
+    _PARTS[key] = (volume, roi, renderers)
+    while len(_PARTS) > 2:
+        _PARTS.popitem(last=False)
+    return renderers
 
 
 def _pixel_mm_at_iso(g: CArm) -> float:

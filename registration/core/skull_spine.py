@@ -13,7 +13,6 @@ moved relative to the head, and the head's estimate (the cranium's) is the one t
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -26,7 +25,7 @@ from registration.core.geometry import CArm, apply, check_rigid, invert_rigid, r
 from registration.core.images import XRayImage
 from registration.core.prepare import PreparedVolume
 from registration.core.register import Level, RegistrationOptions, StartOptions, register
-from registration.core.roi import ObliqueSlices, RegionOfInterest, cranium_region, region_on_grid, soft_outside
+from registration.core.roi import RegionOfInterest, followed_region, region_on_grid, soft_outside
 from registration.core.volume import Volume
 
 #: Beyond this shift at the iso-center (mm) the whole volume's fit and the cranium's disagree.
@@ -144,24 +143,10 @@ class SpinePull:
         }
 
 
-#: The cranium region of the volumes probed last (by identity, the volume kept alive with it).
-_REGIONS: OrderedDict[int, tuple[Volume, RegionOfInterest]] = OrderedDict()
-
-
 def _cranium_of(volume: Volume) -> RegionOfInterest | None:
     """The volume's cranium region (found once per volume), None when the volume has no spine
     to leave out or is not axial."""
-    hit = _REGIONS.get(id(volume))
-    if hit is None or hit[0] is not volume:
-        try:
-            region = cranium_region(volume)
-        except ObliqueSlices:  # no automatic cranium
-            region = None
-        hit = (volume, region)
-        _REGIONS[id(volume)] = hit
-        while len(_REGIONS) > 2:
-            _REGIONS.popitem(last=False)
-    region = hit[1]
+    region = followed_region(volume, "cranium")
     return None if region is None or region.skull_base_z_mm is None else region
 
 
