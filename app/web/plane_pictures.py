@@ -39,16 +39,20 @@ class PlanePictures:
         self.session = session
         self.layout = layout
         self.settings = settings
-        self._by_image: dict[tuple[int, int], tuple[Any, dict[str, np.ndarray]]] = {}
+        self._by_image: dict[tuple[int, int, int], tuple[Any, dict[str, np.ndarray]]] = {}
 
     def tiles(self, xray: Any, size: int | None = None) -> dict[str, np.ndarray]:
         """What depends on the X-ray image only, computed once per image (per plane) and size
         (the display's, or ``size``)."""
         size = self.session.config.display_px if size is None else int(size)
-        cached = self._by_image.get((id(xray), size))
+        key = (id(xray), size, id(getattr(self.session.data, "region", None)))  # a new region shades anew
+        cached = self._by_image.get(key)
         if cached is not None and cached[0] is xray:
             return cached[1]
         mask_u8 = xray.mask.astype(np.uint8)
+        data = self.session.data
+        narrow = getattr(data, "region_views", None)  # the user's data: the neck's pixels leave the field too
+        used = narrow([xray], None)[0].mask if narrow is not None and xray is data.fixed_xray else xray.mask
         tiles = {
             "fluoro": views.resize(views.to_gray(xray.image, xray.mask), size),
             "mask": views.resize(mask_u8, size).astype(bool),
@@ -56,10 +60,12 @@ class PlanePictures:
             "mask_third": views.resize(mask_u8, size // 3).astype(bool),
             "gradient": views.resize(views.gradient_image(xray.image, xray.mask), size),
             "attenuation": views.resize(np.asarray(xray.image, np.float32), size),
+            # what the registration uses: the field without the pixels the region leaves out
+            "used": views.resize(used.astype(np.uint8), size).astype(bool),
         }
         if len(self._by_image) >= 4:  # plane A and B, each shown and about to be shown
             self._by_image.pop(next(iter(self._by_image)))
-        self._by_image[(id(xray), size)] = (xray, tiles)
+        self._by_image[key] = (xray, tiles)
         return tiles
 
     def plane(
@@ -91,7 +97,7 @@ class PlanePictures:
             fluoro = self._compare_tile(mode, tiles, tile_geometry, motion, initial, silhouette, volume_format,
                                         thickness)  # fmt: skip
         if bool(self.layout.show_field.value):  # what the registration leaves out, shaded and outlined
-            views.shade_outside(fluoro, tiles["mask"])
+            views.shade_outside(fluoro, tiles["used"])
         if settings.zoom > 1.0:
             fluoro = qa_images.zoomed(fluoro, settings.zoom, settings.pan)
         prefix = f"PLANE {plane}  " if plane else ""
