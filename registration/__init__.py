@@ -40,6 +40,7 @@ __all__ = [
     "Preparation",
     "register",
     "assess",
+    "follow_cranium",
     "estimate_geometry",
     "track",
     "render_drr",

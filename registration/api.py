@@ -44,6 +44,7 @@ __all__ = [
     "Preparation",
     "register",
     "assess",
+    "follow_cranium",
     "estimate_geometry",
     "track",
     "render_drr",
@@ -221,6 +222,23 @@ def register(
     if preparation is not None:
         options.setdefault("renderer", preparation.renderer)
     return _register(volume, images, **options)
+
+
+def follow_cranium(
+    volume: _volume.Volume,
+    images: _images.XRayImage | Sequence[_images.XRayImage],
+    *,
+    initial_motion: ArrayLike | None = None,
+) -> list[_images.XRayImage]:
+    """The images as ``roadmap3d register`` registers them by default: each field without the
+    pixels that see mostly the neck below the skull base found in ``volume`` (with the volume at
+    ``initial_motion``, the start; identity by default), which follows a head's motion only
+    partly. The images unchanged when the volume has no neck. Pass the result to :func:`register`
+    and :func:`assess` (docs/clinical-images.md)."""
+    from registration.core.roi import followed_region, region_views
+
+    motion = None if initial_motion is None else np.asarray(initial_motion, dtype=np.float64)
+    return region_views(volume, followed_region(volume, "cranium"), images, motion)[0]
 
 
 @dataclass(frozen=True)
