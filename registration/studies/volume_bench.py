@@ -46,6 +46,7 @@ def bench_real_volume(
     the CT (start-up, imports and numba's cache included). ``phantom_seconds``: the phantom's
     registration median of the same run, for the ratio. ``{"skipped": reason}`` when the CT is
     absent."""
+    from registration.core.roi import followed_region
     from registration.io import dicom
 
     path = find_real_ct()
@@ -58,10 +59,12 @@ def bench_real_volume(
     iso = head_isocenter_mm(volume)
     config = VolumeStudyConfig(cases=cases, seed=seed)
     imager = VolumeImager(volume, iso)
+    # the region register follows by default (found once, as a study or a worker finds it)
+    region = followed_region(volume, config.roi)
     records = []
     for case in volume_cases(config):
         say(f"real CT case {case.number + 1}/{cases} ...")
-        records.append(run_volume_case(volume, imager, case, config, iso, confidence=True))
+        records.append(run_volume_case(volume, imager, case, config, iso, confidence=True, region=region))
     end_to_end = read_s + records[0]["prepare_seconds"] + records[0]["seconds"]
     seconds = float(np.median([r["seconds"] for r in records]))
     cli = _command_line_register(volume, imager, config, iso, path, log=say) if command_line else None
@@ -90,6 +93,7 @@ def bench_real_volume(
             for r in records
         ],
         "volume": str(path),
+        "region": None if region is None else region.describe(),
         "isocenter_mm": list(iso),
         "images": IMAGES_FROM_VOLUME,
     }
