@@ -62,12 +62,13 @@ class RegionOfInterest:
     note: str = ""
 
     def summary(self) -> dict:
-        out = {
-            "source": self.source,
-            "skull_base_z_mm": self.skull_base_z_mm,
-            "left_out_ml": round(float(self.left_out_ml), 1),
-            "voxels": int(self.mask.sum()),
-        }
+        """For the result JSON: the automatic cranium by its skull base (the pixels that see
+        mostly the neck below it are left out: :func:`region_views`), a mask by its voxels."""
+        if self.source == "cranium":
+            out: dict = {"source": self.source, "skull_base_z_mm": self.skull_base_z_mm}
+        else:
+            out = {"source": self.source, "left_out_ml": round(float(self.left_out_ml), 1),
+                   "voxels": int(self.mask.sum())}  # fmt: skip
         return out | ({"note": self.note} if self.note else {})
 
     def describe(self) -> str:

@@ -26,13 +26,26 @@ def test_register_with_a_users_mask_and_a_bad_one(small_export: Path, tmp_path: 
     assert code == 2
 
 
-@pytest.mark.parametrize("roi", ["cranium"])
-def test_register_cranium_on_a_volume_without_spine(small_export: Path, capsys, roi: str) -> None:
-    """The phantom's small export holds no cervical spine column to track: the whole volume, said so."""
-    code, out, err = run(["register", "--volume", str(small_export / "volume"), "--image",
-                          str(small_export / "xa_fluoro.dcm"), "--roi", roi], capsys)  # fmt: skip
+@pytest.mark.parametrize("roi", [[], ["--roi", "cranium"], ["--roi", "none"]])
+def test_register_says_which_region_it_follows(small_export: Path, tmp_path: Path, capsys, roi: list[str]) -> None:
+    """By default (and with --roi cranium) the cranium: the skull base the phantom's export holds,
+    the pixels that see mostly the neck below it left out, said on the terminal and in the JSON;
+    --roi none: every pixel."""
+    import json
+
+    argv = ["register", "--volume", str(small_export / "volume"), "--image", str(small_export / "xa_fluoro.dcm")]
+    code, out, err = run([*argv, *roi, "--out", str(tmp_path / "r.json")], capsys)
     assert code == 0, err
-    assert "region: cranium" in out
+    doc = json.loads((tmp_path / "r.json").read_text())
+    if roi[-1:] == ["none"]:
+        assert "region: every pixel of the field (--roi none)" in out and "region" not in doc
+        return
+    assert "region: cranium: " in out and doc["region"]["source"] == "cranium"
+    # the phantom's neck: its pixels left out, and whether skull and spine agree checked
+    assert doc["region"]["skull_base_z_mm"] is not None
+    (field,) = doc["region"]["fields"]
+    assert 0 < field["left_out_px"] < field["field_px"] and "px see mostly what lies outside" in out
+    assert "skull_spine" in doc
 
 
 def test_register_on_a_region_says_whether_skull_and_spine_agree(small_export: Path, tmp_path: Path, capsys) -> None:
