@@ -233,8 +233,9 @@ def follow_cranium(
     """The images as ``roadmap3d register`` registers them by default: each field without the
     pixels that see mostly the neck below the skull base found in ``volume`` (with the volume at
     ``initial_motion``, the start; identity by default), which follows a head's motion only
-    partly. The images unchanged when the volume has no neck. Pass the result to :func:`register`
-    and :func:`assess` (docs/clinical-images.md)."""
+    partly. The images unchanged when the volume has no neck. Register on the result; assess
+    (:func:`assess`) on the original images, as the command line does: the confidence rule was
+    calibrated on whole fields (docs/clinical-images.md)."""
     from registration.core.roi import followed_region, region_views
 
     motion = None if initial_motion is None else np.asarray(initial_motion, dtype=np.float64)

@@ -264,8 +264,6 @@ def _skull_spine(inputs: Inputs, views: list, result: Any, *, seed: int, cache: 
     from registration.core.skull_spine import skull_spine_check
 
     whole = inputs.whole
-    # the whole field: the neck's pixels too (the views' estimated geometry, if any, kept)
-    views = [replace(v, mask=full.mask) for v, full in zip(views, inputs.full_views, strict=True)]
     prepared, store = prepare_for_registration(whole, views, np.asarray(result.patient_motion), cache=cache)
     check = skull_spine_check(whole, views, result.patient_motion, renderer=prepared.renderer, seed=seed)
     if store is not None:
@@ -304,7 +302,8 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     vol, views, m_init = inputs.volume, inputs.views, inputs.initial_motion
     # the volume prepared for these views once (cropped to the body the fields can reach, levels in mm);
     # a first run writes the prepared volume to disk while it registers (flushed below)
-    prepared, store = prepare_for_registration(vol, views, m_init, cache=cache)
+    # prepared for the whole fields: the assessment and the report see every pixel
+    prepared, store = prepare_for_registration(vol, inputs.full_views, m_init, cache=cache)
     clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
     # a landmark start is not the machine-based pose: two views' estimate from it is fine-polished
     engine = RegistrationOptions(start=StartOptions(from_landmarks=inputs.landmark_start is not None))
@@ -316,9 +315,13 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     if store is not None:
         store.flush()
     clock.lap("registration")
-    outcome = Outcome(result=result, prepared=prepared, views=views)
+    # what follows (the geometry estimate, the assessment, the report) sees the whole fields: the
+    # confidence rule was calibrated on them
+    outcome = Outcome(result=result, prepared=prepared, views=inputs.full_views)
     if options.estimate_geometry and not result.at_bounds:
-        outcome.views, outcome.estimated = _estimate_geometry(result, views, prepared.renderer, inputs)
+        estimated_views, outcome.estimated = _estimate_geometry(result, views, prepared.renderer, inputs)
+        outcome.views = [replace(full, geometry=v.geometry) for v, full in zip(estimated_views, inputs.full_views,
+                                                                                strict=True)]  # fmt: skip
         clock.lap("estimating the geometry")
     _say(f"patient motion: {_format_offsets(result.patient_motion, views[0].geometry)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")

@@ -361,7 +361,7 @@ class Session:
             run.views = views
             volume = data.volume(volume_format)
             # the user's volume: prepared for these views and this start (app.data.FileData.prepared)
-            renderer = data.renderer(volume_format, views=views, initial_motion=initial)
+            renderer = data.renderer(volume_format, views=full_views, initial_motion=initial)
             if log.isEnabledFor(logging.INFO):  # the plan this registration runs, as register --explain prints it
                 plan = registration_plan(volume, views, initial_motion=initial, renderer=renderer)
                 log.info("registration plan:\n%s", plan.describe())
@@ -378,7 +378,8 @@ class Session:
             )
             skull_spine = None
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):
-                assessment = self._assess(views, result, volume_format, initial, landmarks)
+                # assessed on the whole fields, as register does (the rule was calibrated on them)
+                assessment = self._assess(full_views, result, volume_format, initial, landmarks)
                 skull_spine = self._skull_spine(views, full_views, result)
         except Exception as exc:  # shown in the page, never a dead worker thread
             with self.lock:

@@ -329,14 +329,15 @@ def run_volume_case(
     t0 = time.perf_counter()
     images, notes = _case_images(imager, geometries, truth, config.kind, case.seed)
     geometries = [im.geometry for im in images]
-    images, fields = region_views(volume, region, images)
+    narrowed, fields = region_views(volume, region, images)
     notes["region_left_out_px"] = [f.left_out_px for f in fields]
     image_s = time.perf_counter() - t0
-    # the volume prepared as `roadmap3d register` prepares it (crop, body, mm levels)
+    # the volume prepared as `roadmap3d register` prepares it (crop, body, mm levels; for the
+    # whole fields, which the assessment sees), registered on the region's pixels
     preparation = Preparation.of(volume, images, options=options)
     prepared = preparation.prepared
     samples_before = list(prepared.renderer.samples_per_level)
-    result = register(volume, images, truth=truth, seed=case.seed, options=options, renderer=prepared.renderer)
+    result = register(volume, narrowed, truth=truth, seed=case.seed, options=options, renderer=prepared.renderer)
     samples = [b - a for a, b in zip(samples_before, prepared.renderer.samples_per_level, strict=True)]
     res = result.residual
     assert res is not None
