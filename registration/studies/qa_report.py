@@ -185,6 +185,22 @@ def _numbers(doc: Mapping[str, Any]) -> str:
     if doc.get("landmark_start") is not None:
         rms = number(doc["landmark_start"].get("reprojection_rms_px"), "landmark_start.reprojection_rms_px", ".2f")
         rows.append(("start from landmarks: reprojection error (px rms)", rms))
+    if doc.get("region") is not None:  # the part of the patient followed (docs/clinical-images.md)
+        region = doc["region"]
+        base = region.get("skull_base_z_mm")
+        said = html.escape(str(region.get("source", "")))
+        if region.get("source") == "cranium":
+            found = "" if base is None else number(base, "region.skull_base_z_mm", ".0f")
+            said += f": the head above the skull base at z {found} mm" if found else " (no neck found: every pixel)"
+        fields = region.get("fields") or []
+        left = [
+            f"{number(f.get('left_out_px'), f'region.fields.{i}.left_out_px')} of "
+            f"{number(f.get('field_px'), f'region.fields.{i}.field_px')} px"
+            for i, f in enumerate(fields)
+        ]
+        if left:
+            said += "; left out of the measure (they see mostly the neck): " + ", ".join(left)
+        rows.append(("region followed", said))
     if doc.get("skull_spine") is not None:
         ss = doc["skull_spine"]
         agree = "agree" if ss.get("agree") else "DISAGREE (the neck moved relative to the head)"

@@ -28,6 +28,8 @@ def _check_numbers(report: Path, document: dict) -> dict[str, str]:
     numbers = qa_report.read_report_numbers(text)
     keys = {"similarity", "offsets.tx", "drr_count", "confidence", "patient_motion.0.3", "geometry_source"}
     assert keys <= set(numbers), numbers
+    if document.get("region", {}).get("fields"):  # the cranium's pixels left out, as the JSON says
+        assert {"region.skull_base_z_mm", "region.fields.0.left_out_px", "region.fields.0.field_px"} <= set(numbers)
     for key, shown in numbers.items():
         if key in ("withheld_reason", "software.version"):
             continue
