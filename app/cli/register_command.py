@@ -258,17 +258,36 @@ def _region_left_something_out(inputs: Inputs) -> bool:
     return rendered or any(not f.kept_whole for f in inputs.region_fields)
 
 
-def _skull_spine(inputs: Inputs, views: list, result: Any, *, seed: int, cache: bool) -> Any:
+def _skull_spine(inputs: Inputs, views: list, result: Any, prepared: Any, *, seed: int, cache: bool) -> Any:
     """Whether the whole volume (its spine included) fits where the region's estimate says
-    (:func:`registration.core.skull_spine.skull_spine_check`)."""
+    (:func:`registration.core.skull_spine.skull_spine_check`). ``prepared``: the registration's
+    preparation, searched again when it is of the whole volume (the cranium: prepared for the
+    whole fields over the search, which holds the check's reach); a mask's soft-tissue volume
+    has the whole one prepared here."""
     from registration.core.skull_spine import skull_spine_check
 
-    whole = inputs.whole
-    prepared, store = prepare_for_registration(whole, views, np.asarray(result.patient_motion), cache=cache)
+    whole, store = inputs.whole, None
+    if inputs.volume is not whole or not _check_within_search(inputs, result):
+        prepared, store = prepare_for_registration(whole, views, np.asarray(result.patient_motion), cache=cache)
     check = skull_spine_check(whole, views, result.patient_motion, renderer=prepared.renderer, seed=seed)
     if store is not None:
         store.flush()
     return check
+
+
+def _check_within_search(inputs: Inputs, result: Any) -> bool:
+    """Whether the skull-and-spine check's reach around ``result`` stays inside the search box the
+    registration was prepared for (around the start, the machine-based pose by default)."""
+    from registration.core.geometry import invert_rigid, matrix_to_offsets
+    from registration.core.register import RegistrationOptions
+    from registration.core.skull_spine import check_options
+
+    box, reach = RegistrationOptions(), check_options()
+    start = np.eye(4) if inputs.initial_motion is None else np.asarray(inputs.initial_motion, dtype=np.float64)
+    moved = matrix_to_offsets(np.asarray(result.patient_motion) @ invert_rigid(start), inputs.views[0].geometry)
+    shift_ok = np.all(np.abs(moved[:3]) <= box.bound_mm - reach.bound_mm)
+    turn_ok = np.all(np.abs(moved[3:]) <= box.bound_deg - reach.bound_deg)
+    return bool(shift_ok and turn_ok) and not getattr(result, "beyond_box", False)
 
 
 def _estimate_geometry(result: Any, views: list, renderer: Any, inputs: Inputs) -> tuple[list, Any]:
@@ -326,7 +345,7 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     _say(f"patient motion: {_format_offsets(result.patient_motion, views[0].geometry)}")
     _say(f"similarity {result.similarity:.4f}, {result.drr_count} DRRs, {result.seconds:.1f} s")
     if _region_left_something_out(inputs) and not result.at_bounds:
-        outcome.skull_spine = _skull_spine(inputs, outcome.views, result, seed=options.seed, cache=cache)
+        outcome.skull_spine = _skull_spine(inputs, outcome.views, result, prepared, seed=options.seed, cache=cache)
         clock.lap("skull and spine")
         _say(outcome.skull_spine.message())
     say_result(result, len(views))
