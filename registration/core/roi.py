@@ -164,13 +164,16 @@ def _region_of_column(volume: Volume, column: list, base_z: float | None) -> Reg
     if base_z is None or len(column) < 3:
         return RegionOfInterest(keep, "cranium", None, 0.0, note="no spine found")
     nj, ni = data.shape[1:]
-    jj, ii = np.mgrid[0:nj, 0:ni]
     voxel_ml = di * dj * abs(volume.index_to_world[2, 2]) / 1000.0
+    ri, rj = COLUMN_RADIUS_MM / di, COLUMN_RADIUS_MM / dj
     left = 0
-    for k, ci, cj in column:
+    for k, ci, cj in column:  # each slice's disc, within its bounding box
+        i0, i1 = max(0, int(np.floor(ci - ri))), min(ni, int(np.ceil(ci + ri)) + 1)
+        j0, j1 = max(0, int(np.floor(cj - rj))), min(nj, int(np.ceil(cj + rj)) + 1)
+        jj, ii = np.mgrid[j0:j1, i0:i1]
         out = ((ii - ci) * di) ** 2 + ((jj - cj) * dj) ** 2 <= COLUMN_RADIUS_MM**2
-        keep[int(k)] &= ~out
-        left += int((out & (data[int(k)] > SOFT_TISSUE_HU)).sum())
+        keep[int(k), j0:j1, i0:i1] &= ~out
+        left += int((out & (data[int(k), j0:j1, i0:i1] > SOFT_TISSUE_HU)).sum())
     return RegionOfInterest(keep, "cranium", base_z, left * voxel_ml)
 
 
