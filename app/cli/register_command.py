@@ -324,6 +324,10 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     # prepared for the whole fields: the assessment and the report see every pixel
     prepared, store = prepare_for_registration(vol, inputs.full_views, m_init, cache=cache)
     clock.lap("preparing the volume" + (" (cached)" if prepared.base_source == "disk" else ""))
+    body = prepared.body_summary()
+    if body["outside_body_ml"]:  # a CT's couch and head holder: not rendered, said so
+        _say(f"body: the patient's body only; {body['outside_body_ml']:,.0f} ml of material away from it (a couch, "
+             "a head holder) is not rendered")  # fmt: skip
     # a landmark start is not the machine-based pose: two views' estimate from it is fine-polished
     engine = RegistrationOptions(start=StartOptions(from_landmarks=inputs.landmark_start is not None))
     if options.explain:
@@ -430,6 +434,7 @@ def result_document(options: Register, inputs: Inputs, outcome: Outcome) -> dict
         document["images"] = described
     if inputs.landmark_start is not None:
         document["landmark_start"] = inputs.landmark_start.report(outcome.result.patient_motion)
+    document["body"] = outcome.prepared.body_summary()
     if inputs.region is not None:
         document["region"] = inputs.region.summary() | {"fields": [f.to_dict() for f in inputs.region_fields]}
     if outcome.skull_spine is not None:

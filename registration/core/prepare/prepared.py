@@ -95,6 +95,19 @@ class PreparedVolume:
         }
 
 
+    def body_summary(self) -> dict:
+        """What the body mask left out (JSON-ready): ``body_only``, and ``outside_body_ml``, the
+        volume of the probe blocks holding tissue away from the patient's body (a CT's couch
+        and head holder), None when the blocks were not kept or no single body was found."""
+        blocks = self.blocks
+        if not self.body or blocks is None or blocks.body is None:
+            return {"body_only": bool(self.body), "outside_body_ml": None}
+        voxel_mm3 = abs(float(np.linalg.det(self.volume.index_to_world[:3, :3])))
+        block_ml = float(np.prod(blocks.step)) * voxel_mm3 / 1000.0
+        outside = int((blocks.tissue & ~blocks.body).sum())
+        return {"body_only": True, "outside_body_ml": round(outside * block_ml, 1)}
+
+
 def _field_key(geometry: CArm) -> tuple:
     """What the crop and the spacing depend on: the projection of the whole field (not the
     number of pixels it is sampled with)."""

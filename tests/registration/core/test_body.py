@@ -57,3 +57,28 @@ def test_the_couch_is_removed_and_nothing_of_the_head(real_ct) -> None:
     # the nose's tip (the most anterior dense voxel of the head slices) is kept
     rows = np.nonzero(head_voxels.any(axis=(0, 2)))[0]
     assert body[head][:, rows.min()][head_voxels[:, rows.min()]].all()
+
+
+@pytest.mark.slow
+def test_the_preparation_says_what_lies_outside_the_body(real_ct) -> None:
+    """The shared CT's couch plate and head holder are left out and said so (blocks of material
+    away from the body; the plate alone, about 10 x 450 x 200 mm, is some 900 ml); the phantom,
+    with no couch, next to nothing."""
+    from dataclasses import replace
+
+    from registration.core.geometry import CArm
+    from registration.core.images import XRayImage
+    from registration.core.register import RegistrationOptions, prepared_volume
+    from registration.sim.phantom import make_head_phantom, registration_volume
+    from registration.studies.volume import head_isocenter_mm
+
+    def view(carm: CArm) -> XRayImage:
+        return XRayImage(np.zeros((128, 128), np.float32), np.ones((128, 128), bool), carm)
+
+    carm = CArm.for_format(27.0, pixels=128)
+    at_head = replace(carm, isocenter_mm=head_isocenter_mm(real_ct))
+    said = prepared_volume(real_ct, (view(at_head),), np.eye(4), RegistrationOptions()).body_summary()
+    assert said["body_only"] and said["outside_body_ml"] > 900.0
+    phantom = registration_volume(make_head_phantom(seed=0), 27.0, voxels=64)
+    said = prepared_volume(phantom, (view(carm),), np.eye(4), RegistrationOptions()).body_summary()
+    assert said["outside_body_ml"] is None or said["outside_body_ml"] < 5.0  # a stray block at most
