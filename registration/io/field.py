@@ -224,7 +224,7 @@ def _profiles(
     """Signal at ``offsets`` along the normal from each point, and whether each sample is in the field."""
     xs, ys = _samples(px, py, normal, offsets)
     values = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
-    return values, _in_mask(field_mask, px, py, normal, offsets)
+    return values, _in_mask(field_mask, xs, ys)
 
 
 def _samples(
@@ -234,16 +234,10 @@ def _samples(
     return px[:, None] + offsets[None, :] * normal[0], py[:, None] + offsets[None, :] * normal[1]
 
 
-def _in_mask(
-    mask: NDArray[np.bool_],
-    px: NDArray[np.float64],
-    py: NDArray[np.float64],
-    normal: NDArray[np.float64],
-    offsets: NDArray[np.float64],
-) -> NDArray[np.bool_]:
-    """Whether each sample of :func:`_samples` lies in the image and in ``mask``."""
+def _in_mask(mask: NDArray[np.bool_], xs: NDArray[np.float64], ys: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Whether each sample (columns ``xs``, rows ``ys``, as :func:`_samples` gives them) lies in
+    the image and in ``mask``."""
     rows, cols = mask.shape
-    xs, ys = _samples(px, py, normal, offsets)
     inb = (xs >= 0) & (xs <= cols - 1) & (ys >= 0) & (ys <= rows - 1)
     xi = np.clip(np.rint(xs).astype(int), 0, cols - 1)
     yi = np.clip(np.rint(ys).astype(int), 0, rows - 1)
@@ -334,7 +328,7 @@ def find_outside_edges(
         near_sign = 1.0 if center_side > 0 else -1.0
         px, py, normal = _line_points(everywhere, theta, rho)
         prof, in_field = _profiles(smooth, field_mask, px, py, near_sign * normal, offsets)
-        in_outside = _in_mask(outside, px, py, near_sign * normal, offsets)
+        in_outside = _in_mask(outside, *_samples(px, py, near_sign * normal, offsets))
         near = in_field[:, near_cols].all(axis=1)
         bounded = near & in_outside[:, far_cols].all(axis=1)
         crossing = near & in_field[:, far_cols].all(axis=1)

@@ -94,7 +94,6 @@ class PreparedVolume:
             "complete": None if self.crop is None else self.crop.complete,
         }
 
-
     def body_summary(self) -> dict:
         """What the body mask left out (JSON-ready): ``body_only``, and ``outside_body_ml``, the
         volume of the probe blocks holding tissue away from the patient's body (a CT's couch
