@@ -27,6 +27,7 @@ from scipy import ndimage
 
 from registration.core.geometry import CArm
 from registration.core.images import XRayImage
+from registration.core.prepare.prepared import recall_for_volume, remember_for_volume
 from registration.core.volume import Volume
 
 if TYPE_CHECKING:
@@ -107,23 +108,21 @@ def followed_region(volume: Volume, roi: str, *, store: PreparationStore | None 
         return None
     if roi != "cranium":
         raise ValueError(f"the region must be one of {', '.join(REGIONS)}, got {roi!r}")
-    hit = _FOUND.get(id(volume))
-    if hit is not None and hit[0] is volume:
-        return hit[1]
+    region = recall_for_volume(_FOUND, (id(volume),), volume)
+    if region is not None:
+        return region
     try:
         region = cranium_region(volume, store=store)
     except ObliqueSlices:  # no automatic cranium
         region = RegionOfInterest(np.ones(volume.shape, dtype=bool), "cranium", None, 0.0,
                                   note="oblique slices: the spine is tracked on axial slices only")  # fmt: skip
-    _FOUND[id(volume)] = (volume, region)
-    while len(_FOUND) > 2:
-        _FOUND.popitem(last=False)
+    remember_for_volume(_FOUND, (id(volume),), (volume, region))
     return region
 
 
 #: The cranium found for the volumes seen last (by identity, the volume kept alive with it): a
 #: process that registers one volume many times (the app, a worker, a study) finds it once.
-_FOUND: OrderedDict[int, tuple[Volume, RegionOfInterest]] = OrderedDict()
+_FOUND: OrderedDict[tuple, tuple[Volume, RegionOfInterest]] = OrderedDict()
 
 
 def region_volume(volume: Volume, roi: RegionOfInterest | None) -> Volume:
@@ -342,8 +341,8 @@ def region_views(
     return narrowed, fields
 
 
-#: The coarse outside and inside of the regions used last: (volume, region, renderers or None).
-_PARTS: OrderedDict[tuple[int, int], tuple[Volume, RegionOfInterest, tuple[DRRRenderer, DRRRenderer] | None]] = (
+#: The coarse outside and inside of the regions used last: (volume, (region, renderers or None)).
+_PARTS: OrderedDict[tuple, tuple[Volume, tuple[RegionOfInterest, tuple[DRRRenderer, DRRRenderer] | None]]] = (
     OrderedDict()
 )
 
@@ -354,9 +353,9 @@ def _outside_renderers(volume: Volume, roi: RegionOfInterest) -> tuple[DRRRender
     from registration.core.drr import DRRRenderer
 
     key = (id(volume), id(roi))
-    hit = _PARTS.get(key)
-    if hit is not None and hit[0] is volume and hit[1] is roi:
-        return hit[2]
+    hit = recall_for_volume(_PARTS, key, volume)
+    if hit is not None and hit[0] is roi:
+        return hit[1]
     outside = outside_voxels(volume, roi)
     renderers = None
     if outside.any():
@@ -368,9 +367,7 @@ def _outside_renderers(volume: Volume, roi: RegionOfInterest) -> tuple[DRRRender
         parts = (np.where(away, coarse, air), np.where(away, air, coarse))
         renderers = tuple(DRRRenderer(Volume(p.astype(np.float32), affine, label=n), levels=1)
                           for p, n in zip(parts, ("outside", "inside"), strict=True))  # fmt: skip
-    _PARTS[key] = (volume, roi, renderers)
-    while len(_PARTS) > 2:
-        _PARTS.popitem(last=False)
+    remember_for_volume(_PARTS, key, (volume, (roi, renderers)))
     return renderers
 
 

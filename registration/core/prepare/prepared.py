@@ -175,7 +175,9 @@ _BLOCKS: OrderedDict[tuple, tuple[Volume, ProbeBlocks]] = OrderedDict()
 _BASES: OrderedDict[tuple, tuple[Volume, PreparedBase]] = OrderedDict()
 
 
-def _remember(table: OrderedDict, key: tuple, value: tuple) -> None:
+def remember_for_volume(table: OrderedDict, key: tuple, value: tuple) -> None:
+    """Keep ``value`` (``(volume, what was computed for it)``) under ``key`` in ``table``, the
+    ``CACHE_ENTRIES`` used last (thread-safe)."""
     with _CACHE_LOCK:
         table[key] = value
         table.move_to_end(key)
@@ -183,7 +185,8 @@ def _remember(table: OrderedDict, key: tuple, value: tuple) -> None:
             table.popitem(last=False)
 
 
-def _recall(table: OrderedDict, key: tuple, volume: Volume):  # noqa: ANN202
+def recall_for_volume(table: OrderedDict, key: tuple, volume: Volume):  # noqa: ANN202
+    """What :func:`remember_for_volume` kept under ``key`` for this very ``volume`` (None: nothing)."""
     with _CACHE_LOCK:
         hit = table.get(key)
         if hit is None or hit[0] is not volume:
@@ -206,7 +209,7 @@ class _Digest:
 
 def _probe(volume: Volume, body: bool, store: PreparationStore | None, remember: bool, digest: _Digest) -> ProbeBlocks:
     key = (weakref.ref(volume), body)
-    blocks = _recall(_BLOCKS, key, volume) if remember else None
+    blocks = recall_for_volume(_BLOCKS, key, volume) if remember else None
     if blocks is not None:
         return blocks
     if store is not None:
@@ -217,7 +220,7 @@ def _probe(volume: Volume, body: bool, store: PreparationStore | None, remember:
         if store is not None:
             store.save("prepared-blocks", _blocks_key(digest(), body), _blocks_arrays(blocks))
     if remember:
-        _remember(_BLOCKS, key, (volume, blocks))
+        remember_for_volume(_BLOCKS, key, (volume, blocks))
     return blocks
 
 
@@ -227,7 +230,7 @@ def _base(
 ) -> PreparedBase:  # fmt: skip
     """The base levels of ``targets``: remembered, stored, or built over the needed tissue's box."""
     key = (weakref.ref(volume), body, tuple(sorted(targets.items())), round(margin_mm, 9))
-    base = _recall(_BASES, key, volume) if remember else None
+    base = recall_for_volume(_BASES, key, volume) if remember else None
     if base is not None:
         return PreparedBase(base.blocks, base.levels, base.box_lo, base.box_hi, source="memory")
     if store is not None:
@@ -243,7 +246,7 @@ def _base(
             store.save("prepared-levels", _levels_key(_blocks_key(digest(), body), targets, margin_mm),
                        _base_arrays(base))  # fmt: skip
     if remember:
-        _remember(_BASES, key, (volume, base))
+        remember_for_volume(_BASES, key, (volume, base))
     return base
 
 
@@ -429,7 +432,7 @@ def prepare_volume(
                 return hit[1]
     prepared = _prepare(volume, views, reach, levels_t, bool(body), store if cache else None, remember=cache)
     if cache:
-        _remember(_CACHE, key, (volume, prepared))
+        remember_for_volume(_CACHE, key, (volume, prepared))
     return prepared
 
 
