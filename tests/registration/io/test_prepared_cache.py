@@ -126,6 +126,20 @@ def test_a_changed_volume_changes_the_key(store: PreparationCache) -> None:
     prepare.clear_cache()
 
 
+def test_a_volume_is_hashed_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The cranium's store and the preparation's both key by the digest: one hash per volume."""
+    from registration.core.prepare import store as store_module
+
+    hashed: list[int] = []
+    real = store_module._sha256
+    monkeypatch.setattr(store_module, "_sha256", lambda v: hashed.append(id(v)) or real(v))
+    vol = _head()
+    first = volume_digest(vol)
+    assert volume_digest(vol) == first and hashed == [id(vol)]
+    twin = Volume(vol.data.copy(), vol.index_to_world)  # the same voxels in another volume
+    assert volume_digest(twin) == first and len(hashed) == 2
+
+
 def test_size_bound_and_switch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("ROADMAP3D_NO_CACHE", raising=False)
     small = PreparationCache(tmp_path / "small", max_bytes=1)  # keeps only the entry just written
