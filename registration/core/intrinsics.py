@@ -96,21 +96,27 @@ class _Parameters:
     views: int
     sid: bool
     shift: bool
+    #: One detector for every view (one C-arm at several angles): its intrinsics once.
+    shared: bool = False
+
+    @property
+    def sets(self) -> int:
+        return 1 if self.shared else self.views
 
     @property
     def size(self) -> int:
-        return 6 + ((1 if self.sid else 0) + (2 if self.shift else 0)) * self.views
+        return 6 + ((1 if self.sid else 0) + (2 if self.shift else 0)) * self.sets
 
     def unpack(self, x: Array) -> tuple[Array, list[tuple[float, Array]]]:
         """The pose offsets, and per view (the SID factor, the shift in pixels)."""
-        pose, rest, per_view = x[:6], x[6:], []
-        for _ in range(self.views):
+        pose, rest, per_set = x[:6], x[6:], []
+        for _ in range(self.sets):
             sid = 1.0 + (rest[0] / 100.0 if self.sid else 0.0)  # in per cent
             rest = rest[1:] if self.sid else rest
             shift = rest[:2] if self.shift else np.zeros(2)
             rest = rest[2:] if self.shift else rest
-            per_view.append((sid, np.asarray(shift, dtype=np.float64)))
-        return pose, per_view
+            per_set.append((sid, np.asarray(shift, dtype=np.float64)))
+        return pose, per_set * self.views if self.shared else per_set
 
     def bounds(
         self, reach_mm: float, reach_deg: float, max_sid_change: float, max_shift_px: float
@@ -118,7 +124,7 @@ class _Parameters:
         per = ([(-100 * max_sid_change, 100 * max_sid_change)] if self.sid else []) + (
             [(-max_shift_px, max_shift_px)] * 2 if self.shift else []
         )
-        return [(-reach_mm, reach_mm)] * 3 + [(-reach_deg, reach_deg)] * 3 + per * self.views
+        return [(-reach_mm, reach_mm)] * 3 + [(-reach_deg, reach_deg)] * 3 + per * self.sets
 
 
 def _check_estimable(views: Sequence[XRayImage], estimate: Sequence[str]) -> None:
@@ -145,13 +151,17 @@ def refine_geometry(
     max_sid_change: float = 0.10,
     max_shift_px: float = 20.0,
     evaluations: int = 1500,
+    shared: bool = False,
 ) -> GeometryRefinement:
     """Polish the pose (six parameters, +- ``reach_mm`` / ``reach_deg`` around ``motion``) and each
     view's ``estimate``\\ d intrinsics on the gradient difference of ``image_px`` DRRs.
 
     ``volume_renderer``: the registration's renderer; ``views``: two or more views of one moment
     with their nominal geometry; ``motion``: the registration's estimate (4x4). ValueError for one
-    view (see the module) or an unknown name in ``estimate``."""
+    view (see the module) or an unknown name in ``estimate``. ``shared``: the views come from one
+    detector (one C-arm at several angulations of a still patient): one set of intrinsics for all
+    of them; with three or more angulations the principal point's shift across the orbit becomes
+    observable, along the patient's long axis it does not (docs/validation/geometry.md)."""
     began = time.perf_counter()
     views = tuple(views)
     _check_estimable(views, estimate)
@@ -159,7 +169,7 @@ def refine_geometry(
     problem = LevelProblem.prepare(volume_renderer, views, image_px=image_px, volume_level=volume_level,
                                    motion=start, margin_mm=None)  # fmt: skip
     space = SearchSpace.for_views(views[0].geometry, start, optimize_tz=True, bound_mm=reach_mm, bound_deg=reach_deg)
-    params = _Parameters(len(views), "sid" in estimate, "principal_point" in estimate)
+    params = _Parameters(len(views), "sid" in estimate, "principal_point" in estimate, shared)
     unpack = params.unpack
     # per view: the level's pixels per full-resolution pixel (the shift is in the file's pixels)
     ratio = [pv.geometry.pixel_mm[1] / v.geometry.pixel_mm[1] for pv, v in zip(problem.views, views, strict=True)]
@@ -216,14 +226,15 @@ def estimate_geometry(
     estimate: Sequence[str] = ("sid",),
     fine_image_px: int = FINE_IMAGE_PX,
     fine_evaluations: int = FINE_EVALUATIONS,
+    shared: bool = False,
 ) -> GeometryRefinement:
     """:func:`refine_geometry` on the registration's levels (``renderer``: 128 px, level 1), then
     :func:`refine_on_own_grid` from its estimate: the first pass leaves the source-image distance
     0.2-1.8 % off (a coarse level's bias), the second 0.06-0.41 % (decision record
     2026-12-04-geometry-estimate). The result is relative to ``views``."""
-    coarse = refine_geometry(renderer, views, motion, estimate=estimate)
+    coarse = refine_geometry(renderer, views, motion, estimate=estimate, shared=shared)
     return refine_on_own_grid(volume, views, coarse, estimate=estimate, image_px=fine_image_px,
-                              evaluations=fine_evaluations)  # fmt: skip
+                              evaluations=fine_evaluations, shared=shared)  # fmt: skip
 
 
 def refine_on_own_grid(
@@ -234,6 +245,7 @@ def refine_on_own_grid(
     estimate: Sequence[str] = ("sid",),
     image_px: int = FINE_IMAGE_PX,
     evaluations: int = FINE_EVALUATIONS,
+    shared: bool = False,
 ) -> GeometryRefinement:
     """The second pass of :func:`estimate_geometry`: :func:`refine_geometry` from ``first`` (a
     first pass on ``views``) on the volume's own grid (level 0, prepared here for the views) at
@@ -248,7 +260,7 @@ def refine_on_own_grid(
     level0 = prepare_volume(volume, [v.geometry for v in first.views], reach=reach, levels=(0,))
     fine = refine_geometry(level0.renderer, first.views, first.patient_motion, estimate=estimate,
                            image_px=image_px, volume_level=0, reach_mm=reach_mm, reach_deg=reach_deg,
-                           max_sid_change=sid_reach, evaluations=evaluations)  # fmt: skip
+                           max_sid_change=sid_reach, evaluations=evaluations, shared=shared)  # fmt: skip
     intrinsics = []
     for view, before, found in zip(views, first.intrinsics, fine.intrinsics, strict=True):
         shift = np.add(before.principal_point_shift_px, found.principal_point_shift_px)

@@ -77,3 +77,20 @@ def test_the_public_estimate_refuses_one_view_with_the_reason() -> None:
     result = registration.register(ex.volume, ex.image)
     with pytest.raises(ValueError, match="one view cannot tell its source-image distance from the depth"):
         registration.estimate_geometry(ex.volume, [ex.image], result)
+
+
+def test_views_of_one_detector_share_one_set_of_intrinsics() -> None:
+    """``shared``: the parameter vector holds the pose and one detector's intrinsics, and every
+    view is given those; per view (two planes) each has its own."""
+    from registration.core.intrinsics import _Parameters
+
+    shared, own = _Parameters(3, True, True, shared=True), _Parameters(3, True, True)
+    assert shared.size == 6 + 3 and own.size == 6 + 3 * 3
+    x = np.arange(shared.size, dtype=np.float64)
+    pose, per_view = shared.unpack(x)
+    np.testing.assert_array_equal(pose, x[:6])
+    assert len(per_view) == 3 and all(sid == pytest.approx(1.06) for sid, _ in per_view)  # 6 % of the nominal
+    assert all(np.array_equal(shift, [7.0, 8.0]) for _, shift in per_view)
+    assert len(shared.bounds(4.0, 3.0, 0.1, 20.0)) == shared.size
+    _, apart = own.unpack(np.arange(own.size, dtype=np.float64))
+    assert [sid for sid, _ in apart] == pytest.approx([1.06, 1.09, 1.12])
