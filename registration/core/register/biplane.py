@@ -31,31 +31,47 @@ class PlaneCaptures:
     level: Level
     runs_per_plane: int
     margin_mm: float | None
+    #: Each run goes on at this level before the planes are compared (None: it does not).
+    refine: Level | None = None
+    refine_margin_mm: float | None = None
 
     def describe(self) -> str:
-        lv = self.level
+        lv, then = self.level, ""
+        if self.refine is not None:
+            then = f", each run then at {self.refine.image_px} px, volume level {self.refine.volume_level}"
         return (f"each plane's own capture at {lv.image_px} px, volume level {lv.volume_level}, "
-                f"{self.runs_per_plane} runs per plane, up to {PLANE_CAPTURE_ROUNDS} rounds until the planes "
-                "agree")  # fmt: skip
+                f"{self.runs_per_plane} runs per plane{then}, up to {PLANE_CAPTURE_ROUNDS} rounds until the "
+                "planes agree")  # fmt: skip
 
     def runs(self, state: State) -> bool:
         return True
 
     def run(self, state: State) -> State:
-        starts, f = plane_captures(state.run, self.level, self.runs_per_plane, self.margin_mm)
+        starts, f = plane_captures(state.run, self.level, self.runs_per_plane, self.margin_mm,
+                                   refine=self.refine, refine_margin_mm=self.refine_margin_mm)  # fmt: skip
         agree = len(starts) == 1
         return replace(state, x=starts[0], f=f, starts=() if agree else tuple(starts), planes_agree=agree)
 
 
-def plane_captures(run: Run, level: Level, runs: int, margin_mm: float | None) -> tuple[list[Array], float]:
+def plane_captures(
+    run: Run,
+    level: Level,
+    runs: int,
+    margin_mm: float | None,
+    *,
+    refine: Level | None = None,
+    refine_margin_mm: float | None = None,
+) -> tuple[list[Array], float]:
     """The rounds of :class:`PlaneCaptures`: the pair's start and its cost when the planes agree;
     after :data:`PLANE_CAPTURE_ROUNDS` rounds without agreement, the starts of the pair's capture
-    level instead (three: the bests' combination, each plane's best alone)."""
+    level instead (three: the bests' combination, each plane's best alone). ``refine``: each
+    capture run goes on at that level (one run from its end) before the planes are compared."""
     inputs, space, options, rng, monitor = run.inputs, run.space, run.options, run.rng, run.monitor
     planes = inputs.views[:2]
     spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg)
               for v in planes]  # fmt: skip
     problems = _plane_problems(run, level, margin_mm)
+    refined = None if refine is None else (refine, _plane_problems(run, refine, refine_margin_mm))
     geometries = (planes[0].geometry, planes[1].geometry)
     pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
                                 volume_level=level.volume_level, motion=inputs.initial_motion,
@@ -65,7 +81,8 @@ def plane_captures(run: Run, level: Level, runs: int, margin_mm: float | None) -
     single_costs: list[list[float]] = [[] for _ in planes]
     starts = [[sp.start()] * runs for sp in spaces]
     for _round in range(PLANE_CAPTURE_ROUNDS):
-        for plane, motion, f_plane in _capture_planes(problems, spaces, level, starts, rng, monitor, options.threads):
+        captured = _capture_planes(problems, spaces, level, starts, rng, monitor, options.threads, refined)
+        for plane, motion, f_plane in captured:
             per_plane[plane].append(motion)
             single_costs[plane].append(f_plane)
         if monitor.stopped:
@@ -137,9 +154,11 @@ def _capture_planes(
     rng: np.random.Generator,
     monitor: Monitor,
     threads: int | None,
+    refined: tuple[Level, list[LevelProblem]] | None = None,
 ) -> list[tuple[int, Array, float]]:
     """Single-plane capture runs, one per start of each plane (``starts[plane]``, parameter
-    vectors in its space), all side by side: (plane, end motion, its cost) each."""
+    vectors in its space), all side by side: (plane, end motion, its cost) each. ``refined``: a
+    level and its per-plane problems where each run goes on from its end (the cost is that level's)."""
     jobs = [(p, c) for p in range(len(problems)) for c in range(len(starts[p]))]
     streams = rng.spawn(len(jobs))
 
@@ -153,7 +172,13 @@ def _capture_planes(
 
         cost = cost_function(problems[plane], sp, monitor, False)
         x0 = starts[plane][chain]
-        return anneal(cost, x0, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
+        found = anneal(cost, x0, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
+        if refined is None or monitor.stopped:
+            return found
+        then, then_problems = refined
+        schedule = replace(then.schedule, step=tuple(sp.per_parameter(then.schedule.step)))
+        cost = cost_function(then_problems[plane], sp, monitor, False)
+        return anneal(cost, found.x, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
 
     workers = max(1, min(len(jobs), threads or os.cpu_count() or 1))
     with ThreadPoolExecutor(max_workers=workers) as pool:

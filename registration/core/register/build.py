@@ -19,7 +19,7 @@ def build_plan(inputs: Inputs, options: RegistrationOptions) -> Plan:
     pair = multi and options.biplane.plane_captures
     stages: list[Stage] = []
     if pair:
-        stages += biplane_stages(options)
+        stages += biplane_stages(options, inputs.renderer)
     else:
         levels = (capture_level(inputs.renderer, options, n_views), *options.levels[1:])
         if multi and options.biplane.plane_a_capture:
@@ -49,14 +49,20 @@ def anneal(options: RegistrationOptions, level: Level, margin_index: int, n_view
     return AnnealLevel(level, options.margin_mm(margin_index), options.capture_runs(level, n_views), when)
 
 
-def biplane_stages(options: RegistrationOptions) -> list[Stage]:
-    """Each plane's own capture; when the planes disagree the pair's capture level from each
-    start and the levels after it; when they agree the pair's levels (by default none)."""
+def biplane_stages(options: RegistrationOptions, renderer: DRRRenderer) -> list[Stage]:
+    """Each plane's own capture (each run then at the plane refinement's level); when the planes
+    disagree the pair's capture level from each start and the levels after it; when they agree
+    the pair's levels (by default none). A volume too small for the planes' capture level has
+    them capture at the pair's capture level, without the refinement."""
     b, levels = options.biplane, options.levels
     last = len(levels) - 1
     capture = options.capture_level(2)
+    plane, refine = b.plane_capture or capture, b.plane_refine
+    if not renderer.has_level(plane.volume_level):
+        plane, refine = capture, None
+    refine_margin = options.margin_mm(1) if refine is not None else None
     stages: list[Stage] = [
-        PlaneCaptures(capture, b.plane_capture_runs, options.margin_mm(0)),
+        PlaneCaptures(plane, b.plane_capture_runs, options.margin_mm(0), refine, refine_margin),
         AnnealLevel(capture, options.margin_mm(0), None, PLANES_DISAGREE),
     ]
     if b.pair_levels is None:  # the levels after the capture, whatever the planes say

@@ -42,6 +42,13 @@ CAPTURE_SCHEDULE = Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per
 #: the pair's, and the tracker's re-capture (docs/decisions/2026-12-02-registration-levels.md).
 CAPTURE_64 = Level(64, 2, CAPTURE_SCHEDULE, restarts=4)
 
+#: Each biplane plane's own capture: the one-view capture's 32 px images of the eighth-resolution
+#: volume (docs/decisions/2026-12-05-plane-captures-at-32-px.md).
+PLANE_CAPTURE_32 = Level(32, 3, CAPTURE_SCHEDULE, restarts=2)
+#: Each of those runs then goes on briefly at 64 px of the quarter-resolution volume before the
+#: planes are compared.
+PLANE_REFINE_64 = Level(64, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=4, moves_per_stage=10, cooling=0.7))
+
 
 def _default_levels() -> tuple[Level, ...]:
     # capture: four runs at 32 px on the eighth-resolution volume (one view;
@@ -119,6 +126,12 @@ class BiplaneOptions:
     capture: Level | None = CAPTURE_64
     #: Capture runs per plane and round (default 2, >= 1).
     plane_capture_runs: int = 2
+    #: The level of each plane's own capture (default :data:`PLANE_CAPTURE_32`; None:
+    #: :attr:`capture`; a volume too small for its volume level captures at :attr:`capture`).
+    plane_capture: Level | None = PLANE_CAPTURE_32
+    #: Each plane's capture runs go on at this level, one run from each end, before the planes
+    #: are compared (default :data:`PLANE_REFINE_64`; None: none).
+    plane_refine: Level | None = PLANE_REFINE_64
     #: At most this many capture runs per pair level (default 2, >= 1; None: as the level says).
     pair_capture_runs: int | None = 2
     #: The pair's annealing levels when the planes agree (default (): straight to the polishes;
@@ -147,7 +160,8 @@ class BiplaneOptions:
         _reach("BiplaneOptions.polish", self.polish_reach_mm, self.polish_reach_deg, optional=True)
         _reach("BiplaneOptions.coarse_polish", self.coarse_polish_reach_mm, self.coarse_polish_reach_deg,
                optional=True)  # fmt: skip
-        for level in (*(self.pair_levels or ()), *([self.capture] if self.capture is not None else [])):
+        own = [lv for lv in (self.capture, self.plane_capture, self.plane_refine) if lv is not None]
+        for level in (*(self.pair_levels or ()), *own):
             _check_level(level)
 
 
@@ -484,6 +498,6 @@ class RegistrationOptions:
         """The renderer's pyramid levels the search renders (the levels', the biplane capture's
         and the polish's)."""
         levels = {lv.volume_level for lv in self.levels}
-        if self.biplane.capture is not None:
-            levels.add(self.biplane.capture.volume_level)
+        b = self.biplane
+        levels |= {lv.volume_level for lv in (b.capture, b.plane_capture, b.plane_refine) if lv is not None}
         return sorted(levels | ({self.polish.volume_level} if self.polish.enabled else set()))

@@ -279,3 +279,31 @@ def test_further_planes_are_compared_at_plane_a_resolution():
         assert fb >= level_factor(plane_b, image_px, voxel_mm)
         assert iso_pixel_mm(plane_b, fb + 1) > iso_pixel_mm(plane_a, fa) or plane_b.cols % (fb + 1)
         assert plane_b.cols // fb == plane_a.cols // fa  # here: the same pixels across (64 and 128)
+
+
+def test_each_plane_captures_on_32_px_and_goes_on_at_64_px(scene):
+    """Two views: each plane's capture runs on 32 px images of the eighth-resolution volume and
+    each run goes on briefly at 64 px of the quarter-resolution volume before the planes are
+    compared (the plan says so); a volume too small for level 3 keeps the 64 px capture alone."""
+    from registration.core.register import registration_plan
+    from registration.core.register.options import PLANE_CAPTURE_32, PLANE_REFINE_64
+    from registration.sim.phantom import make_head_phantom, registration_volume
+
+    plane_a, plane_b = _study_planes()
+    volume = registration_volume(make_head_phantom(seed=0, contrast=True), 27.0, voxels=128)
+    views = [_blank_view(g) for g in (plane_a, plane_b)]
+    first = registration_plan(volume, views).describe().splitlines()[0]
+    assert PLANE_CAPTURE_32.image_px == 32 and PLANE_CAPTURE_32.volume_level == 3
+    assert PLANE_REFINE_64.image_px == 64 and PLANE_REFINE_64.volume_level == 2
+    assert "each plane's own capture at 32 px, volume level 3, 2 runs per plane, each run then at 64 px, " \
+           "volume level 2" in first, first  # fmt: skip
+    small, small_views = scene[0], scene[1]  # 64^3: level 3 would be 8 voxels across
+    first = registration_plan(small, small_views).describe().splitlines()[0]
+    assert "each plane's own capture at 64 px, volume level 2, 2 runs per plane, up to" in first, first
+
+
+def _blank_view(geometry: CArm):  # noqa: ANN202
+    from registration.core.images import XRayImage
+
+    shape = (geometry.rows, geometry.cols)
+    return XRayImage(np.ones(shape, np.float32), np.ones(shape, bool), geometry)
