@@ -1,0 +1,90 @@
+"""Two views: each plane's capture at 64 px of the quarter-resolution volume (before) against 32 px
+of the eighth-resolution volume with each run going on briefly at 64 px (now), on the same draws.
+
+    PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
+    PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
+    PYTHONPATH=. python scripts/plane_capture_study.py capture --seed 10 --moments 10 --mm 50
+
+``phantom``: the biplane study's quick moments; ``ct``: the shared real CT (ROADMAP3D_REAL_CT),
+both planes, clinical images at ``--strength``, as ``validate volume --biplane --realism clinical``;
+``capture``: the capture study's moments at ``--mm``. Prints one JSON line per draw and arm: right
+(3-D criterion), applied, the 3-D residual, DRRs and seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+from registration.core.register import RegistrationOptions
+from registration.core.register.options import BiplaneOptions
+
+#: The arms: the 64 px captures of before, and the default now.
+ARMS = {
+    "64 px captures": RegistrationOptions(biplane=BiplaneOptions(plane_capture=None, plane_refine=None)),
+    "32 px captures, then 64 px": RegistrationOptions(),
+}
+
+
+def _line(arm: str, case: str, record: dict) -> str:
+    return json.dumps({
+        "arm": arm, "case": case, "right": bool(record["success"]), "applied": record.get("applied"),
+        "translation_residual_mm": round(float(record["translation_residual_mm"]), 3),
+        "drrs": record.get("drr_count"), "seconds": round(float(record.get("seconds", 0.0)), 3),
+    })  # fmt: skip
+
+
+def phantom(seed: int, moments: int) -> None:
+    from registration.studies.biplane import BiplaneConfig, biplane_tasks, run_biplane_case
+
+    config = dataclasses.replace(BiplaneConfig.quick_config(seed=seed), registrations_per_patient=moments)
+    for task in biplane_tasks(config):
+        for arm, options in ARMS.items():
+            print(_line(arm, task.case_id, run_biplane_case(task.case, options=options)), flush=True)
+
+
+def ct(seed: int, moments: int, strength: float) -> None:
+    from registration.io import dicom
+    from registration.studies.volume import VolumeStudyConfig, find_real_ct, head_isocenter_mm, run_volume_study
+
+    path = find_real_ct()
+    if path is None:
+        raise SystemExit("no real CT: set ROADMAP3D_REAL_CT")
+    volume = dicom.read_volume(path)
+    config = VolumeStudyConfig(cases=moments, seed=seed, biplane=True, realism="clinical", strengths=(strength,))
+    for arm, options in ARMS.items():
+        records, _ = run_volume_study(volume, head_isocenter_mm(volume), config, options=options)
+        for record in records:
+            print(_line(arm, f"ct/s{seed}/{record.get('case')}", record), flush=True)
+
+
+def capture(seed: int, moments: int, mm: float) -> None:
+    from registration.studies.capture import CaptureConfig, capture_tasks
+    from registration.studies.execution import execute
+
+    config = dataclasses.replace(CaptureConfig.quick_config(seed=seed), sweeps=("translation",), translations_mm=(mm,),
+                                 rotations_deg=(0.0,), registrations_per_level=moments)  # fmt: skip
+    for arm, options in ARMS.items():
+        for task in capture_tasks(config, options):
+            print(_line(arm, task.case_id, execute(task)), flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("draws", choices=("phantom", "ct", "capture"))
+    parser.add_argument("--seed", type=int, default=4)
+    parser.add_argument("--moments", type=int, default=12)
+    parser.add_argument("--strength", type=float, default=1.0)
+    parser.add_argument("--mm", type=float, default=50.0)
+    args = parser.parse_args()
+    if args.draws == "phantom":
+        phantom(args.seed, args.moments)
+    elif args.draws == "ct":
+        ct(args.seed, args.moments, args.strength)
+    else:
+        capture(args.seed, args.moments, args.mm)
+
+
+if __name__ == "__main__":
+    main()
