@@ -207,13 +207,14 @@ class PhantomData:
         views: Sequence[XRayImage] | None = None,
         initial_motion: np.ndarray | None = None,
     ) -> DRRRenderer:
-        """The index pyramid of the whole 3DRA (``views`` and ``initial_motion`` are not needed: the
-        phantom's 3DRA is the field's size; the studies were calibrated with this pyramid)."""
+        """The index pyramid of the whole 3DRA, levels 0-3 (``views`` and ``initial_motion`` are not
+        needed: the phantom's 3DRA is the field's size; the confidence rule was calibrated with this
+        pyramid, and level 3 is where ``register`` captures)."""
         with self._lock:
             if volume_format_cm not in self._renderers:
                 volume = self.volume(volume_format_cm)
                 self.progress("Preparing the DRR renderer", 0.6)
-                self._renderers[volume_format_cm] = DRRRenderer(volume, levels=3)
+                self._renderers[volume_format_cm] = DRRRenderer(volume, levels=4)
             return self._renderers[volume_format_cm]
 
     def evidence_renderer(
