@@ -162,23 +162,24 @@ def _capture_planes(
     jobs = [(p, c) for p in range(len(problems)) for c in range(len(starts[p]))]
     streams = rng.spawn(len(jobs))
 
+    stages = [(level, problems), *([refined] if refined is not None else [])]
+
     def run(job: int) -> AnnealResult:
         plane, chain = jobs[job]
         sp = spaces[plane]
-        schedule = replace(level.schedule, step=tuple(sp.per_parameter(level.schedule.step)))
 
         def on_iteration(s: AnnealState) -> bool:
             return monitor.report(0, s.temperature, s.x, s.fun, s.best_x, s.best_fun, job, sp)
 
-        cost = cost_function(problems[plane], sp, monitor, False)
-        x0 = starts[plane][chain]
-        found = anneal(cost, x0, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
-        if refined is None or monitor.stopped:
-            return found
-        then, then_problems = refined
-        schedule = replace(then.schedule, step=tuple(sp.per_parameter(then.schedule.step)))
-        cost = cost_function(then_problems[plane], sp, monitor, False)
-        return anneal(cost, found.x, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
+        x = starts[plane][chain]
+        for lv, level_problems in stages:  # the capture, then (refined) on from its end
+            schedule = replace(lv.schedule, step=tuple(sp.per_parameter(lv.schedule.step)))
+            cost = cost_function(level_problems[plane], sp, monitor, False)
+            found = anneal(cost, x, sp.bounds, rng=streams[job], schedule=schedule, callback=on_iteration)
+            if monitor.stopped:
+                break
+            x = found.x
+        return found
 
     workers = max(1, min(len(jobs), threads or os.cpu_count() or 1))
     with ThreadPoolExecutor(max_workers=workers) as pool:

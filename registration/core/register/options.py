@@ -42,12 +42,16 @@ CAPTURE_SCHEDULE = Schedule(step=(4.0, 4.0, 2.0, 2.0, 2.0), stages=14, moves_per
 #: the pair's, and the tracker's re-capture (docs/decisions/2026-12-02-registration-levels.md).
 CAPTURE_64 = Level(64, 2, CAPTURE_SCHEDULE, restarts=4)
 
+#: The refinement's annealing schedule after a capture (one view's second level; shorter, each
+#: biplane plane's capture runs).
+REFINE_SCHEDULE = Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)
+
 #: Each biplane plane's own capture: the one-view capture's 32 px images of the eighth-resolution
 #: volume (docs/decisions/2026-12-05-plane-captures-at-32-px.md).
 PLANE_CAPTURE_32 = Level(32, 3, CAPTURE_SCHEDULE, restarts=2)
 #: Each of those runs then goes on briefly at 64 px of the quarter-resolution volume before the
 #: planes are compared.
-PLANE_REFINE_64 = Level(64, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=4, moves_per_stage=10, cooling=0.7))
+PLANE_REFINE_64 = Level(64, 2, replace(REFINE_SCHEDULE, stages=4))
 
 
 def _default_levels() -> tuple[Level, ...]:
@@ -56,7 +60,7 @@ def _default_levels() -> tuple[Level, ...]:
     # volume (docs/decisions/2026-12-05-refinement-images.md).
     return (
         Level(32, 3, CAPTURE_SCHEDULE, restarts=4),
-        Level(64, 2, Schedule(step=(1.0, 1.0, 0.7, 0.7, 0.7), stages=8, moves_per_stage=10, cooling=0.7)),
+        Level(64, 2, REFINE_SCHEDULE),
     )
 
 
