@@ -10,7 +10,7 @@ Each start registers as ``roadmap3d register --landmarks --confidence`` does (th
 from the start, the estimate assessed with the landmarks' check); success is the capture study's
 criterion, and each line says whether the estimate was applied and how far it moved the landmarks.
 
-python scripts/landmark_start_study.py --seed 0 [--pairs 4] [--noise-mm 3]
+python scripts/landmark_start_study.py --seed 0 [--pairs 4] [--noise-mm 3] [--only translation/80mm]
 Prints one JSON line per registration and a summary.
 """
 
@@ -52,6 +52,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--pairs", type=int, default=4)
     ap.add_argument("--noise-mm", type=float, default=3.0)
+    ap.add_argument("--only", default="", help="register only the cases named so (picks drawn for all)")
     args = ap.parse_args()
     rng = np.random.default_rng([args.seed, 0x1A])
     config = CaptureConfig.quick_config(seed=args.seed)
@@ -72,6 +73,8 @@ def main() -> int:
                 image_px = g.project(apply(truth, p)) + rng.normal(0.0, sigma, 2) * px_per_mm
                 volume_mm = p + rng.normal(0.0, sigma, 3)
                 landmarks.append(Landmark(tuple(image_px), tuple(volume_mm), plane))
+        if args.only not in task.case_id:
+            continue
         for name, vs, lms in (
             ("biplane", list(views), landmarks),
             ("single_plane", [views[0]], [lm for lm in landmarks if lm.plane == 0]),
