@@ -1,9 +1,14 @@
-"""Two views: each plane's capture at 64 px of the quarter-resolution volume (before) against 32 px
-of the eighth-resolution volume with each run going on briefly at 64 px (now), on the same draws.
+"""Two views: the same draws registered under two sets of options (the arms), each estimate
+assessed as ``register --confidence`` does.
+
+``--arms plane-capture`` (the default): each plane's capture at 64 px of the quarter-resolution
+volume (before) against 32 px of the eighth-resolution volume with each run going on briefly at
+64 px (now). ``--arms field-share``: the pair's measure as the plain mean of the planes' gradient
+differences (before) against each weighted by the share of its field it compares (now).
 
     PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
     PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
-    PYTHONPATH=. python scripts/plane_capture_study.py capture --seed 10 --moments 10 --mm 50
+    PYTHONPATH=. python scripts/plane_capture_study.py capture --seed 10 --moments 10 --mm 50 --arms field-share
 
 ``phantom``: the biplane study's quick moments; ``ct``: the shared real CT (ROADMAP3D_REAL_CT),
 both planes, clinical images at ``--strength``, as ``validate volume --biplane --realism clinical``;
@@ -20,10 +25,16 @@ import json
 from registration.core.register import RegistrationOptions
 from registration.core.register.options import BiplaneOptions
 
-#: The arms: the 64 px captures of before, and the default now.
-ARMS = {
-    "64 px captures": RegistrationOptions(biplane=BiplaneOptions(plane_capture=None, plane_refine=None)),
-    "32 px captures, then 64 px": RegistrationOptions(),
+#: The arms of each comparison: before, then the default now.
+ARM_SETS = {
+    "plane-capture": {
+        "64 px captures": RegistrationOptions(biplane=BiplaneOptions(plane_capture=None, plane_refine=None)),
+        "32 px captures, then 64 px": RegistrationOptions(),
+    },
+    "field-share": {
+        "plain mean": RegistrationOptions(biplane=BiplaneOptions(field_share_weights=False)),
+        "field-share weights": RegistrationOptions(),
+    },
 }
 
 
@@ -35,16 +46,16 @@ def _line(arm: str, case: str, record: dict) -> str:
     })  # fmt: skip
 
 
-def phantom(seed: int, moments: int) -> None:
+def phantom(arms: dict, seed: int, moments: int) -> None:
     from registration.studies.biplane import BiplaneConfig, biplane_tasks, run_biplane_case
 
     config = dataclasses.replace(BiplaneConfig.quick_config(seed=seed), registrations_per_patient=moments)
     for task in biplane_tasks(config):
-        for arm, options in ARMS.items():
+        for arm, options in arms.items():
             print(_line(arm, task.case_id, run_biplane_case(task.case, options=options)), flush=True)
 
 
-def ct(seed: int, moments: int, strength: float) -> None:
+def ct(arms: dict, seed: int, moments: int, strength: float) -> None:
     from registration.io import dicom
     from registration.studies.volume import VolumeStudyConfig, find_real_ct, head_isocenter_mm, run_volume_study
 
@@ -53,19 +64,19 @@ def ct(seed: int, moments: int, strength: float) -> None:
         raise SystemExit("no real CT: set ROADMAP3D_REAL_CT")
     volume = dicom.read_volume(path)
     config = VolumeStudyConfig(cases=moments, seed=seed, biplane=True, realism="clinical", strengths=(strength,))
-    for arm, options in ARMS.items():
+    for arm, options in arms.items():
         records, _ = run_volume_study(volume, head_isocenter_mm(volume), config, options=options)
         for record in records:
             print(_line(arm, f"ct/s{seed}/{record.get('case')}", record), flush=True)
 
 
-def capture(seed: int, moments: int, mm: float) -> None:
+def capture(arms: dict, seed: int, moments: int, mm: float) -> None:
     from registration.studies.capture import CaptureConfig, capture_tasks
     from registration.studies.execution import execute
 
     config = dataclasses.replace(CaptureConfig.quick_config(seed=seed), sweeps=("translation",), translations_mm=(mm,),
                                  rotations_deg=(0.0,), registrations_per_level=moments)  # fmt: skip
-    for arm, options in ARMS.items():
+    for arm, options in arms.items():
         for task in capture_tasks(config, options):
             print(_line(arm, task.case_id, execute(task)), flush=True)
 
@@ -77,13 +88,15 @@ def main() -> None:
     parser.add_argument("--moments", type=int, default=12)
     parser.add_argument("--strength", type=float, default=1.0)
     parser.add_argument("--mm", type=float, default=50.0)
+    parser.add_argument("--arms", choices=tuple(ARM_SETS), default="plane-capture")
     args = parser.parse_args()
+    arms = ARM_SETS[args.arms]
     if args.draws == "phantom":
-        phantom(args.seed, args.moments)
+        phantom(arms, args.seed, args.moments)
     elif args.draws == "ct":
-        ct(args.seed, args.moments, args.strength)
+        ct(arms, args.seed, args.moments, args.strength)
     else:
-        capture(args.seed, args.moments, args.mm)
+        capture(arms, args.seed, args.moments, args.mm)
 
 
 if __name__ == "__main__":

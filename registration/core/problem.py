@@ -6,11 +6,15 @@ mask, less the rays that graze the volume's support) and the prepared gradient d
 plus the pyramid level of the volume the DRRs come from. All of it is read-only: each thread
 that evaluates the cost takes an :class:`Evaluator`, which owns only scratch buffers.
 
-The measure of several views is the mean of their gradient differences. Each view's value is
-already normalised by its number of compared pixels (it lies in (0, 2], see
-:class:`GradientDifference`), so a view counts the same whatever its size, format or pixel
-count: a large lateral image does not outweigh a small frontal one, and neither view's
-measure can dominate by its scale. With one view the measure is that view's gradient difference.
+The measure of several views is a weighted mean of their gradient differences. Each view's value
+is already normalised by its number of compared pixels (it lies in (0, 2], see
+:class:`GradientDifference`), so a view's size, format or pixel count gives it no weight: a large
+lateral image does not outweigh a small frontal one, and neither view's measure can dominate by
+its scale. The weights (``field_share_weights``) are each view's share of its own field that it
+compares (the field less the rays that graze the volume's support): a view whose field the
+patient has partly left, or that sees much beyond the 3DRA's reconstructed cylinder, counts for
+what it still compares (docs/decisions/2026-12-06-planes-weighted-by-field-share.md); without
+them the plain mean. With one view the measure is that view's gradient difference.
 """
 
 from __future__ import annotations
@@ -162,11 +166,13 @@ class PreparedView:
 
 @dataclass(frozen=True)
 class LevelProblem:
-    """The cost of one level, prepared once: ``-mean_v GD_v(DRR_v(x))`` over the views."""
+    """The cost of one level, prepared once: ``-sum_v w_v GD_v(DRR_v(x)) / sum_v w_v`` over the
+    views (``weights`` w_v; None: all 1)."""
 
     renderer: DRRRenderer
     volume_level: int
     views: tuple[PreparedView, ...]
+    weights: tuple[float, ...] | None = None
 
     @classmethod
     def prepare(
@@ -179,16 +185,20 @@ class LevelProblem:
         motion: Array,
         margin_mm: float | None,
         pixel_at_iso_mm: float | None = None,
+        field_share_weights: bool = False,
     ) -> LevelProblem:
         """Downsample each view, mask it to the support seen at ``motion``, set up GD.
 
         The first view's block size follows :func:`level_factor`, further views match its
         pixel at the iso-center (:func:`matched_factor`); ``pixel_at_iso_mm`` makes every view
         match that size instead (plane B's own capture at plane A's resolution).
+        ``field_share_weights``: several views are weighted by the share of their field that
+        they compare (see the module's docstring).
         """
         level = renderer_level(renderer, volume_level)
         voxel_mm = float(renderer.level_volume(level).spacing_mm.max())
         prepared = []
+        shares = []
         first_pixel_mm = 0.0 if pixel_at_iso_mm is None else float(pixel_at_iso_mm)
         for n, view in enumerate(views):
             if n == 0 and pixel_at_iso_mm is None:
@@ -204,7 +214,9 @@ class LevelProblem:
                 if inside.sum() >= MIN_SUPPORT_SHARE * mask.sum():
                     mask = inside
             prepared.append(PreparedView(image.geometry, mask, GradientDifference(image.image, mask)))
-        return cls(renderer, level, tuple(prepared))
+            shares.append(float(mask.sum()) / max(1.0, float(image.mask.sum())))
+        weights = tuple(shares) if field_share_weights and len(prepared) > 1 else None
+        return cls(renderer, level, tuple(prepared), weights)
 
     def evaluator(self, *, parallel: bool | None = None) -> Evaluator:
         """A cost function of the motion for one thread (its own scratch buffers)."""
@@ -265,14 +277,18 @@ class Evaluator:
         return self._measures[n](drr)
 
     def similarity(self, motion: Array) -> float:
-        """Mean gradient difference over the views (higher is more similar)."""
+        """The views' gradient differences, averaged with the problem's weights (higher is more
+        similar)."""
         n_views = len(self._measures)
         if self._side_by_side:
             others = [_view_pool().submit(self._score, n, motion, False) for n in range(1, n_views)]
-            total = self._score(0, motion, False) + sum(f.result() for f in others)
+            scores = [self._score(0, motion, False), *(f.result() for f in others)]
         else:
-            total = sum(self._score(n, motion, self.parallel) for n in range(n_views))
-        return total / n_views
+            scores = [self._score(n, motion, self.parallel) for n in range(n_views)]
+        weights = self.problem.weights
+        if weights is None:
+            return (scores[0] + sum(scores[1:])) / n_views
+        return sum(w * v for w, v in zip(weights, scores, strict=True)) / sum(weights)
 
     def per_view(self, motion: Array) -> list[float]:
         """Each view's gradient difference at ``motion`` (the parts of :meth:`similarity`)."""

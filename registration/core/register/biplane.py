@@ -75,7 +75,8 @@ def plane_captures(
     geometries = (planes[0].geometry, planes[1].geometry)
     pair = LevelProblem.prepare(inputs.renderer, inputs.views, image_px=level.image_px,
                                 volume_level=level.volume_level, motion=inputs.initial_motion,
-                                margin_mm=margin_mm)  # fmt: skip
+                                margin_mm=margin_mm,
+                                field_share_weights=options.biplane.field_share_weights)  # fmt: skip
     cost = cost_function(pair, space, monitor, None)
     per_plane: list[list[Array]] = [[] for _ in planes]
     single_costs: list[list[float]] = [[] for _ in planes]

@@ -155,6 +155,10 @@ class BiplaneOptions:
     #: Its reach, mm and degrees (default 4.0 and 3.0, > 0; both None: the search range).
     coarse_polish_reach_mm: float | None = 4.0
     coarse_polish_reach_deg: float | None = 3.0
+    #: The pair's measure weights each view's gradient difference by the share of its field that
+    #: it compares (default True; False: the plain mean;
+    #: docs/decisions/2026-12-06-planes-weighted-by-field-share.md).
+    field_share_weights: bool = True
 
     def __post_init__(self) -> None:
         _at_least("BiplaneOptions", 1, plane_capture_runs=self.plane_capture_runs,

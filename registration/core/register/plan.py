@@ -47,7 +47,8 @@ class Run:
         """One level of the views (all by default) prepared at ``motion``."""
         return LevelProblem.prepare(self.inputs.renderer, self.inputs.views if views is None else views,
                                     image_px=image_px, volume_level=volume_level, motion=motion,
-                                    margin_mm=margin_mm, pixel_at_iso_mm=pixel_at_iso_mm)  # fmt: skip
+                                    margin_mm=margin_mm, pixel_at_iso_mm=pixel_at_iso_mm,
+                                    field_share_weights=self.options.biplane.field_share_weights)  # fmt: skip
 
 
 @dataclass(frozen=True)

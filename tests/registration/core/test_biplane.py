@@ -2,6 +2,7 @@
 path unchanged, the search space and the polish's budget."""
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -89,6 +90,48 @@ def test_combined_measure_is_the_mean_of_the_planes(scene):
     # Threads get their own scratch: two evaluators agree and do not disturb each other.
     other = problem.evaluator(parallel=False)
     assert other.similarity(motion) == pytest.approx(evaluator.similarity(motion), rel=1e-6)
+
+
+def test_planes_weighted_by_the_share_of_their_field_they_compare(scene):
+    """With the field-share weights each plane's GD counts for the share of its field inside the
+    volume's support (its definition, counted here from the masks), and a registration's pair
+    levels use them by default."""
+    from registration.core.drr import DRRRenderer
+    from registration.core.problem import LevelProblem, support_mask
+    from registration.core.register.plan import Run
+
+    volume, views, truth = scene
+    renderer = DRRRenderer(volume, levels=2)
+    kwargs = dict(image_px=48, volume_level=1, motion=truth, margin_mm=15.0)
+    plain = LevelProblem.prepare(renderer, tuple(views), **kwargs)
+    weighted = LevelProblem.prepare(renderer, tuple(views), **kwargs, field_share_weights=True)
+    assert plain.weights is None
+    shares = []
+    for view in weighted.views:
+        field = views[len(shares)].downsample(views[len(shares)].geometry.cols // view.geometry.cols).mask
+        inside = field & support_mask(volume, view.geometry, truth, 15.0)
+        shares.append(inside.sum() / field.sum())
+    assert weighted.weights == pytest.approx(shares, rel=1e-12)
+    # a 15 mm margin inside a 64^3 volume's cylinder leaves the planes different shares: the
+    # weights then differ from the plain mean's
+    assert 0.05 < min(shares) < max(shares) - 0.01 < 0.99
+    motion = offsets_to_matrix((1.0, 0.0, 3.0, 0.0, 1.0, 0.0), views[0].geometry)
+    parts = weighted.evaluator().per_view(motion)
+    expected = (shares[0] * parts[0] + shares[1] * parts[1]) / (shares[0] + shares[1])
+    assert weighted.evaluator().similarity(motion) == pytest.approx(expected, rel=1e-12)
+    assert plain.evaluator().similarity(motion) == pytest.approx(np.mean(parts), rel=1e-12)
+    # one view: nothing to weigh
+    assert LevelProblem.prepare(renderer, tuple(views[:1]), **kwargs, field_share_weights=True).weights is None
+    # the registration's levels of two views are weighted unless the option turns it off
+    run = Run(SimpleNamespace(renderer=renderer, views=tuple(views)), RegistrationOptions(), None, None, None)
+    assert run.problem(48, 1, 15.0, truth).weights == pytest.approx(shares, rel=1e-12)
+    off = RegistrationOptions(biplane=replace(RegistrationOptions().biplane, field_share_weights=False))
+    assert (
+        Run(SimpleNamespace(renderer=renderer, views=tuple(views)), off, None, None, None)
+        .problem(48, 1, 15.0, truth)
+        .weights
+        is None
+    )
 
 
 def test_one_view_path_is_the_five_parameter_search(scene):
