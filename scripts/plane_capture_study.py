@@ -5,6 +5,8 @@ assessed as ``register --confidence`` does.
 volume (before) against 32 px of the eighth-resolution volume with each run going on briefly at
 64 px (now). ``--arms field-share``: the pair's measure as the plain mean of the planes' gradient
 differences (before) against each weighted by the share of its field it compares (now).
+``--arms translation-first``: a search from the image shift alone (before) against the same
+with the translation-first candidate (:mod:`registration.core.register.translation_first`).
 
     PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
     PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
@@ -12,8 +14,9 @@ differences (before) against each weighted by the share of its field it compares
 
 ``phantom``: the biplane study's quick moments; ``ct``: the shared real CT (ROADMAP3D_REAL_CT),
 both planes, clinical images at ``--strength``, as ``validate volume --biplane --realism clinical``;
-``capture``: the capture study's moments at ``--mm``. Prints one JSON line per draw and arm: right
-(3-D criterion), applied, the 3-D residual, DRRs and seconds.
+``capture``: the capture study's moments at ``--mm`` and ``--deg`` (its translation, rotation or
+combined sweep). Prints one JSON line per draw and arm: right (3-D criterion), applied, the 3-D
+residual, DRRs and seconds.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import dataclasses
 import json
 
 from registration.core.register import RegistrationOptions
-from registration.core.register.options import BiplaneOptions
+from registration.core.register.options import BiplaneOptions, StartOptions
 
 #: The arms of each comparison: before, then the default now.
 ARM_SETS = {
@@ -34,6 +37,10 @@ ARM_SETS = {
     "field-share": {
         "plain mean": RegistrationOptions(biplane=BiplaneOptions(field_share_weights=False)),
         "field-share weights": RegistrationOptions(),
+    },
+    "translation-first": {
+        "search only": RegistrationOptions(start=StartOptions(translation_first_evaluations=0)),
+        "translation-first candidate": RegistrationOptions(),
     },
 }
 
@@ -70,12 +77,13 @@ def ct(arms: dict, seed: int, moments: int, strength: float) -> None:
             print(_line(arm, f"ct/s{seed}/{record.get('case')}", record), flush=True)
 
 
-def capture(arms: dict, seed: int, moments: int, mm: float) -> None:
+def capture(arms: dict, seed: int, moments: int, mm: float, deg: float) -> None:
     from registration.studies.capture import CaptureConfig, capture_tasks
     from registration.studies.execution import execute
 
-    config = dataclasses.replace(CaptureConfig.quick_config(seed=seed), sweeps=("translation",), translations_mm=(mm,),
-                                 rotations_deg=(0.0,), registrations_per_level=moments)  # fmt: skip
+    sweep = "combined" if mm and deg else ("rotation" if deg else "translation")
+    config = dataclasses.replace(CaptureConfig.quick_config(seed=seed), sweeps=(sweep,), translations_mm=(mm,),
+                                 rotations_deg=(deg,), registrations_per_level=moments)  # fmt: skip
     for arm, options in arms.items():
         for task in capture_tasks(config, options):
             print(_line(arm, task.case_id, execute(task)), flush=True)
@@ -88,6 +96,7 @@ def main() -> None:
     parser.add_argument("--moments", type=int, default=12)
     parser.add_argument("--strength", type=float, default=1.0)
     parser.add_argument("--mm", type=float, default=50.0)
+    parser.add_argument("--deg", type=float, default=0.0)
     parser.add_argument("--arms", choices=tuple(ARM_SETS), default="plane-capture")
     args = parser.parse_args()
     arms = ARM_SETS[args.arms]
@@ -96,7 +105,7 @@ def main() -> None:
     elif args.draws == "ct":
         ct(arms, args.seed, args.moments, args.strength)
     else:
-        capture(arms, args.seed, args.moments, args.mm)
+        capture(arms, args.seed, args.moments, args.mm, args.deg)
 
 
 if __name__ == "__main__":

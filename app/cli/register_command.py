@@ -400,6 +400,11 @@ def say_result(result: Any, planes: int) -> None:
             f"the image shows the patient {result.start_shift_mm:.0f} mm from the machine-based pose: the search "
             f"started there{look}"
         )
+    if getattr(result, "translation_first", False):
+        _say(
+            "the estimate searched over the patient's translation alone from there fit the images better than the "
+            "full search's: it was kept"
+        )
     if getattr(result, "fine_polished", False):
         _say(
             "far from the machine-based pose, the estimate was polished on the full images and the finest volume level"

@@ -415,6 +415,8 @@ class Presenter:
         elif result is not None:
             how = "stopped" if result.stopped else "done"
             twice = " · searched again from the image shift" if getattr(result, "second_search", "") else ""
+            if getattr(result, "translation_first", False):
+                twice += " · the translation-first candidate kept"
             if getattr(result, "fine_polished", False):
                 twice += " · polished at full resolution"
             lines.append(f"Time {result.seconds:.2f} s · {result.drr_count} DRRs · {how}{twice}")

@@ -61,6 +61,7 @@ from registration.core.register.plan import Plan, Run, State
 from registration.core.register.result import Progress, RegistrationResult, RotationCheck, StageCost
 from registration.core.register.rotation_check import RIVAL_DISTINCT_DEG, rotation_check
 from registration.core.register.shift_start import look_again, shifted_start
+from registration.core.register.translation_first import translation_first
 from registration.core.register.walk import walk_from_bounds
 from registration.core.search import FIVE_PARAMETERS, SIX_PARAMETERS, SearchSpace
 from registration.core.volume import Volume
@@ -153,6 +154,8 @@ def register(
         result = walk_from_bounds(once, inputs, options)
         result.start_shift_mm = shift_mm
         result = look_again(lambda i: walk_from_bounds(once, i, options), machine, result, options)
+        result = translation_first(inputs, result, options, callback=callback, start_s=start,
+                                   vessel_points_mm=vessel_points_mm)  # fmt: skip
         result = fine_polish(machine, result, options, callback=callback, start_s=start,
                              vessel_points_mm=vessel_points_mm)  # fmt: skip
         result.beyond_box = beyond_box(result, machine.initial_motion, options)

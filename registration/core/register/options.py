@@ -286,6 +286,11 @@ class StartOptions:
     fine_polish_reach_deg: float = 2.0
     #: Its final trust-region radius, in first steps (0.5 mm, 0.3 deg) (default 0.05, > 0).
     fine_polish_xtol: float = 0.05
+    #: Two views' estimate whose search started from the image shift is compared with a candidate
+    #: searched from that start over the translations alone, then polished, and the better
+    #: measure kept (:mod:`registration.core.register.translation_first`): the translation
+    #: search's evaluations (default 80, >= 0; 0: never).
+    translation_first_evaluations: int = 80
     #: The initial motion is a landmark start (:mod:`registration.core.landmarks`), not the
     #: machine-based pose: two views' estimate is then fine-polished as one from a start away
     #: from the machine-based pose (default False).
@@ -293,7 +298,8 @@ class StartOptions:
 
     def __post_init__(self) -> None:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
-        _at_least("StartOptions", 0, fine_polish_evaluations=self.fine_polish_evaluations)
+        _at_least("StartOptions", 0, fine_polish_evaluations=self.fine_polish_evaluations,
+                  translation_first_evaluations=self.translation_first_evaluations)  # fmt: skip
         _at_least("StartOptions", 16, fine_polish_px=self.fine_polish_px)
         _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm,
                   fine_polish_reach_mm=self.fine_polish_reach_mm, fine_polish_reach_deg=self.fine_polish_reach_deg,
@@ -313,6 +319,12 @@ class StartOptions:
                 f"a second search from the image shift when the estimate leaves the anatomy {self.recheck_mm:g} mm "
                 f"or more from where the image shows it, or one view's estimate turns the head more than "
                 f"{SINGLE_PLANE_MAX_TURN_DEG:g} deg (the better fit kept)"
+            )
+        if self.shift_mm is not None and self.translation_first_evaluations:
+            lines.append(
+                f"two views from the image shift: a second candidate searched over the translations alone "
+                f"({self.translation_first_evaluations} evaluations at 64 px), polished at 128 px, kept when it "
+                "fits better there"
             )
         if self.fine_polish_evaluations:
             away = "landmarks" if self.from_landmarks else "a start away from the machine-based pose"

@@ -126,6 +126,9 @@ class RegistrationResult:
     #: Whether two views' estimate from a start away from the machine-based pose was polished on
     #: the full images and the volume's level 0 (:mod:`registration.core.register.fine_polish`).
     fine_polished: bool = False
+    #: Two views from the image shift: the estimate is the translation-first candidate
+    #: (:mod:`registration.core.register.translation_first`), which fit better than the search's.
+    translation_first: bool = False
     #: Each stage that ran, in order, with its cost (a walk's restarts follow the first search's).
     stages: tuple[StageCost, ...] = ()
 
@@ -172,6 +175,8 @@ class RegistrationResult:
             out["beyond_box"] = True
         if self.fine_polished:
             out["fine_polished"] = True
+        if self.translation_first:
+            out["translation_first"] = True
         if self.stages:
             out["stages"] = [c.to_dict() for c in self.stages]
         return out
