@@ -153,9 +153,10 @@ def register(
         inputs, shift_mm = shifted_start(machine, options)
         result = walk_from_bounds(once, inputs, options)
         result.start_shift_mm = shift_mm
+        if shift_mm:  # the search started from the image shift: its translation-first rival
+            result = translation_first(inputs, result, options, callback=callback, start_s=start,
+                                       vessel_points_mm=vessel_points_mm)  # fmt: skip
         result = look_again(lambda i: walk_from_bounds(once, i, options), machine, result, options)
-        result = translation_first(inputs, result, options, callback=callback, start_s=start,
-                                   vessel_points_mm=vessel_points_mm)  # fmt: skip
         result = fine_polish(machine, result, options, callback=callback, start_s=start,
                              vessel_points_mm=vessel_points_mm)  # fmt: skip
         result.beyond_box = beyond_box(result, machine.initial_motion, options)

@@ -91,9 +91,10 @@ def translation_first(
     start_s: float,
     vessel_points_mm: object = None,
 ) -> RegistrationResult:
-    """``result``, or the translation-first candidate from ``inputs``' start (the image shift)
-    when its measure is better (see the module). Runs for two or more views whose kept estimate
-    started from the image shift and was not stopped; the result keeps every cost."""
+    """``result``, or the translation-first candidate from ``inputs``' start (the image shift:
+    :func:`registration.core.register.register` calls it only after a search started there) when
+    its measure is better (see the module). Runs for two or more views whose estimate started from
+    the image shift and was not stopped; the result keeps every cost."""
     evaluations = options.start.translation_first_evaluations
     if len(inputs.views) < 2 or not evaluations or not result.start_shift_mm or result.stopped:
         return result
