@@ -9,26 +9,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from registration.core.geometry import CArm, offsets_to_matrix
+from registration.core.geometry import offsets_to_matrix
 from registration.core.metrics import residuals
-from registration.core.register import RegistrationOptions, StartOptions, register
+from registration.core.register import RegistrationOptions, StartOptions
 from registration.core.register.fine_polish import fine_polish, started_away
 from registration.core.register.inputs import check_inputs
+from tests.registration.core.two_views import phantom_pair
 
 
 @pytest.fixture(scope="module")
 def pair():
-    from registration.sim.phantom import make_head_phantom, registration_volume
-    from registration.sim.xray import simulate_xray
-
-    volume = registration_volume(make_head_phantom(seed=0, contrast=True), 27.0, voxels=128)
-    views = [CArm.for_format(27.0, pixels=256, primary_deg=20.0), CArm.for_format(27.0, pixels=192, primary_deg=-70.0)]
-    truth = offsets_to_matrix((4.0, 4.0, -3.0, 2.0, 3.0, 4.0), views[0])
-    phantom = make_head_phantom(seed=0, contrast=False)
-    xrays = [simulate_xray(phantom, g, motion=truth, kind="exposure", seed=1 + n) for n, g in enumerate(views)]
-    options = RegistrationOptions()
-    right = register(volume, xrays, truth=truth, seed=0, options=options)
-    return volume, xrays, truth, options, right
+    return phantom_pair((4.0, 4.0, -3.0, 2.0, 3.0, 4.0))
 
 
 def test_an_estimate_from_far_away_is_polished_onto_the_truth(pair) -> None:

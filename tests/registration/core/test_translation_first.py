@@ -6,29 +6,19 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-import numpy as np
 import pytest
 
-from registration.core.geometry import CArm, offsets_to_matrix, rigid
+from registration.core.geometry import offsets_to_matrix, rigid
 from registration.core.metrics import residuals
-from registration.core.register import RegistrationOptions, StartOptions, register
+from registration.core.register import RegistrationOptions, StartOptions
 from registration.core.register.inputs import check_inputs
+from tests.registration.core.two_views import phantom_pair
 
 
 @pytest.fixture(scope="module")
 def pair():
-    from registration.sim.phantom import make_head_phantom, registration_volume
-    from registration.sim.xray import simulate_xray
-
-    volume = registration_volume(make_head_phantom(seed=0, contrast=True), 27.0, voxels=128)
-    views = [CArm.for_format(27.0, pixels=256, primary_deg=20.0), CArm.for_format(27.0, pixels=192, primary_deg=-70.0)]
     # a patient moved, hardly turned: what a table move or a repositioned head leaves
-    truth = offsets_to_matrix((6.0, -5.0, 4.0, 0.8, -0.6, 0.5), views[0])
-    phantom = make_head_phantom(seed=0, contrast=False)
-    xrays = [simulate_xray(phantom, g, motion=truth, kind="exposure", seed=1 + n) for n, g in enumerate(views)]
-    options = RegistrationOptions()
-    right = register(volume, xrays, truth=truth, seed=0, options=options)
-    return volume, xrays, truth, options, right
+    return phantom_pair((6.0, -5.0, 4.0, 0.8, -0.6, 0.5))
 
 
 def _from_the_shift(volume, xrays, truth, options, right):  # noqa: ANN001, ANN202
@@ -54,7 +44,7 @@ def test_a_wrong_search_from_the_image_shift_gives_way_to_the_translation_first_
     assert before.translation_mm > 5.0 and before.rotation_deg > 7.0
     assert kept.translation_first and kept.to_dict()["translation_first"] is True
     assert kept.residual.translation_mm < 1.0 and kept.residual.rotation_deg < 1.0, kept.residual
-    names = [c.stage for c in kept.stages[len(far.stages):]]
+    names = [c.stage for c in kept.stages[len(far.stages) :]]
     assert names[0].startswith("translations alone at 64 px") and names[1].startswith("candidate's polish at 128 px")
     assert kept.drr_count > far.drr_count + 80  # its searches are counted
 
