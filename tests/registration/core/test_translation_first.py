@@ -75,3 +75,16 @@ def test_the_candidate_runs_only_for_two_views_from_the_image_shift(pair) -> Non
     assert "translations alone" not in off.start.describe()
     with pytest.raises(ValueError, match="translation_first_evaluations must be >= 0"):
         StartOptions(translation_first_evaluations=-1)
+
+
+def test_register_says_when_the_candidate_was_kept(pair, capsys: pytest.CaptureFixture[str]) -> None:
+    from app.cli.register_command import say_result
+
+    _volume, _xrays, _truth, _options, right = pair
+    kept = replace(right, start_shift_mm=41.0, beyond_box=True, translation_first=True, fine_polished=True)
+    say_result(kept, 2)
+    said = " ".join(capsys.readouterr())
+    assert "the search started there; check the estimate by eye" in said
+    assert "translation alone from there fit the images better than the full search's: it was kept" in said
+    say_result(right, 2)
+    assert "translation alone" not in " ".join(capsys.readouterr())
