@@ -21,7 +21,6 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from registration.core.geometry import OFFSET_NAMES, invert_rigid, matrix_to_offsets, offsets_to_matrix
 from registration.core.metrics import residuals
 from registration.core.prepare import Reach, prepare_volume
 from registration.core.register.inputs import Inputs
@@ -81,11 +80,7 @@ def fine_polish(
     if monitor.stopped or not monitor.stages:
         return result
     polished = state.motion
-    # the estimate's offsets stay relative to its own search's start
-    old = dict(zip(result.parameters, np.asarray(result.offsets, dtype=np.float64), strict=True))
-    began_at = invert_rigid(offsets_to_matrix([old.get(n, 0.0) for n in OFFSET_NAMES], result.geometry)) @ estimate
-    full = matrix_to_offsets(polished @ invert_rigid(began_at), result.geometry)
-    offsets = np.array([full[OFFSET_NAMES.index(n)] for n in result.parameters])
+    offsets = result.offsets_of(polished)
     out = replace(
         result,
         patient_motion=polished,

@@ -7,7 +7,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.core.geometry import OFFSET_NAMES, CArm, offsets_to_matrix, rotation_angle_deg
+from registration.core.geometry import (
+    OFFSET_NAMES,
+    CArm,
+    invert_rigid,
+    matrix_to_offsets,
+    offsets_to_matrix,
+    rotation_angle_deg,
+)
 from registration.core.metrics import Residual
 from registration.core.search import FIVE_PARAMETERS
 
@@ -135,6 +142,15 @@ class RegistrationResult:
     @property
     def success(self) -> bool | None:
         return None if self.residual is None else self.residual.success
+
+    def offsets_of(self, motion: Array) -> Array:
+        """``motion``'s offsets (in :attr:`parameters`) from where this estimate's search started: a
+        later stage that replaces the estimate keeps the offsets relative to that start."""
+        old = dict(zip(self.parameters, np.asarray(self.offsets, dtype=np.float64), strict=True))
+        start = offsets_to_matrix([old.get(n, 0.0) for n in OFFSET_NAMES], self.geometry)
+        began_at = invert_rigid(start) @ np.asarray(self.patient_motion, dtype=np.float64)
+        full = matrix_to_offsets(np.asarray(motion, dtype=np.float64) @ invert_rigid(began_at), self.geometry)
+        return np.array([full[OFFSET_NAMES.index(n)] for n in self.parameters])
 
     def to_dict(self) -> dict:
         out = {

@@ -19,9 +19,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from registration.core.anneal import PolishState, polish
-from registration.core.geometry import OFFSET_NAMES, invert_rigid, matrix_to_offsets, offsets_to_matrix
 from registration.core.metrics import residuals
 from registration.core.register.inputs import Inputs
 from registration.core.register.monitor import Monitor, cost_function
@@ -89,7 +89,7 @@ def translation_first(
     *,
     callback: Callable[[Progress], bool | None] | None,
     start_s: float,
-    vessel_points_mm: object = None,
+    vessel_points_mm: ArrayLike | None = None,
 ) -> RegistrationResult:
     """``result``, or the translation-first candidate from ``inputs``' start (the image shift:
     :func:`registration.core.register.register` calls it only after a search started there) when
@@ -125,12 +125,8 @@ def translation_first(
                  stages=result.stages + tuple(monitor.stages))  # fmt: skip
     if not kept_candidate:
         return replace(result, **costs)
-    # the estimate's offsets stay relative to its own search's start
-    old = dict(zip(result.parameters, np.asarray(result.offsets, dtype=np.float64), strict=True))
-    began_at = invert_rigid(offsets_to_matrix([old.get(n, 0.0) for n in OFFSET_NAMES], result.geometry)) @ estimate
-    full = matrix_to_offsets(candidate @ invert_rigid(began_at), result.geometry)
     out = replace(result, patient_motion=candidate, similarity=-state.f, at_bounds=(), translation_first=True,
-                  offsets=np.array([full[OFFSET_NAMES.index(n)] for n in result.parameters]), **costs)  # fmt: skip
+                  offsets=result.offsets_of(candidate), **costs)  # fmt: skip
     if inputs.truth is not None:
         out.residual = residuals(candidate, inputs.truth, result.geometry, vessel_points_mm, optimizes_tz=True)
     return out
