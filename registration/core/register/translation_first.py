@@ -117,7 +117,7 @@ def translation_first(
         return replace(result, drr_count=result.drr_count + monitor.drr_count)  # ended at its reach: no candidate
     # both estimates on the same images and support: the polish's level prepared at the start
     judge = run.problem(POLISH_IMAGE_PX, POLISH_VOLUME_LEVEL, margin, start).evaluator()
-    monitor.charge(4 * len(inputs.views))
+    monitor.charge(2 * judge.drrs_per_evaluation, 2 * judge.rays_per_evaluation)  # the two evaluations below
     estimate = np.asarray(result.patient_motion, dtype=np.float64)
     kept_candidate = judge.similarity(candidate) > judge.similarity(estimate)
     costs = dict(drr_count=result.drr_count + monitor.drr_count, seconds=time.perf_counter() - start_s,
