@@ -192,6 +192,7 @@ def _evidence(
     and, for an estimate the registration did not correct along the beam, the depth probe (on
     corrected estimates its term changed no decision: docs/decisions/2026-12-04-confidence-probes.md)."""
     from registration.core.tracking import registration_evidence
+    from registration.core.tracking.evidence import beam_margin, probe_measure
 
     motion = np.asarray(result.patient_motion)
     probe = scan = None
@@ -202,12 +203,14 @@ def _evidence(
         if not depth_corrected(result) and (rule.depth_weight or rule.pull_weight):
             probe = depth_probe(renderer, views[0], motion)
         scan = depth_scan(renderer, views[0], motion, stride=SCAN_STRIDE)
+    probes = [probe_measure(volume, v, motion, renderer) for v in views]
     per_view = [
         registration_evidence(volume, v, motion, renderer=renderer, capture_motions=result.capture_motions,
-                              depth=probe, agreement_in_plane=one_view)  # single plane: captures keep tz
-        for v in views
+                              depth=probe, agreement_in_plane=one_view, probe=p)  # single plane: captures keep tz
+        for v, p in zip(views, probes, strict=True)
     ]  # fmt: skip
     check = result.rotation_check
+    beam = beam_margin(volume, views, motion, renderer=renderer, probes=probes) if rule.beam_weight else None
     evidence = replace(
         per_view[0],
         margin=float(np.mean([e.margin for e in per_view])),
@@ -217,5 +220,6 @@ def _evidence(
         edges=float(np.mean([e.edges for e in per_view])),
         depth_scan_tz_mm=None if scan is None else float(scan.tz_mm),
         rival_gain=None if check is None or check.rival_gain is None else float(check.rival_gain),
+        beam_margin=beam,
     )
     return evidence, probe, scan

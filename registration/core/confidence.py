@@ -52,6 +52,14 @@ The confidence is a logistic function of what the engine knows about the estimat
     bias lives in the coarse scales); removing those scales and holding the in-plane fit
     brings the peak at the true pose within 0-5 mm of it
     (docs/validation/clinical-s6/depth_scan.md).
+``beam_margin``
+    Two or more views: the smallest margin of one view's measure when the estimate moves
+    ``BEAM_PROBE_MM`` either way along another view's central ray, relative to the measure
+    (:func:`registration.core.tracking.evidence.beam_margin`). A view barely sees a move along
+    its own beam; the other view sees it across its beam and confirms the depth. Where the other
+    view sees little anatomy (a head moved far, half out of its field), its measure stays flat
+    there and the depth along the first beam is a guess: two views' estimates 9-14 mm off
+    along plane A's beam were applied that way.
 ``spine_pull_mm``
     Single plane, a volume with a cervical spine: how far the estimate moves in the image plane
     at the iso-center when a short local search from it fits the head alone (the spine below
@@ -88,6 +96,8 @@ from numpy.typing import ArrayLike, NDArray
 #: Perturbation of the margin test: translation (mm) and rotation (deg) along each parameter.
 PERTURB_MM = 1.0
 PERTURB_DEG = 1.0
+#: Two views: how far (mm) the estimate moves along each view's central ray for ``beam_margin``.
+BEAM_PROBE_MM = 6.0
 #: Perturbation of the out-of-plane rotations' margin (deg).
 ROTATION_PROBE_DEG = 3.0
 #: A capture run "agrees" with the best when within this translation (mm) and rotation (deg).
@@ -110,6 +120,7 @@ class Evidence:
     depth_scan_tz_mm: float | None = None
     rival_gain: float | None = None
     spine_pull_mm: float | None = None
+    beam_margin: float | None = None
     #: A hard reason to withhold whatever the score (e.g. "no usable pixel", "stopped").
     veto: str | None = None
 
@@ -229,6 +240,12 @@ class ConfidenceRule:
     #: (docs/decisions/2026-12-05-spine-pull.md).
     spine_weight: float = 0.0
     spine_free_mm: float = 0.3
+    #: per unit of relative ``beam_margin`` below ``beam_good`` (two views): a margin of 0 costs
+    #: 6. Tuned on the capture study's 50 mm seeds 15-17 and 40 mm seeds 13-15 (two misses 8.8
+    #: and 14 mm along plane A's beam had 0.0002 and -0.0048, right estimates 0.0038 and more),
+    #: counted on fresh far and clinical draws (docs/decisions/2026-12-06-beam-margin.md).
+    beam_weight: float = 3000.0
+    beam_good: float = 0.002
     threshold: float = 0.5
 
     def terms(self, e: Evidence) -> dict[str, float]:
@@ -256,6 +273,8 @@ class ConfidenceRule:
             out["rival"] = -self.rival_weight * max(0.0, e.rival_gain - self.rival_free)
         if e.spine_pull_mm is not None and self.spine_weight:
             out["spine"] = -self.spine_weight * max(0.0, e.spine_pull_mm - self.spine_free_mm)
+        if e.beam_margin is not None and self.beam_weight:
+            out["beam"] = -self.beam_weight * max(0.0, self.beam_good - e.beam_margin)
         return out
 
     def score(self, e: Evidence) -> float:
@@ -285,6 +304,7 @@ _REASONS = {
     "depth_scan": "the measure peaks far along the beam from the estimate (a large out-of-plane offset)",
     "rival": "another out-of-plane rotation fits the image about as well (a rotation optimum)",
     "spine": "the head alone fits elsewhere: the neck moved relative to the head (register the cranium)",
+    "beam": "one view's depth along its beam is not confirmed by the other view (little anatomy in its field)",
 }
 
 

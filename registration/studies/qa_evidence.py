@@ -67,6 +67,8 @@ TERM_PICTURES = {
     "agreement": "the capture runs",
     "planes": "the two planes' estimates",
     "deficit": "the measure's level over the run",
+    "beam": "the evidence's beam_margin (how much the other plane's measure falls when the estimate moves "
+    "along one plane's beam)",
     "spine": "the evidence's spine_pull_mm (how far the head alone, without the spine below the skull base, "
     "moves the estimate)",
 }
