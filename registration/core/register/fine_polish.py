@@ -7,8 +7,9 @@ image shift or walked) that optimum can drift by a millimetre and more at the is
 capture study's 50 mm moments a search started at the true pose ends 1.1-1.35 mm off, and a
 polish on the full images and the volume's own grid ends 0.6 mm off. This stage runs that
 polish (COBYQA, the local search that needs the fewest of these dear level-0 DRRs), on a level-0
-preparation made for it, only after such a search: registrations that start and stay in the box
-around the machine-based pose are untouched and cost nothing more. Decision record:
+preparation made for it, only after such a search or when the estimate lies beyond the clinical
+offsets (25 mm) from the machine-based pose although the search started there: registrations that
+stay near the machine-based pose are untouched and cost nothing more. Decision record:
 ``docs/decisions/2026-12-04-fine-polish.md``.
 """
 
@@ -21,6 +22,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from registration.core.geometry import apply
 from registration.core.metrics import residuals
 from registration.core.prepare import Reach, prepare_volume
 from registration.core.register.inputs import Inputs
@@ -36,6 +38,16 @@ def started_away(result: RegistrationResult) -> bool:
     """Whether the kept estimate's search started away from the machine-based pose (the image
     shift, a walk of the box, or the second search's estimate kept)."""
     return bool(result.start_shift_mm or result.walk_hops)
+
+
+def far_from_machine(result: RegistrationResult, machine_motion: np.ndarray, beyond_mm: float | None) -> bool:
+    """Whether ``result``'s estimate moves the iso-center at least ``beyond_mm`` from where the
+    machine-based pose puts it (None: never)."""
+    if beyond_mm is None:
+        return False
+    iso = np.asarray(result.geometry.isocenter_mm, dtype=np.float64)
+    moved = apply(np.asarray(result.patient_motion), iso) - apply(np.asarray(machine_motion), iso)
+    return bool(np.linalg.norm(moved) >= beyond_mm)
 
 
 def fine_polish_stage(options: RegistrationOptions) -> Polish:
@@ -56,14 +68,19 @@ def fine_polish(
 ) -> RegistrationResult:
     """``result`` polished on the views' full images and the volume's level 0 when it holds two or
     more views' six parameters, started away from the machine-based pose (or from landmarks:
-    ``StartOptions.from_landmarks``), and was not stopped;
+    ``StartOptions.from_landmarks``) or ended ``StartOptions.fine_polish_beyond_mm`` or more from
+    it, and was not stopped;
     otherwise ``result`` itself. The result keeps every cost, the polish's stage last."""
     if (
         len(inputs.views) < 2
         or "tz" not in result.parameters
         or not options.start.fine_polish_evaluations
         or result.stopped
-        or not (started_away(result) or options.start.from_landmarks)
+        or not (
+            started_away(result)
+            or options.start.from_landmarks
+            or far_from_machine(result, inputs.initial_motion, options.start.fine_polish_beyond_mm)
+        )
     ):
         return result
     estimate = np.asarray(result.patient_motion, dtype=np.float64)

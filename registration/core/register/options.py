@@ -279,6 +279,10 @@ class StartOptions:
     #: (:mod:`registration.core.register.fine_polish`, COBYQA): evaluations (default 60, >= 0;
     #: 0: never).
     fine_polish_evaluations: int = 60
+    #: The fine polish also runs when two views' estimate lies at least this far from the
+    #: machine-based pose (mm at the iso-center) although its search started there (default
+    #: 25.0, > 0; None: only after a start away from it).
+    fine_polish_beyond_mm: float | None = 25.0
     #: Its image size, pixels across (default 256, >= 16).
     fine_polish_px: int = 256
     #: Its reach either side of the estimate, mm and degrees (default 3.0 and 2.0, > 0).
@@ -302,7 +306,8 @@ class StartOptions:
                   translation_first_evaluations=self.translation_first_evaluations)  # fmt: skip
         _at_least("StartOptions", 16, fine_polish_px=self.fine_polish_px)
         _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm,
-                  fine_polish_reach_mm=self.fine_polish_reach_mm, fine_polish_reach_deg=self.fine_polish_reach_deg,
+                  fine_polish_beyond_mm=self.fine_polish_beyond_mm, fine_polish_reach_mm=self.fine_polish_reach_mm,
+                  fine_polish_reach_deg=self.fine_polish_reach_deg,
                   fine_polish_xtol=self.fine_polish_xtol)  # fmt: skip
 
     def describe(self) -> str:
@@ -328,6 +333,8 @@ class StartOptions:
             )
         if self.fine_polish_evaluations:
             away = "landmarks" if self.from_landmarks else "a start away from the machine-based pose"
+            if self.fine_polish_beyond_mm is not None and not self.from_landmarks:
+                away += f" or {self.fine_polish_beyond_mm:g} mm or more from it"
             lines.append(
                 f"two views' estimate from {away}: a fine polish at "
                 f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "

@@ -12,7 +12,7 @@ import pytest
 from registration.core.geometry import offsets_to_matrix
 from registration.core.metrics import residuals
 from registration.core.register import RegistrationOptions, StartOptions
-from registration.core.register.fine_polish import fine_polish, started_away
+from registration.core.register.fine_polish import far_from_machine, fine_polish, started_away
 from registration.core.register.inputs import check_inputs
 from tests.registration.core.two_views import phantom_pair
 
@@ -62,3 +62,27 @@ def test_the_polish_runs_only_after_a_start_away_with_two_views(pair) -> None:
     assert "from landmarks: a fine polish" in landmarks.start.describe()
     with pytest.raises(ValueError, match="fine_polish_px must be >= 16"):
         StartOptions(fine_polish_px=8)
+
+
+def test_an_estimate_far_from_the_machine_is_polished_though_its_search_started_there(pair) -> None:
+    volume, xrays, truth, options, right = pair
+    # the machine-based pose 30 mm from the truth (plane A's x and z): the search started there
+    # and found the patient inside its box, 30 mm away
+    machine = offsets_to_matrix((18.0, 0.0, 24.0, 0.0, 0.0, 0.0), right.geometry) @ truth
+    inputs = check_inputs(volume, xrays, machine, truth, None, options)
+    off = offsets_to_matrix((0.8, -0.6, 0.7, 0.5, -0.4, 0.3), right.geometry) @ truth
+    far = replace(right, patient_motion=off)
+    assert not started_away(far) and far_from_machine(far, machine, 25.0)  # 30 mm >= 25 mm
+    assert not far_from_machine(far, machine, 31.0) and not far_from_machine(far, machine, None)
+    now = time.perf_counter()
+    polished = fine_polish(inputs, far, options, callback=None, start_s=now)
+    # as from the image shift above: from 1.2 mm to within a few tenths of the truth
+    assert polished.fine_polished and polished.residual.translation_mm < 0.4, polished.residual
+    # with the rule off, or the machine-based pose near the estimate, it is left as it is
+    only_away = RegistrationOptions(start=StartOptions(fine_polish_beyond_mm=None))
+    assert fine_polish(inputs, far, only_away, callback=None, start_s=now) is far
+    near = check_inputs(volume, xrays, None, truth, None, options)
+    assert fine_polish(near, far, options, callback=None, start_s=now) is far
+    assert "or 25 mm or more from it: a fine polish" in options.start.describe()
+    with pytest.raises(ValueError, match="fine_polish_beyond_mm"):
+        StartOptions(fine_polish_beyond_mm=0.0)
