@@ -105,6 +105,8 @@ def main() -> int:
                         "start_offset_mm": round(start.start_offset_mm(), 2),
                         "applied": bool(decided.applied),
                         "withheld_reason": decided.reason,
+                        "confidence": round(decided.confidence, 4),
+                        "beam_margin": decided.evidence.beam_margin,
                     }
                 ),
                 flush=True,
