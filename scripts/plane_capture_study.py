@@ -8,7 +8,8 @@ differences (before) against each weighted by the share of its field it compares
 ``--arms translation-first``: a search from the image shift alone (before) against the same
 with the translation-first candidate (:mod:`registration.core.register.translation_first`).
 ``--arms far-polish``: two views' fine polish only after a start away from the machine-based pose
-(before) against also for an estimate 25 mm or more from it (now).
+(before) against also for an estimate 25 mm or more from it (now). ``--arms beam-scan``: the fine
+polish alone (before) against the beam scan before it (now).
 
     PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
     PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
@@ -43,6 +44,10 @@ ARM_SETS = {
     "far-polish": {
         "fine polish after a far start": RegistrationOptions(start=StartOptions(fine_polish_beyond_mm=None)),
         "also 25 mm or more from the machine": RegistrationOptions(),
+    },
+    "beam-scan": {
+        "fine polish alone": RegistrationOptions(start=StartOptions(beam_scan_mm=None)),
+        "beam scan, then the fine polish": RegistrationOptions(),
     },
     "translation-first": {
         "search only": RegistrationOptions(start=StartOptions(translation_first_evaluations=0)),

@@ -17,16 +17,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from registration.core.geometry import apply
+from registration.core.geometry import apply, rigid
 from registration.core.metrics import residuals
 from registration.core.prepare import Reach, prepare_volume
 from registration.core.register.inputs import Inputs
-from registration.core.register.monitor import Monitor
+from registration.core.register.monitor import Monitor, cost_function
 from registration.core.register.options import RegistrationOptions
 from registration.core.register.plan import Plan, Run, State
 from registration.core.register.result import Progress, RegistrationResult
@@ -48,6 +48,52 @@ def far_from_machine(result: RegistrationResult, machine_motion: np.ndarray, bey
     iso = np.asarray(result.geometry.isocenter_mm, dtype=np.float64)
     moved = apply(np.asarray(result.patient_motion), iso) - apply(np.asarray(machine_motion), iso)
     return bool(np.linalg.norm(moved) >= beyond_mm)
+
+
+#: The beam scan's step along each central ray (mm), and how many times the scan and the polish
+#: run (the second time only when the first scan moved the estimate).
+BEAM_SCAN_STEP_MM = 1.5
+BEAM_SCAN_ROUNDS = 2
+
+
+@dataclass(frozen=True)
+class BeamScan:
+    """Two or more views: the estimate moved along each view's central ray in turn, within
+    ``reach_mm`` in ``BEAM_SCAN_STEP_MM`` steps, to where the views' measure at this level is best.
+    One view barely sees a move along its own beam; far from the machine-based pose another view
+    may see too little of the head to hold it, and the search leaves the depth along that beam
+    several millimetres off, where the full images still tell it."""
+
+    image_px: int
+    volume_level: int
+    margin_mm: float | None
+    reach_mm: float
+
+    def describe(self) -> str:
+        return (f"beam scan at {self.image_px} px, volume level {self.volume_level}: each view's central ray "
+                f"+-{self.reach_mm:g} mm in {BEAM_SCAN_STEP_MM:g} mm steps")  # fmt: skip
+
+    def runs(self, state: State) -> bool:
+        return len(state.run.inputs.views) > 1
+
+    def run(self, state: State) -> State:
+        r, space = state.run, state.space
+        problem = r.problem(self.image_px, self.volume_level, self.margin_mm, state.motion)
+        cost = cost_function(problem, space, r.monitor, None)
+        x, f = np.asarray(state.x, dtype=np.float64), cost(state.x)
+        steps = np.arange(1, int(self.reach_mm / BEAM_SCAN_STEP_MM) + 1) * BEAM_SCAN_STEP_MM
+        for view in r.inputs.views:
+            along = np.asarray(view.geometry.direction, dtype=np.float64)
+            base, best_x, best_f = space.motion(x), x, f
+            for t in np.concatenate([steps, -steps]):
+                xt = space.from_motion(rigid(None, t * along) @ base)
+                ft = cost(xt)
+                if ft < best_f:
+                    best_x, best_f = xt, ft
+                if r.monitor.report(state.number, 0.0, xt, ft, best_x, best_f, 0, space):
+                    return replace(state, x=best_x, f=best_f)
+            x, f = best_x, best_f
+        return replace(state, x=x, f=f)
 
 
 def fine_polish_stage(options: RegistrationOptions) -> Polish:
@@ -85,7 +131,8 @@ def fine_polish(
         return result
     estimate = np.asarray(result.patient_motion, dtype=np.float64)
     iso = inputs.views[0].geometry.isocenter_mm
-    reach = Reach.of_search(options.start.fine_polish_reach_mm, options.start.fine_polish_reach_deg,
+    scan_mm = options.start.beam_scan_mm
+    reach = Reach.of_search(options.start.fine_polish_reach_mm + (scan_mm or 0.0), options.start.fine_polish_reach_deg,
                             initial_motion=estimate, isocenter_mm=iso)  # fmt: skip
     prepared = prepare_volume(inputs.volume, [v.geometry for v in inputs.views], reach=reach, levels=(0,))
     space = SearchSpace.for_views(inputs.views[0].geometry, estimate, optimize_tz=True,
@@ -93,7 +140,19 @@ def fine_polish(
     monitor = Monitor(space, callback, start_s)
     run = Run(replace(inputs, initial_motion=estimate, renderer=prepared.renderer), options, space,
               np.random.default_rng(0), monitor)  # fmt: skip
-    state = Plan((fine_polish_stage(options),)).run(State(run, space.start(), space))
+    polish = fine_polish_stage(options)
+    state = State(run, space.start(), space)
+    if scan_mm is None:
+        state = Plan((polish,)).run(state)
+    else:  # scan and polish; once more when the scan moved the estimate
+        scan = BeamScan(polish.image_px, 0, polish.margin_mm, scan_mm)
+        for _ in range(BEAM_SCAN_ROUNDS):
+            before = apply(state.motion, iso)
+            state = Plan((scan,)).run(state)
+            moved = np.linalg.norm(apply(state.motion, iso) - before) >= BEAM_SCAN_STEP_MM - 1e-6
+            state = Plan((polish,)).run(state)
+            if not moved:
+                break
     if monitor.stopped or not monitor.stages:
         return result
     polished = state.motion

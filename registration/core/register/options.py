@@ -283,6 +283,10 @@ class StartOptions:
     #: machine-based pose (mm at the iso-center) although its search started there (default
     #: 25.0, > 0; None: only after a start away from it).
     fine_polish_beyond_mm: float | None = 25.0
+    #: Before it, the estimate is moved along each view's central ray within this reach (mm,
+    #: 1.5 mm steps, at the fine polish's images and level) to where the views' measure is best
+    #: (default 15.0, > 0; None: never): another view's depth that the search left off.
+    beam_scan_mm: float | None = 15.0
     #: Its image size, pixels across (default 256, >= 16).
     fine_polish_px: int = 256
     #: Its reach either side of the estimate, mm and degrees (default 3.0 and 2.0, > 0).
@@ -306,7 +310,8 @@ class StartOptions:
                   translation_first_evaluations=self.translation_first_evaluations)  # fmt: skip
         _at_least("StartOptions", 16, fine_polish_px=self.fine_polish_px)
         _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm,
-                  fine_polish_beyond_mm=self.fine_polish_beyond_mm, fine_polish_reach_mm=self.fine_polish_reach_mm,
+                  fine_polish_beyond_mm=self.fine_polish_beyond_mm, beam_scan_mm=self.beam_scan_mm,
+                  fine_polish_reach_mm=self.fine_polish_reach_mm,
                   fine_polish_reach_deg=self.fine_polish_reach_deg,
                   fine_polish_xtol=self.fine_polish_xtol)  # fmt: skip
 
@@ -335,6 +340,11 @@ class StartOptions:
             away = "landmarks" if self.from_landmarks else "a start away from the machine-based pose"
             if self.fine_polish_beyond_mm is not None and not self.from_landmarks:
                 away += f" or {self.fine_polish_beyond_mm:g} mm or more from it"
+            if self.beam_scan_mm is not None:
+                lines.append(
+                    f"two views' estimate from {away}: moved along each view's beam within +-{self.beam_scan_mm:g} mm "
+                    f"to where the views fit best, at {self.fine_polish_px} px, volume level 0"
+                )
             lines.append(
                 f"two views' estimate from {away}: a fine polish at "
                 f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from registration.core.geometry import offsets_to_matrix
+from registration.core.geometry import offsets_to_matrix, rigid
 from registration.core.metrics import residuals
 from registration.core.register import RegistrationOptions, StartOptions
 from registration.core.register.fine_polish import far_from_machine, fine_polish, started_away
@@ -36,8 +36,13 @@ def test_an_estimate_from_far_away_is_polished_onto_the_truth(pair) -> None:
     assert before.translation_mm > 1.0 and polished.residual.translation_mm < 0.4, polished.residual
     assert polished.residual.rotation_deg < before.rotation_deg
     assert polished.fine_polished and polished.to_dict()["fine_polished"] is True
-    assert polished.stages[-1].stage.startswith("fine polish at 256 px, volume level 0")
-    assert polished.drr_count == far.drr_count + polished.stages[-1].drrs > far.drr_count
+    # its stages after the search's: the beam scan and the polish, twice when the scan moved the
+    # estimate (at most BEAM_SCAN_ROUNDS times)
+    added = polished.stages[len(far.stages) :]
+    names = [s.stage.split(" at ")[0] for s in added]
+    assert names in (["beam scan", "fine polish"], ["beam scan", "fine polish"] * 2), names
+    assert added[1].stage.startswith("fine polish at 256 px, volume level 0")
+    assert polished.drr_count == far.drr_count + sum(s.drrs for s in added) > far.drr_count
     # the offsets stay relative to the search's own start: they move by the polish's correction
     moved = np.abs(np.asarray(polished.offsets) - np.asarray(far.offsets))
     assert np.all(moved < 1.6) and moved.max() > 0.1
@@ -86,3 +91,24 @@ def test_an_estimate_far_from_the_machine_is_polished_though_its_search_started_
     assert "or 25 mm or more from it: a fine polish" in options.start.describe()
     with pytest.raises(ValueError, match="fine_polish_beyond_mm"):
         StartOptions(fine_polish_beyond_mm=0.0)
+
+
+def test_the_beam_scan_brings_back_a_depth_left_off_along_one_beam(pair) -> None:
+    volume, xrays, truth, options, right = pair
+    inputs = check_inputs(volume, xrays, None, truth, None, options)
+    # 8 mm off along plane A's central ray (which plane A barely sees), and a little elsewhere
+    along = np.asarray(xrays[0].geometry.direction)
+    off = rigid(None, 8.0 * along) @ offsets_to_matrix((0.3, -0.2, 0.0, 0.3, -0.2, 0.2), right.geometry) @ truth
+    far = replace(right, patient_motion=off, start_shift_mm=40.0)
+    now = time.perf_counter()
+    scanned = fine_polish(inputs, far, options, callback=None, start_s=now)
+    # the scan's 1.5 mm steps reach within 0.75 mm of the truth along the ray, the polish the rest
+    # (as from 1.2 mm above: within a few tenths)
+    assert scanned.residual.translation_mm < 0.4, scanned.residual
+    assert scanned.stages[len(far.stages)].stage.startswith("beam scan at 256 px, volume level 0")
+    # without it the polish's +-3 mm reach cannot get there
+    alone = fine_polish(inputs, far, RegistrationOptions(start=StartOptions(beam_scan_mm=None)), callback=None,
+                        start_s=now)  # fmt: skip
+    assert alone.residual.translation_mm > 4.0, alone.residual
+    assert not any(s.stage.startswith("beam scan") for s in alone.stages)
+    assert "moved along each view's beam within +-15 mm" in options.start.describe()
