@@ -10,7 +10,7 @@ Each start registers as ``roadmap3d register --landmarks --confidence`` does (th
 from the start, the estimate assessed with the landmarks' check); success is the capture study's
 criterion, and each line says whether the estimate was applied and how far it moved the landmarks.
 
-python scripts/landmark_start_study.py --seed 0 [--pairs 4] [--noise-mm 3] [--only translation/80mm]
+python scripts/landmark_start_study.py --seed 0 [--pairs 4] [--noise-mm 3] [--only translation/80mm] [--without-wall]
 Prints one JSON line per registration and a summary.
 """
 
@@ -31,6 +31,8 @@ from registration.studies.capture import CaptureConfig, capture_tasks
 from registration.studies.cases import register_prepared
 
 FROM_LANDMARKS = RegistrationOptions(start=StartOptions(from_landmarks=True))
+#: The same without the landmarks' wall (two views' search not held near the poses they allow).
+WITHOUT_WALL = RegistrationOptions(start=StartOptions(from_landmarks=True, landmark_wall=None))
 
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, -1, 0.3], [0, 1, 0.3], [0, 0, 1], [0.7, -0.7, 0.3],
                        [-0.7, -0.7, 0.3], [0, -0.6, -0.8]], dtype=float)  # fmt: skip
@@ -53,6 +55,8 @@ def main() -> int:
     ap.add_argument("--pairs", type=int, default=4)
     ap.add_argument("--noise-mm", type=float, default=3.0)
     ap.add_argument("--only", default="", help="register only the cases named so (picks drawn for all)")
+    ap.add_argument("--without-wall", action="store_true", help="two views' search not held by the landmarks")
+    ap.add_argument("--planes", choices=("both", "biplane", "single_plane"), default="both")
     args = ap.parse_args()
     rng = np.random.default_rng([args.seed, 0x1A])
     config = CaptureConfig.quick_config(seed=args.seed)
@@ -79,10 +83,13 @@ def main() -> int:
             ("biplane", list(views), landmarks),
             ("single_plane", [views[0]], [lm for lm in landmarks if lm.plane == 0]),
         ):
+            if args.planes not in ("both", name):
+                continue
             start = landmark_start([v.geometry for v in vs], lms)
             images = vs if len(vs) > 1 else vs[0]
             r, prepared = register_prepared(volume, images, initial_motion=start.patient_motion, truth=truth,
-                                            seed=case.seed, options=FROM_LANDMARKS)  # fmt: skip
+                                            seed=case.seed, landmarks=start,
+                                            options=WITHOUT_WALL if args.without_wall else FROM_LANDMARKS)  # fmt: skip
             decided = assess(r, images, prepared, landmarks=start)
             ok = bool(r.residual.success_total if name == "biplane" else r.residual.success)
             rows[name].append((ok, bool(decided.applied)))
@@ -93,10 +100,12 @@ def main() -> int:
                     {
                         "case": task.case_id.split("/a")[0],
                         "planes": name,
+                        "wall": not args.without_wall,
                         "start_rms_px": round(start.rms_px, 2),
                         "start_off_mm": round(start_off, 2),
                         "start_shift_mm": round(r.start_shift_mm, 1),
                         "walk_hops": r.walk_hops,
+                        "held": bool(r.held_by_landmarks),
                         "inplane_mm": round(r.residual.inplane_mm, 3),
                         "total_mm": round(r.residual.translation_mm, 3),
                         "rotation_deg": round(r.residual.rotation_deg, 3),

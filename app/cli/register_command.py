@@ -329,12 +329,14 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
         _say(f"body: the patient's body only; {body['outside_body_ml']:,.0f} ml of material away from it (a couch, "
              "a head holder) is not rendered")  # fmt: skip
     # a landmark start is not the machine-based pose: two views' estimate from it is fine-polished
+    # and held near the poses the landmarks allow
     engine = RegistrationOptions(start=StartOptions(from_landmarks=inputs.landmark_start is not None))
     if options.explain:
         plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer, options=engine)
         _say("plan:\n" + plan.describe() + "\naround it:\n" + engine.start.describe())
     result = register(vol, views, initial_motion=m_init, seed=options.seed, truth=inputs.truth,
-                      vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer, options=engine)  # fmt: skip
+                      vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer, options=engine,
+                      landmarks=inputs.landmark_start)  # fmt: skip
     if store is not None:
         store.flush()
     clock.lap("registration")
@@ -394,6 +396,8 @@ def say_result(result: Any, planes: int) -> None:
         )
     if result.second_search:
         _say(f"{result.second_search}: the search ran again from the image shift and kept the better fit")
+    if result.held_by_landmarks:
+        _say(result.held_by_landmarks)
     if result.start_shift_mm:
         look = "; check the estimate by eye" if shifted_start_withheld(result) else ""
         _say(

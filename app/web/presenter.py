@@ -415,6 +415,8 @@ class Presenter:
         elif result is not None:
             how = "stopped" if result.stopped else "done"
             twice = " · searched again from the image shift" if getattr(result, "second_search", "") else ""
+            if getattr(result, "held_by_landmarks", ""):
+                twice += " · searched again near the landmarks"
             if getattr(result, "translation_first", False):
                 twice += " · the translation-first candidate kept"
             if getattr(result, "fine_polished", False):

@@ -32,16 +32,11 @@ from registration.core.landmarks import LandmarkStart
 from registration.core.metrics import Residual, residuals
 from registration.core.register import (
     Progress,
-    RegistrationOptions,
     RegistrationResult,
-    StartOptions,
     register,
     registration_plan,
 )
 
-#: The engine's options for a registration from a landmark start (polished finely, as a start away
-#: from the machine-based pose).
-FROM_LANDMARKS = RegistrationOptions(start=StartOptions(from_landmarks=True))
 log = logging.getLogger(__name__)
 
 Array = np.ndarray
@@ -374,7 +369,7 @@ class Session:
                 truth=truth,
                 vessel_points_mm=data.vessel_points_mm(),
                 renderer=renderer,
-                options=FROM_LANDMARKS if landmarks is not None else None,
+                landmarks=landmarks,
             )
             skull_spine = None
             if not result.stopped and not getattr(result, "at_bounds", ()) and math.isfinite(result.similarity):

@@ -61,7 +61,8 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
     confirmed (:func:`shifted_start_withheld`), reached by walking beyond the search box
     (:mod:`registration.core.register.walk`), or one view's estimate turning the head more than
     ``SINGLE_PLANE_MAX_TURN_DEG``, or, registered from ``landmarks`` (the start they gave), an
-    estimate that moves them further than their picks allow (:meth:`LandmarkStart.veto`)."""
+    estimate that moves them further than their picks allow (:meth:`LandmarkStart.veto`) or that a
+    second search held near them (:mod:`registration.core.register.landmark_hold`) found."""
     at_bounds = getattr(result, "at_bounds", ())  # a stand-in result may not say
     if at_bounds:
         return f"the estimate ended at the search bounds ({', '.join(at_bounds)})"
@@ -90,9 +91,13 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
             f"one view's estimate turns the head {turn:.0f} deg from where the search started, more than one view "
             "can confirm: check it by eye before applying it"
         )
-    if landmarks is not None:
-        return landmarks.veto(result.patient_motion)
-    return None
+    why = None if landmarks is None else landmarks.veto(result.patient_motion)
+    if why is None and getattr(result, "held_by_landmarks", ""):
+        return (
+            "the images alone led the search away from the landmarks; held near them it found this estimate: "
+            "check it by eye before applying it"
+        )
+    return why
 
 
 def assess(

@@ -14,8 +14,9 @@ error says how well the picks agree with one rigid motion.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -75,18 +76,52 @@ class LandmarkStart:
         """How far ``motion`` moves the kept landmarks' projections from where the start put
         them: the root mean square over the kept pairs of the shift on their view's image, in
         mm at the iso-center. 0.0 without the pairs."""
-        kept = [lm for lm, keep in zip(self.landmarks, self.inliers, strict=False) if keep]
-        if not kept or not self.geometries:
+        planes = self._kept_by_plane
+        if not planes:
             return 0.0
         m = np.asarray(motion, dtype=np.float64)
-        shifts = []
-        for lm in kept:
-            g = self.geometries[lm.plane]
-            p = np.asarray(lm.volume_mm, dtype=np.float64)
-            a = g.project(self.patient_motion[:3, :3] @ p + self.patient_motion[:3, 3])
-            b = g.project(m[:3, :3] @ p + m[:3, 3])
-            shifts.append(float(np.linalg.norm(a - b)) * float(np.mean(g.pixel_mm)) / g.magnification)
-        return float(np.sqrt(np.mean(np.square(shifts))))
+        total, count = 0.0, 0
+        for g, points, at_start, mm_per_px in planes:
+            shift = np.linalg.norm(g.project(points @ m[:3, :3].T + m[:3, 3]) - at_start, axis=1) * mm_per_px
+            total += float(np.sum(shift * shift))
+            count += len(points)
+        return float(np.sqrt(total / count))
+
+    @cached_property
+    def _kept_by_plane(self) -> tuple[tuple[CArm, Array, Array, float], ...]:
+        """Per view with kept pairs: its C-arm, their volume points, where the start projects
+        them and the view's mm at the iso-center per pixel."""
+        kept = [lm for lm, keep in zip(self.landmarks, self.inliers, strict=False) if keep]
+        if not kept or not self.geometries:
+            return ()
+        s = self.patient_motion
+        out = []
+        for plane, g in enumerate(self.geometries):
+            points = np.array([lm.volume_mm for lm in kept if lm.plane == plane], dtype=np.float64).reshape(-1, 3)
+            if len(points):
+                at_start = g.project(points @ s[:3, :3].T + s[:3, 3])
+                out.append((g, points, at_start, float(np.mean(g.pixel_mm)) / g.magnification))
+        return tuple(out)
+
+    def limit_mm(self) -> float:
+        """How far an estimate may move the landmarks before :meth:`veto` holds it back (mm at
+        the iso-center, root mean square): :data:`LANDMARK_MOVE_MM`, one view
+        :data:`LANDMARK_MOVE_MM_ONE_VIEW`."""
+        return LANDMARK_MOVE_MM if len(self.geometries) > 1 else LANDMARK_MOVE_MM_ONE_VIEW
+
+    def wall(self, weight: float) -> Callable[[Array], float]:
+        """The search's soft wall around the poses these landmarks allow: a motion that moves
+        them no further than :meth:`limit_mm` costs nothing, one that moves them ``d`` mm further
+        costs ``weight * d**2`` (added to the registration's cost, -similarity)."""
+        if not (np.isfinite(weight) and weight > 0):
+            raise ValueError(f"the landmarks' wall weight must be positive, got {weight}")
+        limit = self.limit_mm()
+
+        def cost(motion: Array) -> float:
+            over = self.moved_mm(motion) - limit
+            return weight * over * over if over > 0 else 0.0
+
+        return cost
 
     def start_offset_mm(self) -> float:
         """How far the start puts the patient from the machine-based pose (no motion) at the first
@@ -103,7 +138,7 @@ class LandmarkStart:
         settled away from what the landmarks say), or, with one view, the start lies
         :data:`ONE_VIEW_MAX_START_MM` or more from the machine-based pose. None: it agrees."""
         moved = self.moved_mm(motion)
-        limit = LANDMARK_MOVE_MM if len(self.geometries) > 1 else LANDMARK_MOVE_MM_ONE_VIEW
+        limit = self.limit_mm()
         if moved > limit:
             return (
                 f"the estimate moves the landmarks {moved:.1f} mm (rms, at the iso-center) from where their picks "

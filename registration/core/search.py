@@ -11,6 +11,7 @@ beam); a biplane search has all six.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -45,6 +46,8 @@ class SearchSpace:
     the parameter vector 0 lies; the bounds are +- ``bound_mm`` / ``bound_deg`` around it.
     ``held_tz_mm``: a five-parameter space's offset along the beam (mm, the view frame's tz), held
     while the others are searched (0: the initial pose's; :meth:`holding_tz`).
+    ``wall``: a soft limit inside the box, the cost a patient motion adds to the registration's
+    (for example :meth:`registration.core.landmarks.LandmarkStart.wall`); None: the box alone.
     """
 
     frame: CArm
@@ -53,6 +56,7 @@ class SearchSpace:
     bound_mm: float = 30.0
     bound_deg: float = 15.0
     held_tz_mm: float = 0.0
+    wall: Callable[[Array], float] | None = field(default=None, repr=False, compare=False)
     _frames: tuple[Array, Array] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -66,10 +70,17 @@ class SearchSpace:
 
     @classmethod
     def for_views(
-        cls, frame: CArm, initial_motion: Array, *, optimize_tz: bool, bound_mm: float, bound_deg: float
+        cls,
+        frame: CArm,
+        initial_motion: Array,
+        *,
+        optimize_tz: bool,
+        bound_mm: float,
+        bound_deg: float,
+        wall: Callable[[Array], float] | None = None,
     ) -> SearchSpace:
         names = SIX_PARAMETERS if optimize_tz else FIVE_PARAMETERS
-        return cls(frame, initial_motion, names, bound_mm, bound_deg)
+        return cls(frame, initial_motion, names, bound_mm, bound_deg, wall=wall)
 
     def holding_tz(self, tz_mm: float) -> SearchSpace:
         """This space's five parameters with tz held at ``tz_mm`` (the depth correction's)."""

@@ -21,6 +21,7 @@ from registration.core.confidence import Assessment
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import TABLE_I, CArm, offsets_to_matrix, rigid
 from registration.core.images import XRayImage
+from registration.core.landmarks import LandmarkStart
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationOptions, RegistrationResult, register
 from registration.sim.threedra import VolumeRecipe
@@ -180,13 +181,15 @@ def register_prepared(
     truth: ArrayLike | None = None,
     vessel_points_mm: ArrayLike | None = None,
     options: RegistrationOptions | None = None,
+    landmarks: LandmarkStart | None = None,
 ) -> tuple[RegistrationResult, Preparation]:
     """Register as ``roadmap3d register`` does: the volume prepared for the views from the
     initial pose (:class:`registration.core.preparation.Preparation`: crop, body, mm levels),
     then :func:`registration.core.register.register` with its renderer. The studies' path."""
     preparation = Preparation.of(volume, views, initial_motion=initial_motion, options=options)
     result = register(volume, views, initial_motion=initial_motion, seed=seed, truth=truth,
-                      vessel_points_mm=vessel_points_mm, options=options, renderer=preparation.renderer)  # fmt: skip
+                      vessel_points_mm=vessel_points_mm, options=options, renderer=preparation.renderer,
+                      landmarks=landmarks)  # fmt: skip
     return result, preparation
 
 

@@ -32,6 +32,7 @@ from registration.core.drr import DRRRenderer
 from registration.core.geometry import invert_rigid, matrix_to_offsets
 from registration.core.images import XRayImage
 from registration.core.intensity import match_views
+from registration.core.landmarks import LandmarkStart
 from registration.core.metrics import residuals
 from registration.core.problem import support_mask
 from registration.core.register.biplane import (
@@ -46,7 +47,16 @@ from registration.core.register.biplane import (
 from registration.core.register.build import build_plan
 from registration.core.register.depth import depth_resolvable
 from registration.core.register.fine_polish import fine_polish
-from registration.core.register.inputs import Inputs, check_inputs, coarse_level, prepared_renderer, prepared_volume
+from registration.core.register.inputs import (
+    Inputs,
+    check_inputs,
+    coarse_level,
+    landmark_wall,
+    prepared_renderer,
+    prepared_volume,
+    with_landmarks,
+)
+from registration.core.register.landmark_hold import held_by_landmarks
 from registration.core.register.monitor import Monitor
 from registration.core.register.options import (
     BiplaneOptions,
@@ -118,6 +128,7 @@ def register(
     truth: ArrayLike | None = None,
     vessel_points_mm: ArrayLike | None = None,
     renderer: DRRRenderer | None = None,
+    landmarks: LandmarkStart | None = None,
 ) -> RegistrationResult:
     """Estimate the patient motion that aligns ``volume`` with the X-ray view(s).
 
@@ -129,19 +140,28 @@ def register(
     true motion (the result then carries residuals and success); ``vessel_points_mm``: mTRE
     targets in volume world mm; ``renderer``: a :class:`DRRRenderer` of ``volume``, by default
     the volume prepared for the views and the search (:func:`prepared_renderer`, cached; the
-    result's ``seconds`` excludes that preparation).
+    result's ``seconds`` excludes that preparation); ``landmarks``: the start picked landmarks
+    gave (:func:`registration.core.landmarks.landmark_start`; ``initial_motion`` defaults to
+    its pose): the estimate is fine-polished as one from away from the machine-based pose and,
+    with two or more views, the search is held near the poses the landmarks allow
+    (``StartOptions.landmark_wall``).
     """
     options = options or RegistrationOptions()
-    inputs = check_inputs(volume, views, initial_motion, truth, renderer, options)
+    if landmarks is not None:
+        options = replace(options, start=replace(options.start, from_landmarks=True))
+        if initial_motion is None:
+            initial_motion = landmarks.patient_motion
+    inputs = with_landmarks(check_inputs(volume, views, initial_motion, truth, renderer, options), landmarks)
+    wall = landmark_wall(inputs, options)
     for view in inputs.views:
         check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
     start = time.perf_counter()
     inputs, intensity = _matched_intensities(inputs, options)
 
-    def once(inputs: Inputs) -> RegistrationResult:
+    def once(inputs: Inputs, wall: Callable[[np.ndarray], float] | None = None) -> RegistrationResult:
         space = SearchSpace.for_views(inputs.views[0].geometry, inputs.initial_motion,
                                       optimize_tz=options.optimizes_tz(len(inputs.views)),
-                                      bound_mm=options.bound_mm, bound_deg=options.bound_deg)  # fmt: skip
+                                      bound_mm=options.bound_mm, bound_deg=options.bound_deg, wall=wall)  # fmt: skip
         run = Run(inputs, options, space, np.random.default_rng(seed), Monitor(space, callback, start))
         state = build_plan(inputs, options).run(State(run, space.start(), space))
         return _result(state, vessel_points_mm, time.perf_counter() - start)
@@ -159,6 +179,14 @@ def register(
         result = look_again(lambda i: walk_from_bounds(once, i, options), machine, result, options)
         result = fine_polish(machine, result, options, callback=callback, start_s=start,
                              vessel_points_mm=vessel_points_mm)  # fmt: skip
+        if wall is not None:  # from landmarks: searched again near them when the estimate left them
+
+            def held() -> RegistrationResult:
+                again = walk_from_bounds(lambda i: once(i, wall), machine, options)
+                return fine_polish(machine, again, options, callback=callback, start_s=start,
+                                   vessel_points_mm=vessel_points_mm, wall=wall)  # fmt: skip
+
+            result = held_by_landmarks(held, machine, result)
         result.beyond_box = beyond_box(result, machine.initial_motion, options)
     result.intensity = intensity
     return result

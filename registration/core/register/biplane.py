@@ -68,8 +68,8 @@ def plane_captures(
     capture run goes on at that level (one run from its end) before the planes are compared."""
     inputs, space, options, rng, monitor = run.inputs, run.space, run.options, run.rng, run.monitor
     planes = inputs.views[:2]
-    spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg)
-              for v in planes]  # fmt: skip
+    spaces = [SearchSpace(v.geometry, inputs.initial_motion, FIVE_PARAMETERS, options.bound_mm, options.bound_deg,
+                          wall=space.wall) for v in planes]  # fmt: skip
     problems = _plane_problems(run, level, margin_mm)
     refined = None if refine is None else (refine, _plane_problems(run, refine, refine_margin_mm))
     geometries = (planes[0].geometry, planes[1].geometry)

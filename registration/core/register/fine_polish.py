@@ -111,12 +111,15 @@ def fine_polish(
     callback: Callable[[Progress], bool | None] | None,
     start_s: float,
     vessel_points_mm: ArrayLike | None = None,
+    wall: Callable[[np.ndarray], float] | None = None,
 ) -> RegistrationResult:
     """``result`` polished on the views' full images and the volume's level 0 when it holds two or
     more views' six parameters, started away from the machine-based pose (or from landmarks:
     ``StartOptions.from_landmarks``) or ended ``StartOptions.fine_polish_beyond_mm`` or more from
     it, and was not stopped;
-    otherwise ``result`` itself. The result keeps every cost, the polish's stage last."""
+    otherwise ``result`` itself (``wall``: the search space's, see
+    :class:`~registration.core.search.SearchSpace`). The result keeps every cost, the polish's
+    stage last."""
     if (
         len(inputs.views) < 2
         or "tz" not in result.parameters
@@ -135,8 +138,8 @@ def fine_polish(
     reach = Reach.of_search(options.start.fine_polish_reach_mm + (scan_mm or 0.0), options.start.fine_polish_reach_deg,
                             initial_motion=estimate, isocenter_mm=iso)  # fmt: skip
     prepared = prepare_volume(inputs.volume, [v.geometry for v in inputs.views], reach=reach, levels=(0,))
-    space = SearchSpace.for_views(inputs.views[0].geometry, estimate, optimize_tz=True,
-                                  bound_mm=options.bound_mm, bound_deg=options.bound_deg)  # fmt: skip
+    space = SearchSpace.for_views(inputs.views[0].geometry, estimate, optimize_tz=True, bound_mm=options.bound_mm,
+                                  bound_deg=options.bound_deg, wall=wall)  # fmt: skip
     monitor = Monitor(space, callback, start_s)
     run = Run(replace(inputs, initial_motion=estimate, renderer=prepared.renderer), options, space,
               np.random.default_rng(0), monitor)  # fmt: skip

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import check_rigid
 from registration.core.images import XRayImage
+from registration.core.landmarks import LandmarkStart
 from registration.core.prepare import PreparationStore, PreparedVolume, Reach, prepare_volume
 from registration.core.register.options import CAPTURE_64, RegistrationOptions
 from registration.core.volume import Volume
@@ -27,6 +28,8 @@ class Inputs:
     initial_motion: Array
     truth: Array | None
     renderer: DRRRenderer
+    #: The landmark start the registration starts from (None: the machine-based pose).
+    landmarks: LandmarkStart | None = None
 
 
 def check_inputs(
@@ -53,6 +56,29 @@ def check_inputs(
     elif renderer.volume is not volume:
         raise ValueError("renderer was prepared for another volume")
     return Inputs(volume, views, m_init, truth_m, renderer)
+
+
+def with_landmarks(inputs: Inputs, landmarks: LandmarkStart | None) -> Inputs:
+    """``inputs`` registered from ``landmarks`` (their views must be the registration's)."""
+    if landmarks is None:
+        return inputs
+    if not isinstance(landmarks, LandmarkStart):
+        raise ValueError(f"landmarks must be a LandmarkStart, got {type(landmarks).__name__}")
+    if landmarks.geometries and len(landmarks.geometries) != len(inputs.views):
+        raise ValueError(
+            f"the landmarks were picked on {len(landmarks.geometries)} view(s), "
+            f"the registration has {len(inputs.views)}"
+        )
+    return replace(inputs, landmarks=landmarks)
+
+
+def landmark_wall(inputs: Inputs, options: RegistrationOptions) -> Callable[[NDArray[np.float64]], float] | None:
+    """The search's soft wall around the poses the landmarks allow (two or more views from
+    landmarks, ``StartOptions.landmark_wall``), or None."""
+    weight = options.start.landmark_wall
+    if inputs.landmarks is None or weight is None or len(inputs.views) < 2:
+        return None
+    return inputs.landmarks.wall(weight)
 
 
 def prepared_renderer(

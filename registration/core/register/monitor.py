@@ -91,13 +91,16 @@ class Monitor:
 
 
 def cost_function(problem: LevelProblem, space: SearchSpace, monitor: Monitor, parallel: bool | None) -> Callable:
-    """cost(x) = -similarity of the DRRs at the motion of x (inf once stopped)."""
+    """cost(x) = -similarity of the DRRs at the motion of x, plus the space's wall there (inf once
+    stopped)."""
     evaluator = problem.evaluator(parallel=parallel)
     drrs, rays = evaluator.drrs_per_evaluation, getattr(evaluator, "rays_per_evaluation", 0)  # 0: a stand-in
+    wall = space.wall
 
     def cost(x: Array) -> float:
         if not monitor.charge(drrs, rays):
             return math.inf  # another capture run was stopped: render nothing more
-        return -evaluator.similarity(space.motion(x))
+        motion = space.motion(x)
+        return -evaluator.similarity(motion) + (wall(motion) if wall is not None else 0.0)
 
     return cost

@@ -303,6 +303,12 @@ class StartOptions:
     #: machine-based pose: two views' estimate is then fine-polished as one from a start away
     #: from the machine-based pose (default False).
     from_landmarks: bool = False
+    #: Two or more views from landmarks (``register(landmarks=...)``) whose estimate moves them
+    #: further than their check allows (``LANDMARK_MOVE_MM``): a second search from their start
+    #: (no image shift, no second search from it), where a pose beyond that costs this much more
+    #: per mm squared beyond it, is kept instead and shown for a check by eye (default 0.05, > 0;
+    #: None: never; :mod:`registration.core.register.landmark_hold`).
+    landmark_wall: float | None = 0.05
 
     def __post_init__(self) -> None:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
@@ -313,7 +319,7 @@ class StartOptions:
                   fine_polish_beyond_mm=self.fine_polish_beyond_mm, beam_scan_mm=self.beam_scan_mm,
                   fine_polish_reach_mm=self.fine_polish_reach_mm,
                   fine_polish_reach_deg=self.fine_polish_reach_deg,
-                  fine_polish_xtol=self.fine_polish_xtol)  # fmt: skip
+                  fine_polish_xtol=self.fine_polish_xtol, landmark_wall=self.landmark_wall)  # fmt: skip
 
     def describe(self) -> str:
         """One line per rule that moves the search's start (what ``register --explain`` prints
@@ -349,6 +355,12 @@ class StartOptions:
                 f"two views' estimate from {away}: a fine polish at "
                 f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "
                 f"+-{self.fine_polish_reach_mm:g} mm / {self.fine_polish_reach_deg:g} deg (COBYQA)"
+            )
+        if self.from_landmarks and self.landmark_wall is not None:
+            lines.append(
+                "two views from landmarks: when the estimate moves them more than their check allows, a second "
+                f"search from their start, held near the poses they allow (a pose beyond costs {self.landmark_wall:g} "
+                "per mm^2), kept instead and shown for a check by eye"
             )
         return "\n".join(lines)
 

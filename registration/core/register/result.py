@@ -127,6 +127,9 @@ class RegistrationResult:
     recheck_shift_mm: float = 0.0
     #: Why the search ran again from the image shift ("": it did not).
     second_search: str = ""
+    #: Why the estimate is a second search held near the landmarks' poses
+    #: (:mod:`registration.core.register.landmark_hold`; "": it is not).
+    held_by_landmarks: str = ""
     #: Whether the estimate lies beyond the search box around the machine-based pose (its
     #: offsets from that pose exceed ``bound_mm`` / ``bound_deg``).
     beyond_box: bool = False
@@ -187,6 +190,8 @@ class RegistrationResult:
         if self.second_search:
             out["second_search"] = self.second_search
             out["recheck_shift_mm"] = self.recheck_shift_mm
+        if self.held_by_landmarks:
+            out["held_by_landmarks"] = self.held_by_landmarks
         if self.beyond_box:
             out["beyond_box"] = True
         if self.fine_polished:
