@@ -140,8 +140,9 @@ class LandmarkStart:
         moved = self.moved_mm(motion)
         limit = self.limit_mm()
         if moved > limit:
+            shown = f"{moved:.1f}" if round(moved, 1) > limit else f"{moved:.2f}"  # never "3.5 mm, more than 3.5"
             return (
-                f"the estimate moves the landmarks {moved:.1f} mm (rms, at the iso-center) from where their picks "
+                f"the estimate moves the landmarks {shown} mm (rms, at the iso-center) from where their picks "
                 f"put them, more than {limit:g} mm: check the landmarks and the estimate by eye before applying it"
             )
         far = self.start_offset_mm()

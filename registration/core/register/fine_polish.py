@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from registration.core.drr import DRRRenderer
 from registration.core.geometry import apply, rigid
 from registration.core.metrics import residuals
 from registration.core.prepare import Reach, prepare_volume
@@ -135,13 +136,17 @@ def fine_polish(
     estimate = np.asarray(result.patient_motion, dtype=np.float64)
     iso = inputs.views[0].geometry.isocenter_mm
     scan_mm = options.start.beam_scan_mm
-    reach = Reach.of_search(options.start.fine_polish_reach_mm + (scan_mm or 0.0), options.start.fine_polish_reach_deg,
-                            initial_motion=estimate, isocenter_mm=iso)  # fmt: skip
-    prepared = prepare_volume(inputs.volume, [v.geometry for v in inputs.views], reach=reach, levels=(0,))
+
+    def prepared_at(motion: np.ndarray) -> DRRRenderer:
+        """Level 0 prepared for the scan and the polish from ``motion``."""
+        reach_mm = options.start.fine_polish_reach_mm + (scan_mm or 0.0)
+        reach = Reach.of_search(reach_mm, options.start.fine_polish_reach_deg, initial_motion=motion, isocenter_mm=iso)
+        return prepare_volume(inputs.volume, [v.geometry for v in inputs.views], reach=reach, levels=(0,)).renderer
+
     space = SearchSpace.for_views(inputs.views[0].geometry, estimate, optimize_tz=True, bound_mm=options.bound_mm,
                                   bound_deg=options.bound_deg, wall=wall)  # fmt: skip
     monitor = Monitor(space, callback, start_s)
-    run = Run(replace(inputs, initial_motion=estimate, renderer=prepared.renderer), options, space,
+    run = Run(replace(inputs, initial_motion=estimate, renderer=prepared_at(estimate)), options, space,
               np.random.default_rng(0), monitor)  # fmt: skip
     polish = fine_polish_stage(options)
     state = State(run, space.start(), space)
@@ -149,7 +154,10 @@ def fine_polish(
         state = Plan((polish,)).run(state)
     else:  # scan and polish; once more when the scan moved the estimate
         scan = BeamScan(polish.image_px, 0, polish.margin_mm, scan_mm)
-        for _ in range(BEAM_SCAN_ROUNDS):
+        for round_ in range(BEAM_SCAN_ROUNDS):
+            if round_:  # the second round reaches from where the first ended: prepared around it
+                r = state.run
+                state = replace(state, run=replace(r, inputs=replace(r.inputs, renderer=prepared_at(state.motion))))
             before = apply(state.motion, iso)
             state = Plan((scan,)).run(state)
             moved = np.linalg.norm(apply(state.motion, iso) - before) >= BEAM_SCAN_STEP_MM - 1e-6

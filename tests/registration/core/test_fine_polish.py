@@ -112,3 +112,34 @@ def test_the_beam_scan_brings_back_a_depth_left_off_along_one_beam(pair) -> None
     assert alone.residual.translation_mm > 4.0, alone.residual
     assert not any(s.stage.startswith("beam scan") for s in alone.stages)
     assert "moved along each view's beam within +-15 mm" in options.start.describe()
+
+
+def test_a_second_scan_round_is_prepared_around_where_the_first_ended(pair, monkeypatch) -> None:
+    """The level-0 preparation covers one round's reach (the scan and the polish) around its
+    start; a second round starts where the first ended, up to the scan's 15 mm further, so its
+    volume is prepared again around that start (a render beyond the crop would miss anatomy)."""
+    import sys
+
+    module = sys.modules["registration.core.register.fine_polish"]
+    centers = []
+    real = module.Reach
+
+    class Recording:  # the reach each preparation is made for, and around which pose
+        @staticmethod
+        def of_search(*args, initial_motion, **kwargs):  # noqa: ANN002, ANN003, ANN205
+            centers.append(np.asarray(initial_motion, dtype=np.float64).copy())
+            return real.of_search(*args, initial_motion=initial_motion, **kwargs)
+
+    monkeypatch.setattr(module, "Reach", Recording)
+    volume, xrays, truth, options, right = pair
+    inputs = check_inputs(volume, xrays, None, truth, None, options)
+    along = np.asarray(xrays[0].geometry.direction)
+    off = rigid(None, 8.0 * along) @ truth  # the first scan moves it about 8 mm: a second round runs
+    scanned = fine_polish(inputs, replace(right, patient_motion=off, start_shift_mm=40.0), options, callback=None,
+                          start_s=time.perf_counter())  # fmt: skip
+    rounds = sum(s.stage.startswith("beam scan") for s in scanned.stages)
+    assert rounds == 2 and len(centers) == 2, (rounds, len(centers))
+    np.testing.assert_allclose(centers[0], off)
+    iso = np.asarray(xrays[0].geometry.isocenter_mm)
+    # the second preparation lies where the first round ended: at least one scan step away
+    assert np.linalg.norm(centers[1][:3, :3] @ iso + centers[1][:3, 3] - (off[:3, :3] @ iso + off[:3, 3])) >= 1.5
