@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 
 from registration.core.confidence import DEFAULT_RULE, Assessment, ConfidenceRule, Evidence
 from registration.core.drr import DRRRenderer
-from registration.core.geometry import apply
+from registration.core.geometry import CArm, apply
 from registration.core.images import XRayImage
 from registration.core.landmarks import LandmarkStart
 from registration.core.preparation import Preparation
@@ -177,13 +177,19 @@ def assess_on(
         return Assessment(0.0, False, why_not, Evidence(veto=why_not))
     evidence, probe, scan = _evidence(result, views, volume, renderer, rule)
     if single_plane_motion is not None:
-        g = views[0].geometry
-        iso = np.asarray(g.isocenter_mm)
-        shift = apply(np.asarray(result.patient_motion), iso) - apply(np.asarray(single_plane_motion), iso)
-        inplane = shift - (shift @ g.direction) * g.direction
-        evidence = replace(evidence, plane_disagreement_mm=float(np.linalg.norm(inplane)))
+        disagreement = plane_a_disagreement_mm(result.patient_motion, single_plane_motion, views[0].geometry)
+        evidence = replace(evidence, plane_disagreement_mm=disagreement)
     decided = rule.assess(evidence)
     return replace(decided, depth_probe=probe, depth_scan=scan, seconds=time.perf_counter() - start)
+
+
+def plane_a_disagreement_mm(motion: ArrayLike, single_plane_motion: ArrayLike, geometry: CArm) -> float:
+    """How far (mm) a two-view estimate ``motion`` and plane A's own single-view estimate put the
+    iso-center apart across plane A's beam (``geometry``): the planes' disagreement."""
+    iso = np.asarray(geometry.isocenter_mm)
+    shift = apply(np.asarray(motion), iso) - apply(np.asarray(single_plane_motion), iso)
+    inplane = shift - (shift @ geometry.direction) * geometry.direction
+    return float(np.linalg.norm(inplane))
 
 
 def _evidence(

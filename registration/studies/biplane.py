@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from registration import __version__
-from registration.core.assess import assess
+from registration.core.assess import assess, plane_a_disagreement_mm
 from registration.core.geometry import rigid
 from registration.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION_MM
 from registration.core.preparation import Preparation
@@ -289,7 +289,11 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
         "version": __version__,
         "revision": _revision(),
     }
-    record.update(assessment_fields(assess(both, list(views), pair, single_plane_motion=single.patient_motion)))
+    # assessed as register --confidence and the app assess it (without plane A's own estimate);
+    # the planes' disagreement is kept beside it
+    record.update(assessment_fields(assess(both, list(views), pair)))
+    record["plane_disagreement_mm"] = plane_a_disagreement_mm(both.patient_motion, single.patient_motion,
+                                                              views[0].geometry)  # fmt: skip
     single_conf = assessment_fields(assess(single, views[0], alone))
     record.update({f"single_{k}": v for k, v in single_conf.items() if k in ("confidence", "applied")})
     return record

@@ -44,6 +44,10 @@ def test_real_ct_moment_registers_through_the_prepared_volume() -> None:
     assert record["translation_residual_mm"] < 1.0 and record["rotation_residual_deg"] < 3.0
     # issue 13: every record carries the confidence and whether the estimate would be applied
     assert 0.0 <= record["confidence"] <= 1.0 and isinstance(record["applied"], bool)
+    # assessed as register --confidence and the app assess two views (no plane A estimate of its
+    # own); the planes' disagreement kept beside it: both right here, so within the 1 mm criterion
+    assert record["confidence_evidence"].get("plane_disagreement_mm") is None
+    assert 0.0 <= record["plane_disagreement_mm"] < 1.0 or not record["single_success_inplane"]
     assert np.isfinite(record["prepare_seconds"]) and "same CT" in record["image_source"]
     # per stage of the plan, what it cost: the stages' DRRs add up to the registration's
     stages = record["stages"]
