@@ -8,6 +8,7 @@ import pytest
 
 from registration.core.geometry import CArm, offsets_to_matrix
 from registration.core.landmarks import LANDMARK_MOVE_MM, Landmark, landmark_start
+from tests.registration.core.test_landmarks import _moved_by
 
 
 def _exact_picks(geometry: CArm, motion: np.ndarray, points: np.ndarray, plane: int) -> list[Landmark]:
@@ -15,12 +16,6 @@ def _exact_picks(geometry: CArm, motion: np.ndarray, points: np.ndarray, plane: 
         Landmark(tuple(float(v) for v in geometry.project(motion[:3, :3] @ p + motion[:3, 3])), tuple(p), plane)
         for p in points
     ]
-
-
-def _shifted(motion: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
-    out = motion.copy()
-    out[:3, 3] += shift_mm
-    return out
 
 
 def test_the_wall_costs_nothing_within_the_check_and_grows_as_the_square_beyond() -> None:
@@ -32,8 +27,8 @@ def test_the_wall_costs_nothing_within_the_check_and_grows_as_the_square_beyond(
     assert start.limit_mm() == LANDMARK_MOVE_MM  # two views: the two-view check's limit
     wall = start.wall(0.05)
     up = np.array([0.0, 0.0, 1.0])  # across both beams
-    assert wall(truth) == 0.0 and wall(_shifted(truth, 0.8 * LANDMARK_MOVE_MM * up)) == 0.0
-    beyond = _shifted(truth, 2.0 * LANDMARK_MOVE_MM * up)
+    assert wall(truth) == 0.0 and wall(_moved_by(truth, 0.8 * LANDMARK_MOVE_MM * up)) == 0.0
+    beyond = _moved_by(truth, 2.0 * LANDMARK_MOVE_MM * up)
     moved = start.moved_mm(beyond)
     # the definition, pair by pair: the rms shift of each kept pair's projection, mm at the iso-center
     shifts = []
@@ -64,7 +59,7 @@ def test_an_estimate_that_left_the_landmarks_is_searched_again_held_near_them() 
     views = [CArm.for_format(27.0, pixels=192, primary_deg=20.0), CArm.for_format(27.0, pixels=160, primary_deg=-70.0)]
     truth = offsets_to_matrix([6.0, -4.0, 5.0, 2.0, -2.0, 3.0], views[0])
     xrays = [simulate_xray(phantom, g, motion=truth, kind="exposure", seed=1 + n) for n, g in enumerate(views)]
-    picked_at = _shifted(truth, np.array([0.0, 0.0, 12.0]))
+    picked_at = _moved_by(truth, np.array([0.0, 0.0, 12.0]))
     points = np.random.default_rng(7).uniform(-50, 50, (4, 3))
     picks = _exact_picks(views[0], picked_at, points, 0) + _exact_picks(views[1], picked_at, points, 1)
     start = landmark_start([v.geometry for v in xrays], picks)
@@ -101,5 +96,5 @@ def test_a_held_estimate_is_shown_but_not_applied() -> None:
     assert veto(SimpleNamespace(patient_motion=truth, held_by_landmarks=held), None) == reason
     assert veto(SimpleNamespace(patient_motion=truth, held_by_landmarks=""), start) is None
     # beyond the landmarks' limit their own reason is given
-    far = _shifted(truth, np.array([0.0, 0.0, 2.0 * LANDMARK_MOVE_MM]))
+    far = _moved_by(truth, np.array([0.0, 0.0, 2.0 * LANDMARK_MOVE_MM]))
     assert "moves the landmarks" in veto(SimpleNamespace(patient_motion=far, held_by_landmarks=held), start)
