@@ -29,24 +29,11 @@ from registration.core.register import RegistrationOptions, StartOptions
 from registration.studies.biplane import _offset_motion, case_views, study_volume
 from registration.studies.capture import CaptureConfig, capture_tasks
 from registration.studies.cases import register_prepared
+from registration.studies.landmark_starts import outer_bone_points
 
 FROM_LANDMARKS = RegistrationOptions(start=StartOptions(from_landmarks=True))
 #: The same without the landmarks' wall (two views' search not held near the poses they allow).
 WITHOUT_WALL = RegistrationOptions(start=StartOptions(from_landmarks=True, landmark_wall=None))
-
-DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, -1, 0.3], [0, 1, 0.3], [0, 0, 1], [0.7, -0.7, 0.3],
-                       [-0.7, -0.7, 0.3], [0, -0.6, -0.8]], dtype=float)  # fmt: skip
-
-
-def outer_bone_points(volume, count: int) -> np.ndarray:  # noqa: ANN001
-    """The skull's outermost bone voxels (world mm) along ``count`` of the spread directions."""
-    kk, jj, ii = np.nonzero(volume.data > 400.0)
-    pts = (volume.index_to_world @ np.stack([ii, jj, kk, np.ones_like(ii)]).astype(float))[:3].T
-    c = pts.mean(axis=0)
-    dirs = DIRECTIONS / np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
-    picks = [pts[int(np.argmax((pts - c) @ d))] for d in dirs]
-    order = [0, 1, 4, 2, 3, 5, 6, 7]  # spread first: left, right, vertex, front
-    return np.array([picks[i] for i in order[:count]])
 
 
 def main() -> int:

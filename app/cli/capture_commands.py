@@ -31,7 +31,12 @@ def capture_config(args: CaptureStudy) -> capture.CaptureConfig:
         config = replace(config, registrations_per_level=args.registrations)
     if not args.sweep:
         raise ValueError("--sweep needs at least one of translation, rotation, combined")
-    return replace(config, sweeps=tuple(dict.fromkeys(args.sweep)))
+    if args.from_landmarks is not None and not 4 <= args.from_landmarks <= 8:
+        raise ValueError(f"--from-landmarks takes 4 to 8 landmarks per plane, got {args.from_landmarks}")
+    if not args.landmark_error_mm >= 0:
+        raise ValueError(f"--landmark-error-mm must be >= 0, got {args.landmark_error_mm}")
+    return replace(config, sweeps=tuple(dict.fromkeys(args.sweep)), landmark_pairs=args.from_landmarks,
+                   landmark_noise_mm=float(args.landmark_error_mm))  # fmt: skip
 
 
 def run_capture_study(args: CaptureStudy) -> int:

@@ -117,6 +117,11 @@ class CaptureStudy:
     """Moments per offset level (default: 10, quick 3)."""
     sweep: tuple[Literal["translation", "rotation", "combined"], ...] = ("translation", "rotation", "combined")
     """Which sweeps to run: the translation alone, the rotation alone, or both growing together."""
+    from_landmarks: int | None = None
+    """Start each registration from this many landmarks per plane (4-8, on the skull's outline) picked
+    with --landmark-error-mm instead of from the machine-based pose."""
+    landmark_error_mm: float = 3.0
+    """The landmarks' picking error, mm (volume and image)."""
 
 
 @dataclass

@@ -55,8 +55,17 @@ class CaptureConfig:
     ct_path: str | None = None
     seed: int = 0
     quick: bool = False
+    #: Register each moment from this many landmarks per plane picked with error instead of from
+    #: the machine-based pose (:mod:`registration.studies.landmark_starts`; None: from the
+    #: machine-based pose), and their picking error (mm).
+    landmark_pairs: int | None = None
+    landmark_noise_mm: float = 3.0
 
     def __post_init__(self) -> None:
+        if self.landmark_pairs is not None and not 4 <= self.landmark_pairs <= 8:
+            raise ValueError(f"landmark pairs must lie in 4..8 (four fix a pose), got {self.landmark_pairs}")
+        if not (np.isfinite(self.landmark_noise_mm) and self.landmark_noise_mm >= 0):
+            raise ValueError(f"the landmarks' picking error must be >= 0 mm, got {self.landmark_noise_mm}")
         if len(self.translations_mm) != len(self.rotations_deg):
             raise ValueError("the translation and rotation sweeps need the same number of levels")
         unknown = set(self.sweeps) - set(SWEEPS)
@@ -124,7 +133,14 @@ def capture_tasks(config: CaptureConfig, options: RegistrationOptions | None = N
                     "level_rotation_deg": r_deg,
                     "registration": number,
                 }
-                tasks.append(StudyTask(f"{ident}/{tag}/s{config.seed}", case, extra, options))
+                case_id = f"{ident}/{tag}/s{config.seed}"
+                if config.landmark_pairs is not None:
+                    from registration.studies.landmark_starts import LandmarkCase
+
+                    case_id += f"/landmarks-{config.landmark_pairs}x{config.landmark_noise_mm:g}mm"
+                    pick_seed = _stable_seed(config.seed, case_id)
+                    case = LandmarkCase(case, config.landmark_pairs, config.landmark_noise_mm, pick_seed)
+                tasks.append(StudyTask(case_id, case, extra, options))
     return tasks
 
 
@@ -239,7 +255,9 @@ def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
         ax.set_title(f"{sweep} sweep (n = {rows[0]['runs']} per level)", fontsize=9)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7, loc="center left")
-    fig.suptitle("Capture range: success against the initial offset (dotted: 95 %)", fontsize=10)
+    picks = summary.get("config", {}).get("landmark_pairs")
+    start = f", from {picks} landmarks per plane" if picks else ""
+    fig.suptitle(f"Capture range{start}: success against the initial offset (dotted: 95 %)", fontsize=10)
     fig.tight_layout()
     stamp(fig, records)
     fig.savefig(path, dpi=120)
@@ -253,11 +271,16 @@ def _radius(x: float | None, unit: str) -> str:
 
 def capture_report_md(summary: dict, image: str) -> str:
     pct = lambda x: "-" if x is None else f"{100 * x:.1f} %"  # noqa: E731
+    cfg = summary["config"]
+    start = "the machine-based pose"
+    if cfg.get("landmark_pairs"):
+        start = (f"the pose {cfg['landmark_pairs']} landmarks per plane give, picked on the skull's outline with "
+                 f"{cfg['landmark_noise_mm']:g} mm error (volume and image)")  # fmt: skip
     lines = [
-        "# Capture range",
+        "# Capture range" + (" from landmarks" if cfg.get("landmark_pairs") else ""),
         "",
         "Each moment is seen by plane A (near frontal) and plane B (near lateral) and registered biplane and, on "
-        "plane A alone, single plane, from the machine-based pose while the patient is offset by the level's "
+        f"plane A alone, single plane, from {start} while the patient is offset by the level's "
         "translation (random 3-D direction) and rotation (random axis). The capture radius is the largest offset "
         f"up to which every level succeeds in at least {100 * CAPTURE_SHARE:g} % of the registrations.",
         "",
@@ -293,7 +316,6 @@ def capture_report_md(summary: dict, image: str) -> str:
                 )
         wrong = summary[plane]["applied_wrong"]
         lines += ["", "Applied and wrong: " + (", ".join(wrong) if wrong else "none") + ".", ""]
-    cfg = summary["config"]
     lines.append(f"roadmap3d {summary['version']}, seed {cfg.get('seed')}, wall {summary['wall_seconds']:.0f} s.")
     return "\n".join(lines) + "\n"
 

@@ -101,3 +101,64 @@ def test_validate_capture_refuses_bad_options(capsys: pytest.CaptureFixture[str]
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert "--registrations must be >= 1" in err and "Traceback" not in err
+    with pytest.raises(SystemExit) as exit_:
+        main(["validate", "capture", "--from-landmarks", "3"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--from-landmarks takes 4 to 8" in err and "Traceback" not in err
+
+
+def test_from_landmarks_the_same_moments_start_from_picks() -> None:
+    from registration.studies.landmark_starts import LandmarkCase
+
+    config = replace(CaptureConfig.quick_config(seed=3), registrations_per_level=1)
+    plain = capture_tasks(config)
+    picked = capture_tasks(replace(config, landmark_pairs=4, landmark_noise_mm=3.0))
+    assert len(picked) == len(plain)
+    for a, b in zip(plain, picked, strict=True):
+        # the same moment, its own case id (a results file may hold both) and its own picks
+        assert isinstance(b.case, LandmarkCase) and b.case.case == a.case and b.extra == a.extra
+        assert b.case_id == a.case_id + "/landmarks-4x3mm"
+    assert len({t.case.pick_seed for t in picked}) == len(picked)
+    with pytest.raises(ValueError, match="four fix a pose"):
+        replace(config, landmark_pairs=3)
+    with pytest.raises(ValueError, match="picking error"):
+        replace(config, landmark_noise_mm=-1.0)
+
+
+def test_the_picks_lie_on_the_skulls_outline() -> None:
+    from registration.core.volume import Volume
+    from registration.studies.landmark_starts import outer_bone_points
+
+    # a bone shell of radius 60 mm about (5, -3, 10) mm: its outermost points along the pick
+    # directions lie 60 mm out along them (within the 1 mm voxel)
+    z, y, x = np.mgrid[-80:81, -80:81, -80:81].astype(np.float64)
+    r = np.sqrt(x**2 + y**2 + z**2)
+    hu = np.where((r > 55) & (r <= 60), 1000.0, 0.0).astype(np.float32)
+    volume = Volume.from_grid(hu, (1.0, 1.0, 1.0), label="shell")
+    centre_index = np.array([80.0, 80.0, 80.0, 1.0])
+    centre = (volume.index_to_world @ centre_index)[:3]
+    points = outer_bone_points(volume, 4)
+    assert np.all(np.abs(np.linalg.norm(points - centre, axis=1) - 60.0) < 1.0)
+    with pytest.raises(ValueError, match="no bone"):
+        outer_bone_points(Volume.from_grid(np.zeros((8, 8, 8), np.float32), (1.0, 1.0, 1.0), label="air"), 4)
+
+
+def test_a_moment_from_landmarks_registers_and_is_checked_against_them() -> None:
+    """The quick phantom's 40 mm translation moment from four picks per plane 3 mm off: two views
+    register (the landmarks put the start within a few mm; the biplane criterion: 3-D < 1 mm)."""
+    from registration.studies.landmark_starts import run_landmark_case
+
+    config = replace(CaptureConfig.quick_config(seed=0), registrations_per_level=1, sweeps=("translation",),
+                     landmark_pairs=4)  # fmt: skip
+    task = next(t for t in capture_tasks(config) if t.extra["level_translation_mm"] == 40.0)
+    record = run_landmark_case(task.case)
+    assert record["success"] and record["translation_residual_mm"] < 1.0, record
+    # four picks 3 mm off start two views within a few mm of the patient (picked 3 mm off)
+    assert record["start_off_mm"] < 6.0 and record["landmark_pairs"] == 4
+    assert isinstance(record["single_success_inplane"], bool) and isinstance(record["single_applied"], bool)
+    # one view 40 mm from the machine-based pose: never applied (it cannot confirm the depth)
+    assert not record["single_applied"] and "cannot confirm the depth" in record["single_withheld_reason"]
+    summary = capture_summary([{**record, **task.extra, "case_id": task.case_id}], config={"seed": 0,
+                              "landmark_pairs": 4, "landmark_noise_mm": 3.0}, wall_seconds=1.0)  # fmt: skip
+    assert summary["biplane"]["runs"] == 1
