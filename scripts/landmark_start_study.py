@@ -24,12 +24,12 @@ import numpy as np
 
 from registration.core.assess import assess
 from registration.core.geometry import apply
-from registration.core.landmarks import Landmark, landmark_start
+from registration.core.landmarks import landmark_start
 from registration.core.register import RegistrationOptions, StartOptions
 from registration.studies.biplane import _offset_motion, case_views, study_volume
 from registration.studies.capture import CaptureConfig, capture_tasks
 from registration.studies.cases import register_prepared
-from registration.studies.landmark_starts import outer_bone_points
+from registration.studies.landmark_starts import picked_landmarks
 
 FROM_LANDMARKS = RegistrationOptions(start=StartOptions(from_landmarks=True))
 #: The same without the landmarks' wall (two views' search not held near the poses they allow).
@@ -54,16 +54,7 @@ def main() -> int:
         volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
         truth = _offset_motion(case)
         views, _ = case_views(case, volume, truth)
-        anatomy = outer_bone_points(volume, args.pairs)
-        sigma = args.noise_mm / np.sqrt(3.0)
-        landmarks = []
-        for plane, view in enumerate(views):
-            g = view.geometry
-            px_per_mm = g.magnification / float(np.mean(g.pixel_mm))
-            for p in anatomy:
-                image_px = g.project(apply(truth, p)) + rng.normal(0.0, sigma, 2) * px_per_mm
-                volume_mm = p + rng.normal(0.0, sigma, 3)
-                landmarks.append(Landmark(tuple(image_px), tuple(volume_mm), plane))
+        landmarks = picked_landmarks(volume, views, truth, pairs=args.pairs, noise_mm=args.noise_mm, rng=rng)
         if args.only not in task.case_id:
             continue
         for name, vs, lms in (
