@@ -213,7 +213,9 @@ def _evidence(
 
         if not depth_corrected(result) and (rule.depth_weight or rule.pull_weight):
             probe = depth_probe(renderer, views[0], motion)
-        scan = depth_scan(renderer, views[0], motion, stride=SCAN_STRIDE)
+        # the rule reads the scan only below its free distance: the scan stops once it cannot lie there
+        below = rule.scan_free_mm if rule.scan_weight else None
+        scan = depth_scan(renderer, views[0], motion, stride=SCAN_STRIDE, below_mm=below)
     probes = [probe_measure(volume, v, motion, renderer) for v in views]
     per_view = [
         registration_evidence(volume, v, motion, renderer=renderer, capture_motions=result.capture_motions,

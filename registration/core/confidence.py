@@ -51,7 +51,9 @@ The confidence is a logistic function of what the engine knows about the estimat
     does not remove the measure's bias toward the source on FDK volumes, it increases it (the
     bias lives in the coarse scales); removing those scales and holding the in-plane fit
     brings the peak at the true pose within 0-5 mm of it
-    (docs/validation/clinical-s6/depth_scan.md).
+    (docs/validation/clinical-s6/depth_scan.md). The assessment's scan stops once its peak
+    cannot lie below ``scan_free_mm`` (the term reads nothing else): then the best offset it
+    evaluated, with the peak at most a millimetre below it.
 ``beam_margin``
     Two or more views: the smallest margin of one view's measure when the estimate moves
     ``BEAM_PROBE_MM`` either way along another view's central ray, relative to the measure

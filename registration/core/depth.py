@@ -196,10 +196,14 @@ class DepthScan:
     offsets_mm: tuple[float, ...]
     similarity: tuple[float, ...]
     drr_count: int
+    #: The scan stopped once its peak could no longer lie below the offset asked about: ``tz_mm``
+    #: is then the best offset evaluated, and the peak lies no more than half a step below it.
+    stopped: bool = False
 
     def to_dict(self) -> dict:
         return {
             "tz_mm": self.tz_mm,
+            "stopped": self.stopped,
             "sigma_px": self.sigma_px,
             "offsets_mm": list(self.offsets_mm),
             "similarity": list(self.similarity),
@@ -219,6 +223,7 @@ def depth_scan(
     sigma_px: float | None = None,
     pixel_at_iso_mm: float | None = None,
     stride: int = 1,
+    below_mm: float | None = None,
 ) -> DepthScan:
     """The high-passed gradient difference of ``xray`` at ``motion`` moved along the beam by each
     of ``offsets_mm`` (nothing else moves), and where it peaks (see the module's docstring).
@@ -231,7 +236,9 @@ def depth_scan(
     (:func:`registration.core.problem.matched_factor`) instead of ``image_px``'s rule.
     ``stride``: evaluate every ``stride``-th offset (the last too), then climb offset by offset
     from the best until it has both neighbours (the offsets and values kept are those evaluated).
-    Deterministic."""
+    ``below_mm``: only a peak below it is wanted (the confidence reads no other): the scan stops
+    once the strided scan's peak can no longer lie there (``stopped``), and is that scan's
+    otherwise (:func:`_scanned`). Deterministic."""
     m = check_rigid(motion, name="motion")
     g = xray.geometry
     count0 = renderer.count
@@ -265,11 +272,11 @@ def depth_scan(
         drr = renderer.render(view.geometry, shift @ m, level=problem.volume_level, mask=view.mask, out=out)
         return float(measure(high_pass(drr, view.mask, sigma_px, weight)))
 
-    offsets_mm, values = _scanned(tuple(float(o) for o in offsets_mm), at, stride)
+    offsets_mm, values, stopped = _scanned(tuple(float(o) for o in offsets_mm), at, stride, below_mm)
     v = np.asarray(values)
     i = int(np.argmax(v))
     tz = float(offsets_mm[i])
-    if 0 < i < len(v) - 1:
+    if 0 < i < len(v) - 1 and not stopped:
         curv = v[i - 1] - 2.0 * v[i] + v[i + 1]
         if curv < 0:
             h = 0.5 * (offsets_mm[i + 1] - offsets_mm[i - 1])
@@ -280,26 +287,85 @@ def depth_scan(
         offsets_mm=tuple(float(o) for o in offsets_mm),
         similarity=tuple(values),
         drr_count=renderer.count - count0,
+        stopped=stopped,
     )
 
 
-def _scanned(offsets: tuple[float, ...], at, stride: int) -> tuple[tuple[float, ...], list[float]]:  # noqa: ANN001
+def _scanned(
+    offsets: tuple[float, ...],
+    at,  # noqa: ANN001
+    stride: int,
+    below_mm: float | None = None,
+) -> tuple[tuple[float, ...], list[float], bool]:
     """``at`` evaluated on ``offsets`` (``stride`` 1), or on every ``stride``-th offset (the ends
     included) and then offset by offset uphill from the best until the best has both neighbours
     evaluated: the same peak and parabola as the full scan when the measure has one peak there.
-    Returns the offsets evaluated (in order) and their values."""
+
+    ``below_mm`` (ascending ``offsets``): only whether the peak lies below ``below_mm`` is wanted,
+    and the peak itself when it does. The samples that could lead there come first, the climb
+    tries its lower neighbour first, and the scan stops as soon as the strided scan's peak can no
+    longer lie below ``below_mm`` (its parabola included); when it does lie below, the result is
+    the strided scan's, bit for bit. Returns the offsets whose values decide the peak (in order),
+    their values, and whether the scan stopped early (then only the best of them is meaningful)."""
     if int(stride) != stride or stride < 1:
         raise ValueError(f"stride must be a positive integer, got {stride}")
     n = len(offsets)
-    seen: dict[int, float] = {}
-    for i in sorted({*range(0, n, stride), n - 1}):
-        seen[i] = at(offsets[i])
+    cache: dict[int, float] = {}
+
+    def value(k: int) -> float:
+        if k not in cache:
+            cache[k] = at(offsets[k])
+        return cache[k]
+
+    def best_of(seen: dict[int, float]) -> int:
+        return max(seen, key=lambda k: (seen[k], -k))
+
+    coarse = sorted({*range(0, n, stride), n - 1})
+    if below_mm is not None:
+        if any(b <= a for a, b in zip(offsets, offsets[1:], strict=False)):
+            raise ValueError("below_mm needs ascending offsets")
+        last_low = _last_low(offsets, below_mm)
+        # coarse samples from which a climb could end at or below last_low (their lower
+        # neighbours are the nearest samples under them)
+        lower = [c for i, c in enumerate(coarse) if (coarse[i - 1] + 1 if i else 0) <= last_low]
+        if lower != coarse:
+            seen = {c: value(c) for c in lower}
+            while True:
+                best = best_of(seen)
+                down, up = best - 1, best + 1
+                if down >= 0 and down not in seen:
+                    seen[down] = value(down)
+                    if best_of(seen) != best:
+                        continue
+                # the climb only rises from here: it can end below only from a low best
+                if best > last_low:
+                    keys = sorted(seen)
+                    return tuple(offsets[k] for k in keys), [seen[k] for k in keys], True
+                if up < n and up not in seen:
+                    seen[up] = value(up)
+                    continue
+                break
+            # the peak of the lower samples lies below: the strided scan decides (its best
+            # sample may lie higher), with the values already rendered
+    seen = {c: value(c) for c in coarse}
     while True:
-        best = max(seen, key=lambda k: (seen[k], -k))
+        best = best_of(seen)
         missing = [k for k in (best - 1, best + 1) if 0 <= k < n and k not in seen]
         if not missing:
             break
         for k in missing:
-            seen[k] = at(offsets[k])
+            seen[k] = value(k)
     keys = sorted(seen)
-    return tuple(offsets[k] for k in keys), [seen[k] for k in keys]
+    return tuple(offsets[k] for k in keys), [seen[k] for k in keys], False
+
+
+def _last_low(offsets: tuple[float, ...], below_mm: float) -> int:
+    """The last index whose peak (its parabola may move it half a step either way) could lie
+    below ``below_mm``; -1 when none can."""
+    n = len(offsets)
+    last = -1
+    for k in range(n):
+        half = 0.25 * (offsets[k + 1] - offsets[k - 1]) if 0 < k < n - 1 else 0.0
+        if offsets[k] - half < below_mm:
+            last = k
+    return last

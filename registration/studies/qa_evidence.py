@@ -264,7 +264,9 @@ def depth_figure(
     fig, ax = plt.subplots(figsize=(7.0, 3.0))
     ax.plot(x, y, color="#1c7ed6", lw=1.4, marker=".", ms=3)
     peak = float(scan["tz_mm"])  # type: ignore[arg-type]
-    ax.axvline(peak, color="#2f9e44", lw=1.0, label=f"scan peak {peak:+.1f} mm")
+    # a scan that stopped once its peak could not lie in the withheld region shows its best offset
+    label = f"scan best {peak:+.1f} mm (peak at or above it)" if scan.get("stopped") else f"scan peak {peak:+.1f} mm"
+    ax.axvline(peak, color="#2f9e44", lw=1.0, label=label)
     ax.axvline(0.0, color="#495057", lw=0.8, ls=":", label="estimate")
     if rule.scan_weight:
         ax.axvspan(x.min(), rule.scan_free_mm, color="#ffe3e3", alpha=0.7, lw=0,
