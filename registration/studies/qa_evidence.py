@@ -274,6 +274,8 @@ def depth_figure(
     if probe:
         ax.axvline(float(probe["tz_mm"]), color="#f08c00", lw=1.0, ls="--",  # type: ignore[arg-type]
                    label=f"depth probe tz {float(probe['tz_mm']):+.1f} mm, shift {float(probe['shift_mm']):.2f} mm")  # type: ignore[arg-type]  # fmt: skip
+    reach = float(np.abs(x).max())
+    ax.set_xlim(-reach * 1.04, reach * 1.04)  # the scanned range either way, sampled or not
     ax.set_xlabel("tz from the estimate (mm, + toward the source)", fontsize=8)
     ax.set_ylabel("high-passed GD", fontsize=8)
     ax.ticklabel_format(axis="y", useOffset=False)
