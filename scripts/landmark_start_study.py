@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 
 import numpy as np
 
@@ -44,7 +45,11 @@ def main() -> int:
     ap.add_argument("--only", default="", help="register only the cases named so (picks drawn for all)")
     ap.add_argument("--without-wall", action="store_true", help="two views' search not held by the landmarks")
     ap.add_argument("--planes", choices=("both", "biplane", "single_plane"), default="both")
+    ap.add_argument("--fine-polish-evaluations", type=int, default=None, help="two views' fine polish budget")
     args = ap.parse_args()
+    options = WITHOUT_WALL if args.without_wall else FROM_LANDMARKS
+    if args.fine_polish_evaluations is not None:
+        options = replace(options, start=replace(options.start, fine_polish_evaluations=args.fine_polish_evaluations))
     rng = np.random.default_rng([args.seed, 0x1A])
     config = CaptureConfig.quick_config(seed=args.seed)
     tasks = [t for t in capture_tasks(config) if t.extra["level"] >= 2]
@@ -67,7 +72,7 @@ def main() -> int:
             images = vs if len(vs) > 1 else vs[0]
             r, prepared = register_prepared(volume, images, initial_motion=start.patient_motion, truth=truth,
                                             seed=case.seed, landmarks=start,
-                                            options=WITHOUT_WALL if args.without_wall else FROM_LANDMARKS)  # fmt: skip
+                                            options=options)  # fmt: skip
             decided = assess(r, images, prepared, landmarks=start)
             ok = bool(r.residual.success_total if name == "biplane" else r.residual.success)
             rows[name].append((ok, bool(decided.applied)))
@@ -94,6 +99,7 @@ def main() -> int:
                         "withheld_reason": decided.reason,
                         "confidence": round(decided.confidence, 4),
                         "beam_margin": decided.evidence.beam_margin,
+                        "fine_polish_evaluations": options.start.fine_polish_evaluations,
                     }
                 ),
                 flush=True,
