@@ -276,9 +276,9 @@ class StartOptions:
     recheck_mm: float | None = 5.0
     #: Two views' estimate whose search started away from the machine-based pose (image shift or
     #: walk) is polished once more on the views' full images and the volume's level 0
-    #: (:mod:`registration.core.register.fine_polish`, COBYQA): evaluations (default 60, >= 0;
-    #: 0: never).
-    fine_polish_evaluations: int = 60
+    #: (:mod:`registration.core.register.fine_polish`, COBYQA): evaluations at most, each
+    #: time it runs (default 120, >= 0; 0: never).
+    fine_polish_evaluations: int = 120
     #: The fine polish also runs when two views' estimate lies at least this far from the
     #: machine-based pose (mm at the iso-center) although its search started there (default
     #: 25.0, > 0; None: only after a start away from it).
