@@ -46,10 +46,13 @@ def main() -> int:
     ap.add_argument("--without-wall", action="store_true", help="two views' search not held by the landmarks")
     ap.add_argument("--planes", choices=("both", "biplane", "single_plane"), default="both")
     ap.add_argument("--fine-polish-evaluations", type=int, default=None, help="two views' fine polish budget")
+    ap.add_argument("--depth-bound-mm", type=float, default=None, help="one view's depth correction bound")
     args = ap.parse_args()
     options = WITHOUT_WALL if args.without_wall else FROM_LANDMARKS
     if args.fine_polish_evaluations is not None:
         options = replace(options, start=replace(options.start, fine_polish_evaluations=args.fine_polish_evaluations))
+    if args.depth_bound_mm is not None:
+        options = replace(options, depth=replace(options.depth, bound_mm=args.depth_bound_mm))
     rng = np.random.default_rng([args.seed, 0x1A])
     config = CaptureConfig.quick_config(seed=args.seed)
     tasks = [t for t in capture_tasks(config) if t.extra["level"] >= 2]
@@ -100,6 +103,7 @@ def main() -> int:
                         "confidence": round(decided.confidence, 4),
                         "beam_margin": decided.evidence.beam_margin,
                         "fine_polish_evaluations": options.start.fine_polish_evaluations,
+                        "depth_bound_mm": options.depth.bound_mm,
                     }
                 ),
                 flush=True,

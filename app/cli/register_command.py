@@ -332,7 +332,8 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     # and held near the poses the landmarks allow
     engine = RegistrationOptions(start=StartOptions(from_landmarks=inputs.landmark_start is not None))
     if options.explain:
-        plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer, options=engine)
+        plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer, options=engine,
+                                 landmarks=inputs.landmark_start)  # fmt: skip
         _say("plan:\n" + plan.describe() + "\naround it:\n" + engine.start.describe())
     result = register(vol, views, initial_motion=m_init, seed=options.seed, truth=inputs.truth,
                       vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer, options=engine,

@@ -358,7 +358,7 @@ class Session:
             # the user's volume: prepared for these views and this start (app.data.FileData.prepared)
             renderer = data.renderer(volume_format, views=full_views, initial_motion=initial)
             if log.isEnabledFor(logging.INFO):  # the plan this registration runs, as register --explain prints it
-                plan = registration_plan(volume, views, initial_motion=initial, renderer=renderer)
+                plan = registration_plan(volume, views, initial_motion=initial, renderer=renderer, landmarks=landmarks)
                 log.info("registration plan:\n%s", plan.describe())
             result = register(
                 volume,

@@ -107,6 +107,7 @@ __all__ = [
     "check_inputs",
     "combine_plane_estimates",
     "depth_resolvable",
+    "landmark_depth",
     "plane_disagreement",
     "prepared_renderer",
     "prepared_volume",
@@ -152,6 +153,7 @@ def register(
         if initial_motion is None:
             initial_motion = landmarks.patient_motion
     inputs = with_landmarks(check_inputs(volume, views, initial_motion, truth, renderer, options), landmarks)
+    options = landmark_depth(options, inputs)
     wall = landmark_wall(inputs, options)
     for view in inputs.views:
         check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
@@ -192,6 +194,15 @@ def register(
     return result
 
 
+def landmark_depth(options: RegistrationOptions, inputs: Inputs) -> RegistrationOptions:
+    """``options`` with one view's depth correction reaching ``StartOptions.landmark_depth_mm``
+    from a landmark start (never less than its own bound); ``options`` itself otherwise."""
+    reach = options.start.landmark_depth_mm
+    if inputs.landmarks is None or len(inputs.views) != 1 or reach is None or reach <= options.depth.bound_mm:
+        return options
+    return replace(options, depth=replace(options.depth, bound_mm=float(reach)))
+
+
 def beyond_box(result: RegistrationResult, machine_motion: np.ndarray, options: RegistrationOptions) -> bool:
     """Whether ``result``'s estimate lies beyond the search box around the machine-based pose
     (its searched translations beyond ``bound_mm`` or a rotation beyond ``bound_deg``)."""
@@ -221,10 +232,12 @@ def registration_plan(
     initial_motion: ArrayLike | None = None,
     options: RegistrationOptions | None = None,
     renderer: DRRRenderer | None = None,
+    landmarks: LandmarkStart | None = None,
 ) -> Plan:
     """The plan :func:`register` runs for these inputs (``.describe()``: one line per stage)."""
     options = options or RegistrationOptions()
-    return build_plan(check_inputs(volume, views, initial_motion, None, renderer, options), options)
+    inputs = with_landmarks(check_inputs(volume, views, initial_motion, None, renderer, options), landmarks)
+    return build_plan(inputs, landmark_depth(options, inputs))
 
 
 def _result(state: State, vessel_points_mm: ArrayLike | None, seconds: float) -> RegistrationResult:

@@ -309,6 +309,10 @@ class StartOptions:
     #: per mm squared beyond it, is kept instead and shown for a check by eye (default 0.05, > 0;
     #: None: never; :mod:`registration.core.register.landmark_hold`).
     landmark_wall: float | None = 0.05
+    #: One view from landmarks: the depth correction may move tz this far from their start (mm;
+    #: default 50.0, > 0; None: ``DepthOptions.bound_mm``): four picks on one image put the
+    #: depth 15-50 mm off, beyond the correction's usual 25 mm.
+    landmark_depth_mm: float | None = 50.0
 
     def __post_init__(self) -> None:
         _at_least("StartOptions", 1, walk_hops=self.walk_hops)
@@ -319,7 +323,8 @@ class StartOptions:
                   fine_polish_beyond_mm=self.fine_polish_beyond_mm, beam_scan_mm=self.beam_scan_mm,
                   fine_polish_reach_mm=self.fine_polish_reach_mm,
                   fine_polish_reach_deg=self.fine_polish_reach_deg,
-                  fine_polish_xtol=self.fine_polish_xtol, landmark_wall=self.landmark_wall)  # fmt: skip
+                  fine_polish_xtol=self.fine_polish_xtol, landmark_wall=self.landmark_wall,
+                  landmark_depth_mm=self.landmark_depth_mm)  # fmt: skip
 
     def describe(self) -> str:
         """One line per rule that moves the search's start (what ``register --explain`` prints
@@ -356,6 +361,9 @@ class StartOptions:
                 f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "
                 f"+-{self.fine_polish_reach_mm:g} mm / {self.fine_polish_reach_deg:g} deg (COBYQA)"
             )
+        if self.from_landmarks and self.landmark_depth_mm is not None:
+            reach = f"+-{self.landmark_depth_mm:g} mm"
+            lines.append(f"one view from landmarks: the depth correction reaches {reach} from their start")
         if self.from_landmarks and self.landmark_wall is not None:
             lines.append(
                 "two views from landmarks: when the estimate moves them more than their check allows, a second "

@@ -98,3 +98,25 @@ def test_a_held_estimate_is_shown_but_not_applied() -> None:
     # beyond the landmarks' limit their own reason is given
     far = _moved_by(truth, np.array([0.0, 0.0, 2.0 * LANDMARK_MOVE_MM]))
     assert "moves the landmarks" in veto(SimpleNamespace(patient_motion=far, held_by_landmarks=held), start)
+
+
+def test_one_view_from_landmarks_corrects_the_depth_further() -> None:
+    """Four picks on one image put the depth 15-50 mm off: one view's depth correction then
+    reaches StartOptions.landmark_depth_mm from their start; two views, no landmarks, or the
+    option off keep DepthOptions.bound_mm."""
+    from types import SimpleNamespace
+
+    from registration.core.register import RegistrationOptions, StartOptions, landmark_depth
+
+    options = RegistrationOptions()
+    one = SimpleNamespace(landmarks=object(), views=(object(),))
+    assert options.depth.bound_mm == 25.0 and options.start.landmark_depth_mm == 50.0
+    assert landmark_depth(options, one).depth.bound_mm == 50.0
+    assert landmark_depth(options, SimpleNamespace(landmarks=object(), views=(object(), object()))) is options
+    assert landmark_depth(options, SimpleNamespace(landmarks=None, views=(object(),))) is options
+    off = RegistrationOptions(start=StartOptions(landmark_depth_mm=None))
+    assert landmark_depth(off, one) is off
+    with pytest.raises(ValueError, match="landmark_depth_mm"):
+        StartOptions(landmark_depth_mm=-1.0)
+    explained = StartOptions(from_landmarks=True).describe()
+    assert "one view from landmarks: the depth correction reaches +-50 mm from their start" in explained
