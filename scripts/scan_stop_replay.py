@@ -10,21 +10,9 @@ from __future__ import annotations
 import glob
 import json
 
-import numpy as np
-
-from registration.core.depth import SCAN_STRIDE, SCAN_TZ_MM, _scanned
+from registration.core.depth import SCAN_STRIDE, SCAN_TZ_MM, _scanned, scan_peak_mm
 
 THRESHOLDS_MM = (-11.0, -7.0, -5.0, 3.0)
-
-
-def peak_tz(offsets: tuple[float, ...], values: list[float], stopped: bool) -> float:
-    """:func:`registration.core.depth.depth_scan`'s peak and parabola."""
-    v = np.asarray(values)
-    i = int(np.argmax(v))
-    tz = offsets[i]
-    if 0 < i < len(v) - 1 and not stopped and (curv := v[i - 1] - 2 * v[i] + v[i + 1]) < 0:
-        tz += float(np.clip(0.5 * (v[i - 1] - v[i + 1]) / curv, -0.5, 0.5) * 0.5 * (offsets[i + 1] - offsets[i - 1]))
-    return float(tz)
 
 
 def main() -> int:
@@ -42,11 +30,11 @@ def main() -> int:
                     calls.append(o)
                     return values[SCAN_TZ_MM.index(o)]
 
-                strided = peak_tz(*_scanned(SCAN_TZ_MM, at, SCAN_STRIDE))
+                strided = scan_peak_mm(*_scanned(SCAN_TZ_MM, at, SCAN_STRIDE))
                 n_strided = len(calls)
                 calls.clear()
                 got, vals, stopped = _scanned(SCAN_TZ_MM, at, SCAN_STRIDE, below)
-                tz = peak_tz(got, vals, stopped)
+                tz = scan_peak_mm(got, vals, stopped)
                 o = out[str(below)]
                 o["scans"] += 1
                 o["same_term"] += max(0.0, below - strided) == max(0.0, below - tz)

@@ -273,6 +273,20 @@ def depth_scan(
         return float(measure(high_pass(drr, view.mask, sigma_px, weight)))
 
     offsets_mm, values, stopped = _scanned(tuple(float(o) for o in offsets_mm), at, stride, below_mm)
+    return DepthScan(
+        tz_mm=scan_peak_mm(offsets_mm, values, stopped),
+        sigma_px=float(sigma_px),
+        offsets_mm=tuple(float(o) for o in offsets_mm),
+        similarity=tuple(values),
+        drr_count=renderer.count - count0,
+        stopped=stopped,
+    )
+
+
+def scan_peak_mm(offsets_mm: tuple[float, ...], values: list[float], stopped: bool = False) -> float:
+    """Where a scan's ``values`` at ``offsets_mm`` peak: the best offset, moved by the parabola
+    through it and its neighbours (at most half a step either way); a stopped scan's best offset
+    as it is."""
     v = np.asarray(values)
     i = int(np.argmax(v))
     tz = float(offsets_mm[i])
@@ -281,14 +295,7 @@ def depth_scan(
         if curv < 0:
             h = 0.5 * (offsets_mm[i + 1] - offsets_mm[i - 1])
             tz += float(np.clip(0.5 * (v[i - 1] - v[i + 1]) / curv, -0.5, 0.5) * h)
-    return DepthScan(
-        tz_mm=tz,
-        sigma_px=float(sigma_px),
-        offsets_mm=tuple(float(o) for o in offsets_mm),
-        similarity=tuple(values),
-        drr_count=renderer.count - count0,
-        stopped=stopped,
-    )
+    return tz
 
 
 def _scanned(

@@ -120,20 +120,11 @@ def test_strided_scan_climbs_to_the_peak_between_its_samples():
         _scanned(offsets, peaked_at(0.0), 0)
 
 
-def _peak_tz(offsets, values, stopped):  # noqa: ANN001, ANN202 - depth_scan's peak and parabola
-    v = np.asarray(values)
-    i = int(np.argmax(v))
-    tz = offsets[i]
-    if 0 < i < len(v) - 1 and not stopped and (curv := v[i - 1] - 2 * v[i] + v[i + 1]) < 0:
-        tz += float(np.clip(0.5 * (v[i - 1] - v[i + 1]) / curv, -0.5, 0.5) * 0.5 * (offsets[i + 1] - offsets[i - 1]))
-    return tz
-
-
 def test_scan_asked_only_below_an_offset_decides_as_the_strided_scan():
     """The stopping scan (``below_mm``) on 400 random curves with one to three peaks: wherever the
     strided scan's peak lies below the offset asked about, the same peak to the bit; elsewhere
     not below either, and no more than half a step (1 mm) under the strided scan's."""
-    from registration.core.depth import SCAN_TZ_MM, _scanned
+    from registration.core.depth import SCAN_TZ_MM, _scanned, scan_peak_mm
 
     rng = np.random.default_rng(7)
     offsets = SCAN_TZ_MM
@@ -151,11 +142,11 @@ def test_scan_asked_only_below_an_offset_decides_as_the_strided_scan():
                 calls.append(o)
                 return float(curve[offsets.index(o)])
 
-            full = _peak_tz(*_scanned(offsets, at, SCAN_STRIDE))
+            full = scan_peak_mm(*_scanned(offsets, at, SCAN_STRIDE))
             n_full = len(calls)
             calls.clear()
             got, values, stopped = _scanned(offsets, at, SCAN_STRIDE, below)
-            tz = _peak_tz(got, values, stopped)
+            tz = scan_peak_mm(got, values, stopped)
             assert len(calls) == len(set(calls))  # nothing rendered twice
             if full < below:
                 below_seen += 1
