@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from registration.core.drr import DRRRenderer
 from registration.core.register.biplane import PlaneCaptures
-from registration.core.register.depth import depth_resolvable, depth_stage
+from registration.core.register.depth import depth_prescan_stage, depth_resolvable, depth_stage
 from registration.core.register.inputs import Inputs
 from registration.core.register.options import CAPTURE_64, Level, RegistrationOptions
 from registration.core.register.plan import PLANES_AGREE, PLANES_DISAGREE, Plan, Stage
@@ -26,9 +26,12 @@ def build_plan(inputs: Inputs, options: RegistrationOptions) -> Plan:
             stages.append(PlaneACapture(levels[0], options.margin_mm(0)))
         stages += [anneal(options, lv, n, n_views) for n, lv in enumerate(levels)]
     if options.polish.enabled:
-        stages += polish_stages(options, pair)
         single = n_views == 1 and not options.optimizes_tz(n_views)
-        if single and options.depth.enabled and depth_resolvable(inputs.renderer, options.depth):
+        depth_runs = single and options.depth.enabled and depth_resolvable(inputs.renderer, options.depth)
+        if depth_runs and options.depth.scan_first:
+            stages.append(depth_prescan_stage(options, len(options.levels)))
+        stages += polish_stages(options, pair)
+        if depth_runs:
             depth = depth_stage(options, len(options.levels))
             stages.append(depth)
             if options.rotation_check.enabled:

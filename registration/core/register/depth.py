@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -49,9 +50,12 @@ class DepthCorrect:
         first = ""
         if d.first_polish and d.first_polish_skip_margin is not None:
             first = f" (the first only if tz moved or the rx, ry margin is below {d.first_polish_skip_margin:g})"
-        return (f"depth correction: up to {d.rounds} scans along the beam (+-{d.bound_mm:g} mm, then "
-                f"+-{d.rescan_mm:g} mm, {d.scan_step_mm:g} mm steps{stride}), each followed by a polish"
-                f"{first} at {self.polish_image_px} px: {self.budget.describe()}")  # fmt: skip
+        widths = f"+-{d.rescan_mm:g} mm" if d.scan_first else f"+-{d.bound_mm:g} mm, then +-{d.rescan_mm:g} mm"
+        small = (f"; a move below {d.move_mm:g} mm moves tz without a polish" if d.keep_small_moves
+                 else "")  # fmt: skip
+        return (f"depth correction: up to {d.rounds} scans along the beam ({widths}, {d.scan_step_mm:g} mm "
+                f"steps{stride}, tz within +-{d.bound_mm:g} mm), each followed by a polish{first} at "
+                f"{self.polish_image_px} px: {self.budget.describe()}{small}")  # fmt: skip
 
     def runs(self, state: State) -> bool:
         return True
@@ -64,41 +68,36 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
     """:class:`DepthCorrect` from ``state`` (five parameters; tz held at its space's
     ``held_tz_mm``, the initial pose's at first). The scans' DRRs are counted in the run's
     monitor. Deterministic."""
-    from registration.core.depth import depth_scan, scan_level
-
     r, d = state.run, stage.depth
-    renderer, view = r.inputs.renderer, r.inputs.views[0]
-    level = scan_level(renderer, d.voxel_mm)
-    # the scan compares at the polish's pixel (at the iso-center), not finer
-    polish_level = renderer_level(renderer, stage.polish_volume_level)
-    polish_voxel_mm = float(renderer.level_volume(polish_level).spacing_mm.max())
-    pixel_mm = iso_pixel_mm(view.geometry, level_factor(view.geometry, stage.polish_image_px, polish_voxel_mm))
-    step, bound = d.scan_step_mm, d.bound_mm
+    view = r.inputs.views[0]
+    bound = d.bound_mm
     space, tz, moves = state.space, state.space.held_tz_mm, []
     x, f = np.asarray(state.x, dtype=np.float64), state.f
     screened = None
+    # after a scan before the polish, every scan here is a rescan
+    prescanned = state.depth_moves_mm is not None
     for n in range(d.rounds):
         if r.monitor.stopped:
             break
-        half = bound if n == 0 else d.rescan_mm
-        # the offsets that stay within the bound, from the estimate's tz
-        lo, hi = max(-half, -bound - tz), min(half, bound - tz)
-        offsets = tuple(float(o) for o in np.arange(math.ceil(lo / step) * step, hi + 1e-9, step))
-        if len(offsets) < 3:
+        move = _scan_move(state, stage, space, x, tz, bound if n == 0 and not prescanned else d.rescan_mm)
+        if move is None:
             break
-        scan = depth_scan(renderer, view, space.holding_tz(tz).motion(x), offsets_mm=offsets, image_px=d.image_px,
-                          volume_level=level, margin_mm=stage.margin_mm, pixel_at_iso_mm=pixel_mm,
-                          stride=d.scan_stride)  # fmt: skip
-        r.monitor.charge(scan.drr_count, scan.drr_count * d.image_px * d.image_px)  # the scan's square images
-        move = float(np.clip(tz + scan.tz_mm, -bound, bound)) - tz
         moves.append(move)
-        if abs(move) < d.move_mm and not (n == 0 and d.first_polish):
+        small = abs(move) < d.move_mm
+        kept = small and d.keep_small_moves and move != 0.0
+        if kept:
+            # a small move is kept without a polish of its own (the first one's screen as below)
+            tz, move = tz + move, 0.0
+        if small and not (n == 0 and d.first_polish):
+            if kept:
+                f = _cost(state, stage, space.holding_tz(tz), x)
             break
-        if abs(move) < d.move_mm and d.first_polish_skip_margin is not None:
+        if small and d.first_polish_skip_margin is not None:
             # the first polish only where the estimate's rx / ry is in doubt
             measured = _screen(state, stage, space.holding_tz(tz), x)
             if measured[2] >= d.first_polish_skip_margin:
                 screened = measured
+                f = measured[1] if kept else f
                 break
         tz += move
         held = space.holding_tz(tz)
@@ -110,13 +109,80 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
     return replace(state, x=x, f=f, space=space.holding_tz(tz), depth_moves_mm=moved, screened=screened)
 
 
-def _screen(state: State, stage: DepthCorrect, space: SearchSpace, x: Array) -> tuple[Array, float, float]:
-    """The estimate ``x``, its cost and its out-of-plane rotation margin
-    (:func:`registration.core.register.screen.rotation_margin`) at the polish's level."""
+def _scan_move(
+    state: State, stage: DepthCorrect | DepthPrescan, space: SearchSpace, x: Array, tz: float, half: float
+) -> float | None:
+    """One scan along the beam +- ``half`` mm from ``x`` at ``tz`` (within the depth bound): the
+    move of tz to its peak (None: fewer than three offsets fit). Its DRRs are charged."""
+    from registration.core.depth import depth_scan, scan_level
+
+    r, d = state.run, stage.depth
+    renderer, view = r.inputs.renderer, r.inputs.views[0]
+    level = scan_level(renderer, d.voxel_mm)
+    # the scan compares at the polish's pixel (at the iso-center), not finer
+    polish_level = renderer_level(renderer, stage.polish_volume_level)
+    polish_voxel_mm = float(renderer.level_volume(polish_level).spacing_mm.max())
+    pixel_mm = iso_pixel_mm(view.geometry, level_factor(view.geometry, stage.polish_image_px, polish_voxel_mm))
+    step, bound = d.scan_step_mm, d.bound_mm
+    # the offsets that stay within the bound, from the estimate's tz
+    lo, hi = max(-half, -bound - tz), min(half, bound - tz)
+    offsets = tuple(float(o) for o in np.arange(math.ceil(lo / step) * step, hi + 1e-9, step))
+    if len(offsets) < 3:
+        return None
+    scan = depth_scan(renderer, view, space.holding_tz(tz).motion(x), offsets_mm=offsets, image_px=d.image_px,
+                      volume_level=level, margin_mm=stage.margin_mm, pixel_at_iso_mm=pixel_mm,
+                      stride=d.scan_stride)  # fmt: skip
+    r.monitor.charge(scan.drr_count, scan.drr_count * d.image_px * d.image_px)  # the scan's square images
+    return float(np.clip(tz + scan.tz_mm, -bound, bound)) - tz
+
+
+@dataclass(frozen=True)
+class DepthPrescan:
+    """One view, before the polish: a scan along the beam from the annealed estimate (+-
+    ``bound_mm`` of the initial pose), tz moved to its peak and held, so that the polish runs at
+    the corrected depth; the depth correction after the polish then only rescans."""
+
+    depth: DepthOptions
+    polish_image_px: int
+    polish_volume_level: int
+    margin_mm: float | None
+
+    def describe(self) -> str:
+        d = self.depth
+        stride = f", every {d.scan_stride} then climbing to the peak" if d.scan_stride > 1 else ""
+        small = "" if d.keep_small_moves else f" when it lies {d.move_mm:g} mm or more away"
+        return (f"scan along the beam before the polish (+-{d.bound_mm:g} mm, {d.scan_step_mm:g} mm steps{stride}): "
+                f"tz to its peak{small}")  # fmt: skip
+
+    def runs(self, state: State) -> bool:
+        return True
+
+    def run(self, state: State) -> State:
+        d, tz = self.depth, state.space.held_tz_mm
+        move = _scan_move(state, self, state.space, np.asarray(state.x, dtype=np.float64), tz, d.bound_mm)
+        moves = () if move is None else (move,)
+        # a move below move_mm leaves tz where it was, as the depth correction's scans do
+        kept = move if move is not None and (abs(move) >= d.move_mm or d.keep_small_moves) else 0.0
+        return replace(state, space=state.space.holding_tz(tz + kept), depth_moves_mm=moves)
+
+
+def _polish_cost(state: State, stage: DepthCorrect, space: SearchSpace, x: Array) -> Callable[[Array], float]:
+    """The cost at the polish's level of images and volume, prepared at ``x``."""
     r = state.run
     problem = r.problem(stage.polish_image_px, stage.polish_volume_level, stage.margin_mm, space.motion(x),
                         views=r.inputs.views[:1])  # fmt: skip
-    cost = cost_function(problem, space, r.monitor, None)
+    return cost_function(problem, space, r.monitor, None)
+
+
+def _cost(state: State, stage: DepthCorrect, space: SearchSpace, x: Array) -> float:
+    """The cost of ``x`` at the polish's level."""
+    return float(_polish_cost(state, stage, space, x)(x))
+
+
+def _screen(state: State, stage: DepthCorrect, space: SearchSpace, x: Array) -> tuple[Array, float, float]:
+    """The estimate ``x``, its cost and its out-of-plane rotation margin
+    (:func:`registration.core.register.screen.rotation_margin`) at the polish's level."""
+    cost = _polish_cost(state, stage, space, x)
     f_est = cost(x)
     return np.array(x, dtype=np.float64), float(f_est), rotation_margin(cost, space, x, f_est)
 
@@ -126,3 +192,9 @@ def depth_stage(options: RegistrationOptions, margin_index: int) -> DepthCorrect
     p, d = options.polish, options.depth
     budget = PolishBudget(d.polish_evaluations, d.polish_reach_mm, d.polish_reach_deg, p.xtol, p.step_mm, p.step_deg)
     return DepthCorrect(d, budget, p.image_px, p.volume_level, options.margin_mm(margin_index))
+
+
+def depth_prescan_stage(options: RegistrationOptions, margin_index: int) -> DepthPrescan:
+    """The scan before the polish of ``options`` (at the polish's level)."""
+    p = options.polish
+    return DepthPrescan(options.depth, p.image_px, p.volume_level, options.margin_mm(margin_index))

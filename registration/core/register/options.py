@@ -213,6 +213,13 @@ class DepthOptions:
     #: The scans evaluate every this-th offset, then climb offset by offset to the peak (default 6,
     #: docs/decisions/2026-12-05-scan-stride.md; 1: every offset).
     scan_stride: int = 6
+    #: Scan once before the polish (+- ``bound_mm``), so that the polish runs at the corrected
+    #: depth and the scans after it are rescans (default True;
+    #: docs/decisions/2026-12-06-depth-scan-first.md).
+    scan_first: bool = True
+    #: A scan's move below ``move_mm`` still moves tz, without a polish of its own (default True;
+    #: False: tz stays where it was).
+    keep_small_moves: bool = True
 
     def __post_init__(self) -> None:
         _at_least("DepthOptions", 1, rounds=self.rounds, polish_evaluations=self.polish_evaluations)
@@ -416,6 +423,8 @@ FLAT_NAMES: dict[str, tuple[str, str | tuple[str, str]]] = {
     "depth_first_polish": ("depth", "first_polish"),
     "depth_first_polish_skip_margin": ("depth", "first_polish_skip_margin"),
     "depth_scan_stride": ("depth", "scan_stride"),
+    "depth_scan_first": ("depth", "scan_first"),
+    "depth_keep_small_moves": ("depth", "keep_small_moves"),
     "rotation_check_deg": ("rotation_check", "turn_deg"),
     "rotation_check_reach": ("rotation_check", ("reach_mm", "reach_deg")),
     "rotation_check_evaluations": ("rotation_check", "evaluations"),
