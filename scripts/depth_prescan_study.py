@@ -8,11 +8,13 @@ assessed as ``register --confidence`` does. One JSON line per draw with both arm
     PYTHONPATH=. python scripts/depth_prescan_study.py runs --seed 23 --cases 20 > runs-s23.jsonl
     PYTHONPATH=. python scripts/depth_prescan_study.py volume --seed 66 --cases 20 > volume-s66.jsonl
     PYTHONPATH=. python scripts/depth_prescan_study.py table1 --seed 0 --cases 3 > table1-s0.jsonl
+    PYTHONPATH=. python scripts/depth_prescan_study.py ct --seed 0 --cases 8 > real-ct-s0.jsonl
 
 ``runs``: the rotational-run study (``roadmap3d validate clinical --quick``'s patients, ``--cases``
 registrations per patient); ``volume``: the shared real CT (ROADMAP3D_REAL_CT), clinical-looking
 images of ``--strength``; ``table1``: the four Table I offsets on 27/27 cm fluoro images,
-``--cases`` rounds (seeds ``seed`` onward).
+``--cases`` rounds (seeds ``seed`` onward); ``ct``: the shared real CT's clean images from the CT
+itself, as ``roadmap3d bench`` registers them.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ def main() -> int:
     import variant_draws as draws
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("study", choices=("runs", "volume", "table1"))
+    ap.add_argument("study", choices=("runs", "volume", "table1", "ct"))
     ap.add_argument("--seed", type=int, required=True)
     ap.add_argument("--cases", type=int, default=20)
     ap.add_argument("--strength", type=float, default=1.0)
@@ -47,6 +49,23 @@ def main() -> int:
         draws.write_runs(sys.stdout, args.seed, args.cases, arms(), KEYS)
     elif args.study == "volume":
         draws.write_volume(sys.stdout, args.seed, args.cases, args.strength, arms(), KEYS)
+    elif args.study == "ct":
+        from registration.core.roi import followed_region
+        from registration.studies import volume as study
+
+        shared = draws.shared_real_ct()
+        if shared is None:
+            return 2
+        ct, iso = shared
+        config = study.VolumeStudyConfig(cases=args.cases, seed=args.seed)
+        imager, region = study.VolumeImager(ct, iso), followed_region(ct, config.roi)
+        for case in study.volume_cases(config):
+            line = {"study": "ct", "seed": args.seed, "case": case.number}
+            for name, options in arms().items():
+                record = study.run_volume_case(ct, imager, case, config, iso, options=options, confidence=True,
+                                               region=region)  # fmt: skip
+                line[name] = {k: record.get(k) for k in KEYS}
+            print(json.dumps(line), flush=True)
     else:
         from registration.core.geometry import TABLE_I
         from registration.studies.cases import Case, run_case
