@@ -163,9 +163,11 @@ def test_polish_stays_within_its_reach_of_the_annealed_estimate(setup):
     options = RegistrationOptions()
     seen = []
     result = register(volume, xray, seed=3, truth=truth, options=options, callback=seen.append)
-    polish_level = len(options.levels)
+    # the stages run numbered: the annealing levels, the scan along the beam, then the polish
+    assert [s.stage.split(" ")[0] for s in result.stages[len(options.levels) :][:2]] == ["scan", "polish"]
+    polish_level = len(options.levels) + 1
     space = SearchSpace(geometry, np.eye(4))
-    annealed = [p for p in seen if p.level == polish_level - 1]
+    annealed = [p for p in seen if p.level == len(options.levels) - 1]
     polished = [p for p in seen if p.level == polish_level]
     assert len(polished) == options.polish_evaluations
     start = space.from_motion(annealed[-1].best_motion)
@@ -209,8 +211,10 @@ def test_each_stage_reports_its_cost(setup):
     assert [line.split(". ", 1)[1] for line in planned] == ran
     assert sum(c.drrs for c in result.stages) == result.drr_count  # every DRR charged to one stage
     assert all(c.rays >= c.drrs * 16 * 16 and c.seconds > 0 for c in result.stages)
-    # every stage renders, but a rotation check whose screen the depth correction measured
-    free = result.rotation_check.skipped and len(result.depth_moves_mm) == 1
+    # every stage renders, but a rotation check whose screen the depth correction measured (its
+    # first scan after the polish, after the scan before the polish, ended it)
+    scans_before = int(RegistrationOptions().depth.scan_first)
+    free = result.rotation_check.skipped and len(result.depth_moves_mm) == 1 + scans_before
     assert all(c.drrs > 0 or (free and c.stage.startswith("rotation check")) for c in result.stages)
     assert sum(c.seconds for c in result.stages) <= result.seconds + 1e-6
     assert result.to_dict()["stages"][0]["drrs"] == result.stages[0].drrs

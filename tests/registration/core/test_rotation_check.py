@@ -93,7 +93,7 @@ def test_register_reports_the_check_and_counts_its_drrs(scene):
     if check.skipped:
         # nothing more when the depth correction's screen measured this estimate (its first
         # polish skipped: one scan), else the check's own screen
-        reused = len(on.depth_moves_mm) == 1
+        reused = len(on.depth_moves_mm) == 1 + OPTIONS.depth.scan_first
         assert on.drr_count - off.drr_count == (0 if reused else 5)
     elif check.moves == 0:
         assert 5 < on.drr_count - off.drr_count <= 4 * (OPTIONS.rotation_check_evaluations + 1) + 5
@@ -131,8 +131,10 @@ def test_the_screen_skips_a_sharp_peak_and_checks_a_flat_one(scene):
 
 def test_the_depth_correction_screens_its_first_polish_and_the_check_reuses_the_screen(scene):
     volume, renderer, truth, xray = scene
-    always = replace(OPTIONS, depth=replace(OPTIONS.depth, first_polish_skip_margin=None))
-    screened = replace(OPTIONS, depth=replace(OPTIONS.depth, first_polish_skip_margin=0.008))
+    # the polish first and small moves dropped, so that tz stays exactly where the scans leave it
+    first = replace(OPTIONS, depth=replace(OPTIONS.depth, scan_first=False, keep_small_moves=False))
+    always = replace(first, depth=replace(first.depth, first_polish_skip_margin=None))
+    screened = replace(first, depth=replace(first.depth, first_polish_skip_margin=0.008))
 
     def run(options):
         return register(volume, xray, truth=truth, seed=0, renderer=renderer, options=options)
@@ -150,9 +152,18 @@ def test_the_depth_correction_screens_its_first_polish_and_the_check_reuses_the_
     # and it is as right as before (the polish jitter of 0.53 mm pixels at the iso-center)
     assert b.success and b.residual.inplane_mm < 0.3 and b.residual.rotation_deg < 1.0
     # a threshold no margin reaches changes nothing
-    never = run(replace(OPTIONS, depth=replace(OPTIONS.depth, first_polish_skip_margin=1.0)))
+    never = run(replace(first, depth=replace(first.depth, first_polish_skip_margin=1.0)))
     np.testing.assert_array_equal(never.patient_motion, a.patient_motion)
     assert never.drr_count == a.drr_count + 5  # its screen's estimate and four turns
+    # the shipped order: the scan before the polish and the rescan after it both move tz by less
+    # than 1.5 mm (kept, measured -1.3 and +0.5 mm); the rescan's screen finds the peak sharp, so
+    # no polish follows it and the check takes the screen measured at the kept depth
+    shipped = run(OPTIONS)
+    assert len(shipped.depth_moves_mm) == 2 and max(map(abs, shipped.depth_moves_mm)) < OPTIONS.depth.move_mm
+    assert shipped.depth_tz_mm == pytest.approx(sum(shipped.depth_moves_mm), abs=1e-9)
+    assert shipped.rotation_check.skipped and shipped.rotation_check.margin >= 0.008
+    assert shipped.drr_count == run(replace(OPTIONS, rotation_check=False)).drr_count
+    assert shipped.success and shipped.residual.inplane_mm < 0.3 and shipped.residual.rotation_deg < 1.0
 
 
 def test_strided_depth_scans_find_the_same_peaks_for_fewer_drrs(scene):
