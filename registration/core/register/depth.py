@@ -31,22 +31,31 @@ def depth_resolvable(renderer: DRRRenderer, depth: DepthOptions) -> bool:
 
 
 @dataclass(frozen=True)
-class DepthCorrect:
+class _AlongTheBeam:
+    """What a stage that scans along the beam needs: the options and the polish's level."""
+
+    depth: DepthOptions
+    polish_image_px: int
+    polish_volume_level: int
+    margin_mm: float | None
+
+    def stride_words(self) -> str:
+        d = self.depth
+        return f", every {d.scan_stride} then climbing to the peak" if d.scan_stride > 1 else ""
+
+
+@dataclass(frozen=True)
+class DepthCorrect(_AlongTheBeam):
     """One view: the depth correction of the polished five-parameter estimate
     (:class:`DepthOptions`): scan along the beam (:func:`registration.core.depth.depth_scan`,
     high-passed, the rest held), move tz to the peak (within +- ``bound_mm`` of the initial pose),
     polish the five parameters again at that tz (``budget``, at the polish's level), repeat while a
     scan moves tz by ``move_mm`` or more, ``rounds`` scans at most. The state's space then holds tz."""
 
-    depth: DepthOptions
     budget: PolishBudget
-    polish_image_px: int
-    polish_volume_level: int
-    margin_mm: float | None
 
     def describe(self) -> str:
-        d = self.depth
-        stride = f", every {d.scan_stride} then climbing to the peak" if d.scan_stride > 1 else ""
+        d, stride = self.depth, self.stride_words()
         first = ""
         if d.first_polish and d.first_polish_skip_margin is not None:
             first = f" (the first only if tz moved or the rx, ry margin is below {d.first_polish_skip_margin:g})"
@@ -110,7 +119,7 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
 
 
 def _scan_move(
-    state: State, stage: DepthCorrect | DepthPrescan, space: SearchSpace, x: Array, tz: float, half: float
+    state: State, stage: _AlongTheBeam, space: SearchSpace, x: Array, tz: float, half: float
 ) -> float | None:
     """One scan along the beam +- ``half`` mm from ``x`` at ``tz`` (within the depth bound): the
     move of tz to its peak (None: fewer than three offsets fit). Its DRRs are charged."""
@@ -137,19 +146,13 @@ def _scan_move(
 
 
 @dataclass(frozen=True)
-class DepthPrescan:
+class DepthPrescan(_AlongTheBeam):
     """One view, before the polish: a scan along the beam from the annealed estimate (+-
     ``bound_mm`` of the initial pose), tz moved to its peak and held, so that the polish runs at
     the corrected depth; the depth correction after the polish then only rescans."""
 
-    depth: DepthOptions
-    polish_image_px: int
-    polish_volume_level: int
-    margin_mm: float | None
-
     def describe(self) -> str:
-        d = self.depth
-        stride = f", every {d.scan_stride} then climbing to the peak" if d.scan_stride > 1 else ""
+        d, stride = self.depth, self.stride_words()
         small = "" if d.keep_small_moves else f" when it lies {d.move_mm:g} mm or more away"
         return (f"scan along the beam before the polish (+-{d.bound_mm:g} mm, {d.scan_step_mm:g} mm steps{stride}): "
                 f"tz to its peak{small}")  # fmt: skip
@@ -166,7 +169,7 @@ class DepthPrescan:
         return replace(state, space=state.space.holding_tz(tz + kept), depth_moves_mm=moves)
 
 
-def _polish_cost(state: State, stage: DepthCorrect, space: SearchSpace, x: Array) -> Callable[[Array], float]:
+def _polish_cost(state: State, stage: _AlongTheBeam, space: SearchSpace, x: Array) -> Callable[[Array], float]:
     """The cost at the polish's level of images and volume, prepared at ``x``."""
     r = state.run
     problem = r.problem(stage.polish_image_px, stage.polish_volume_level, stage.margin_mm, space.motion(x),
@@ -191,7 +194,7 @@ def depth_stage(options: RegistrationOptions, margin_index: int) -> DepthCorrect
     """The depth correction stage of ``options`` (its polishes at the polish's level)."""
     p, d = options.polish, options.depth
     budget = PolishBudget(d.polish_evaluations, d.polish_reach_mm, d.polish_reach_deg, p.xtol, p.step_mm, p.step_deg)
-    return DepthCorrect(d, budget, p.image_px, p.volume_level, options.margin_mm(margin_index))
+    return DepthCorrect(d, p.image_px, p.volume_level, options.margin_mm(margin_index), budget)
 
 
 def depth_prescan_stage(options: RegistrationOptions, margin_index: int) -> DepthPrescan:
