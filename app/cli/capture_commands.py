@@ -52,12 +52,13 @@ def run_capture_study(args: CaptureStudy) -> int:
         return 0
     for plane, name in (("biplane", "biplane"), ("single_plane", "single plane A")):
         s = summary[plane]
-        radius = lambda x, unit: "none" if x is None else f"{x:g} {unit}"  # noqa: E731
+        ran = set(s["sweeps"])
+        translation = capture.radius_words(s["capture_radius_mm_95"], "mm", "translation" in ran)
+        rotation = capture.radius_words(s["capture_radius_deg_95"], "deg", "rotation" in ran)
         precision = "-" if s["applied_precision"] is None else f"{100 * s['applied_precision']:.1f} %"
         print(
-            f"{name:<15} capture radius (95 %): translation {radius(s['capture_radius_mm_95'], 'mm')}, rotation "
-            f"{radius(s['capture_radius_deg_95'], 'deg')}; applied precision {precision} ({s['applied']} applied "
-            f"of {s['runs']})"
+            f"{name:<15} capture radius (95 %): translation {translation}, rotation {rotation}; applied "
+            f"precision {precision} ({s['applied']} applied of {s['runs']})"
         )
     print(f"\nwritten: {Path(args.out) / 'results.jsonl'}, {Path(args.out) / 'report.md'} and capture_curves.png")
     return 0

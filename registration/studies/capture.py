@@ -265,7 +265,11 @@ def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
     return path
 
 
-def _radius(x: float | None, unit: str) -> str:
+def radius_words(x: float | None, unit: str, ran: bool = True) -> str:
+    """A capture radius in words: its value, "below the smallest level" or, for a sweep the run
+    does not hold, "not run"."""
+    if not ran:
+        return "not run"
     return "below the smallest level" if x is None else f"{x:g} {unit}"
 
 
@@ -290,12 +294,18 @@ def capture_report_md(summary: dict, image: str) -> str:
         "| --- | --- | --- |",
     ]
     bi, sp = summary["biplane"], summary["single_plane"]
-    comb = lambda c: "-" if c is None else f"{c['translation_mm']:g} mm with {c['rotation_deg']:g} deg"  # noqa: E731
+    ran = set(bi["sweeps"])  # the sweeps this run holds
+
+    def comb(c: dict | None) -> str:
+        if c is None:
+            return radius_words(None, "", "combined" in ran)
+        return f"{c['translation_mm']:g} mm with {c['rotation_deg']:g} deg"
+
     lines += [
-        f"| capture radius, translation | {_radius(bi['capture_radius_mm_95'], 'mm')} | "
-        f"{_radius(sp['capture_radius_mm_95'], 'mm')} |",
-        f"| capture radius, rotation | {_radius(bi['capture_radius_deg_95'], 'deg')} | "
-        f"{_radius(sp['capture_radius_deg_95'], 'deg')} |",
+        f"| capture radius, translation | {radius_words(bi['capture_radius_mm_95'], 'mm', 'translation' in ran)} | "
+        f"{radius_words(sp['capture_radius_mm_95'], 'mm', 'translation' in ran)} |",
+        f"| capture radius, rotation | {radius_words(bi['capture_radius_deg_95'], 'deg', 'rotation' in ran)} | "
+        f"{radius_words(sp['capture_radius_deg_95'], 'deg', 'rotation' in ran)} |",
         f"| capture radius, both together | {comb(bi['capture_radius_combined_95'])} | "
         f"{comb(sp['capture_radius_combined_95'])} |",
         f"| applied precision | {pct(bi['applied_precision'])} ({bi['applied']} applied) | "

@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from registration.studies.capture import CaptureConfig, capture_radius, capture_summary, capture_tasks, level_rates
+from registration.studies.capture import (
+    CaptureConfig,
+    capture_radius,
+    capture_report_md,
+    capture_summary,
+    capture_tasks,
+    level_rates,
+)
 
 
 def _record(sweep: str, level: int, t: float, r: float, success: bool, applied: bool, n: int) -> dict:
@@ -73,6 +80,18 @@ def test_summary_counts_applied_and_wrong_per_plane() -> None:
         assert s["capture_radius_deg_95"] == 0.0 and s["capture_radius_mm_95"] is None
         assert s["applied"] == 4 and s["applied_precision"] == pytest.approx(3 / 4)
         assert s["applied_wrong"] == ["rotation/1/0"] and s["runs"] == 6
+
+
+def test_the_report_says_which_sweeps_did_not_run() -> None:
+    """A run of the rotation sweep alone: its translation and combined radii are "not run", not
+    "below the smallest level" (which a sweep that ran and missed at 0 would say)."""
+    records = [_record("rotation", 0, 0.0, 0.0, n > 0, False, n) for n in range(3)]  # 2 of 3 at 0 deg
+    summary = capture_summary(records, config={"seed": 0}, wall_seconds=1.0)
+    summary |= {"volume_labels": ["test"], "image_source": "test"}
+    report = capture_report_md(summary, "curves.png")
+    assert "| capture radius, translation | not run | not run |" in report
+    assert "| capture radius, rotation | below the smallest level | below the smallest level |" in report
+    assert "| capture radius, both together | not run | not run |" in report
 
 
 def test_validate_capture_runs_and_writes_its_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
