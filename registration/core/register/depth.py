@@ -83,8 +83,8 @@ def depth_correct(state: State, stage: DepthCorrect) -> State:
     space, tz, moves = state.space, state.space.held_tz_mm, []
     x, f = np.asarray(state.x, dtype=np.float64), state.f
     screened = None
-    # after a scan before the polish, every scan here is a rescan
-    prescanned = state.depth_moves_mm is not None
+    # after the scan before the polish (DepthPrescan), every scan here is a rescan
+    prescanned = d.scan_first
     for n in range(d.rounds):
         if r.monitor.stopped:
             break
