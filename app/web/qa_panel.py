@@ -195,8 +195,10 @@ class ComparePanel(BasePanel):
         profiles = qa_evidence.parameter_profiles(volume, views[0], result.patient_motion, renderer=renderer)
         png = qa_evidence.profiles_figure(profiles, evidence=evidence, reason=reason, columns=3)
         term = qa_evidence.withheld_term(evidence) if evidence else None
-        depth = qa_evidence.depth_figure(assessment.get("depth_scan"), assessment.get("depth_probe"),
-                                         reason=reason, term=term)  # fmt: skip
+        scan, weighed = qa_evidence.pictured_scan(assessment.get("depth_scan"), views, result.patient_motion,
+                                                  renderer, one_view="tz" not in tuple(result.parameters))  # fmt: skip
+        depth = qa_evidence.depth_figure(scan, assessment.get("depth_probe"), reason=reason, term=term,
+                                         weighed=weighed)  # fmt: skip
         self.profiles_image.image = _png_to_rgb(png)
         if len(views) > 1:  # biplane: plane B's measure around the same estimate
             profiles_b = qa_evidence.parameter_profiles(volume, views[1], result.patient_motion, renderer=renderer)

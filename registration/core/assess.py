@@ -166,10 +166,10 @@ def assess_on(
     ``views``: the view, or the views of a biplane registration (margins and edges averaged over
     the planes); ``single_plane_motion``: plane A's own single-view estimate, whose in-plane
     disagreement with the biplane estimate is the planes' agreement. A single-plane
-    (five-parameter) result is also scanned along the beam (:func:`registration.core.depth.depth_scan`)
-    and, when the registration did not correct it along the beam (:func:`depth_corrected`), probed
-    (:func:`~registration.core.depth.depth_probe`); both kept in the assessment, the probe's pose is
-    not applied."""
+    (five-parameter) result that the registration did not correct along the beam
+    (:func:`depth_corrected`) is also scanned (:func:`registration.core.depth.depth_scan`) and probed
+    (:func:`~registration.core.depth.depth_probe`) there; both kept in the assessment, the probe's
+    pose is not applied."""
     start = time.perf_counter()
     views = (views,) if isinstance(views, XRayImage) else tuple(views)
     why_not = veto(result, landmarks)
@@ -199,9 +199,10 @@ def _evidence(
     renderer: DRRRenderer,
     rule: ConfidenceRule,
 ) -> tuple[Evidence, object, object]:
-    """The evidence of a registration (each view's, combined) and, for one plane, the depth scan
-    and, for an estimate the registration did not correct along the beam, the depth probe (on
-    corrected estimates its term changed no decision: docs/decisions/2026-12-04-confidence-probes.md)."""
+    """The evidence of a registration (each view's, combined) and, for one plane's estimate that the
+    registration did not correct along the beam, the depth scan and the depth probe (on corrected
+    estimates their terms changed no decision: docs/decisions/2026-12-04-confidence-probes.md,
+    docs/decisions/2026-12-06-confidence-scan-corrected.md)."""
     from registration.core.tracking import registration_evidence
     from registration.core.tracking.evidence import beam_margin, probe_measure
 
@@ -211,11 +212,13 @@ def _evidence(
     if one_view:
         from registration.core.depth import SCAN_STRIDE, depth_probe, depth_scan
 
-        if not depth_corrected(result) and (rule.depth_weight or rule.pull_weight):
+        corrected = depth_corrected(result)
+        if not corrected and (rule.depth_weight or rule.pull_weight):
             probe = depth_probe(renderer, views[0], motion)
-        # the rule reads the scan only below its free distance: the scan stops once it cannot lie there
-        below = rule.scan_free_mm if rule.scan_weight else None
-        scan = depth_scan(renderer, views[0], motion, stride=SCAN_STRIDE, below_mm=below)
+        if not corrected:
+            # the rule reads the scan only below its free distance: the scan stops once it cannot lie there
+            below = rule.scan_free_mm if rule.scan_weight else None
+            scan = depth_scan(renderer, views[0], motion, stride=SCAN_STRIDE, below_mm=below)
     probes = [probe_measure(volume, v, motion, renderer) for v in views]
     per_view = [
         registration_evidence(volume, v, motion, renderer=renderer, capture_motions=result.capture_motions,

@@ -53,7 +53,10 @@ The confidence is a logistic function of what the engine knows about the estimat
     brings the peak at the true pose within 0-5 mm of it
     (docs/validation/clinical-s6/depth_scan.md). The assessment's scan stops once its peak
     cannot lie below ``scan_free_mm`` (the term reads nothing else): then the best offset it
-    evaluated, with the peak at most a millimetre below it.
+    evaluated, with the peak at most a millimetre below it. Measured only for an estimate the
+    registration did not correct along the beam itself: on corrected ones the term changed no
+    decision in 6,836 recorded registrations
+    (docs/decisions/2026-12-06-confidence-scan-corrected.md).
 ``beam_margin``
     Two or more views: the smallest margin of one view's measure when the estimate moves
     ``BEAM_PROBE_MM`` either way along another view's central ray, relative to the measure

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -245,6 +245,24 @@ def profiles_figure(
     return png_of(fig)
 
 
+def pictured_scan(
+    scan: Mapping[str, object] | None,
+    views: Sequence[XRayImage],
+    motion: ArrayLike,
+    renderer: DRRRenderer,
+    *,
+    one_view: bool,
+) -> tuple[Mapping[str, object] | None, bool]:
+    """The depth scan to draw and whether the confidence weighed it: the assessment's own; for one
+    view's estimate that the registration corrected along the beam itself (the assessment does not
+    scan it), a full scan made here for the picture alone. Two views: none."""
+    if scan or not one_view or len(views) != 1:
+        return scan, True
+    from registration.core.depth import depth_scan
+
+    return depth_scan(renderer, views[0], np.asarray(motion, dtype=np.float64)).to_dict(), False
+
+
 def depth_figure(
     scan: Mapping[str, object] | None,
     probe: Mapping[str, object] | None,
@@ -252,10 +270,12 @@ def depth_figure(
     reason: str = "",
     term: str | None = None,
     rule: ConfidenceRule = DEFAULT_RULE,
+    weighed: bool = True,
 ) -> bytes | None:
     """The depth scan's tz curve (the high-passed measure along the beam, the estimate at 0,
     + toward the source) with its peak, the region beyond ``scan_free_mm`` its term withholds,
-    and the depth probe's tz and in-plane shift. None without a scan (two views)."""
+    and the depth probe's tz and in-plane shift. None without a scan (two views). ``weighed``
+    False: a scan the confidence did not read (:func:`pictured_scan`), drawn without the region."""
     if not scan:
         return None
     plt = pyplot()
@@ -268,7 +288,7 @@ def depth_figure(
     label = f"scan best {peak:+.1f} mm (peak at or above it)" if scan.get("stopped") else f"scan peak {peak:+.1f} mm"
     ax.axvline(peak, color="#2f9e44", lw=1.0, label=label)
     ax.axvline(0.0, color="#495057", lw=0.8, ls=":", label="estimate")
-    if rule.scan_weight:
+    if rule.scan_weight and weighed:
         ax.axvspan(x.min(), rule.scan_free_mm, color="#ffe3e3", alpha=0.7, lw=0,
                    label=f"peak here withholds (< {rule.scan_free_mm:g} mm)")  # fmt: skip
     if probe:
@@ -281,7 +301,10 @@ def depth_figure(
     ax.ticklabel_format(axis="y", useOffset=False)
     ax.tick_params(labelsize=7)
     ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.02, 1.0))
-    ax.set_title("Depth: the measure along the beam", fontsize=9)
+    title = "Depth: the measure along the beam"
+    if not weighed:
+        title += "\n(the registration corrected its depth; the confidence does not weigh this scan)"
+    ax.set_title(title, fontsize=9)
     if term in ("depth_scan", "depth", "depth_pull"):
         _mark_withheld(ax, reason)
     fig.tight_layout()

@@ -233,7 +233,8 @@ def _decision(doc: Mapping[str, Any]) -> str:
     )
 
 
-def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, list]], probe, scan) -> str:  # noqa: ANN001
+def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, list]], probe, scan,  # noqa: ANN001
+              weighed: bool = True) -> str:  # fmt: skip
     ev = dict(doc.get("confidence_evidence") or {})
     term = qa_evidence.withheld_term(ev) if ev else None
     reason = str(doc.get("withheld_reason") or "")
@@ -251,7 +252,7 @@ def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, 
         tag = plane.lower().replace(" ", "_") + "_" if plane else ""
         caption = f"{plane + ': ' if plane else ''}the measure along each parameter around the estimate"
         parts.append(page.image(f"{tag}evidence_profiles.png", png, caption, wide=True))
-    depth = qa_evidence.depth_figure(scan, probe, reason=reason, term=term)
+    depth = qa_evidence.depth_figure(scan, probe, reason=reason, term=term, weighed=weighed)
     parts.append(
         page.image(
             "evidence_depth.png",
@@ -376,7 +377,9 @@ def write_registration_report(
         (plane, qa_evidence.parameter_profiles(volume, view, motion, renderer=renderer))
         for view, plane in zip(views, planes, strict=True)
     ]
-    body.append(_evidence(page, doc, profiles, depth_probe, depth_scan))
+    one_view = "tz" not in (doc.get("offsets") or {"tz": 0})
+    scan, weighed = qa_evidence.pictured_scan(depth_scan, views, motion, renderer, one_view=one_view)
+    body.append(_evidence(page, doc, profiles, depth_probe, scan, weighed))
     if doc.get("similarity_trace"):
         trace = qa_evidence.convergence_figure(list(doc["similarity_trace"]))
         caption = (

@@ -165,9 +165,9 @@ def test_end_to_end_register_from_exported_files(exported: Path, tmp_path: Path,
     assert residual.inplane_mm < 1.0, residual
     assert residual.rotation_deg < 3.0, residual
     assert result["success"] is True
-    # --confidence: one plane is also scanned along the beam (not probed: the registration
-    # corrected its depth); the decision printed is the JSON's
-    assert result["confidence_evidence"]["depth_scan_tz_mm"] is not None
+    # --confidence: one plane's estimate is neither probed nor scanned along the beam (the
+    # registration corrected its depth); the decision printed is the JSON's
+    assert result["confidence_evidence"]["depth_scan_tz_mm"] is None
     assert result["depth_tz_mm"] is not None and result["confidence_evidence"]["depth_shift_mm"] is None
     decision = "applied" if result["applied"] else f"withheld: {result['withheld_reason']}"
     assert f"confidence {result['confidence']:.2f} -> {decision}" in out
@@ -196,8 +196,10 @@ def test_register_confidence_renders_from_the_prepared_levels_as_calibrated(expo
     averages cropped to what the field can reach, with the air outside the body set to -1000 HU;
     on the quick clinical study's FDK volumes (16 registrations, seed 0) that moved the margins
     by up to 10 % (relative), the depth probe's shift by up to 0.03 mm and the confidence by at
-    most 0.0013, with the same 16 decisions. (A depth-corrected estimate is no longer probed;
-    the depth scan is compared instead.)"""
+    most 0.0013, with the same 16 decisions. (The estimate is assessed as if its depth had not
+    been corrected, so that the depth scan runs and is compared.)"""
+    from dataclasses import replace
+
     from registration.core.assess import assess_on
     from registration.core.drr import DRRRenderer
     from registration.core.register import RegistrationOptions, prepared_volume, register
@@ -210,6 +212,8 @@ def test_register_confidence_renders_from_the_prepared_levels_as_calibrated(expo
     renderer = cli_io.confidence_renderer(prepared)
     # the evidence's level (nearest 128 voxels across) is prepared: the volume's own 128^3 grid
     assert renderer.has_level(0) and max(renderer.level_volume(0).shape) > 100
+    # as if the registration had not corrected its depth: the assessment scans along the beam too
+    result = replace(result, depth_moves_mm=())
     calibrated = assessment_fields(assess_on(result, xray, volume, DRRRenderer(volume, levels=3)))
     now = assessment_fields(assess_on(result, xray, volume, renderer))
     assert now["applied"] == calibrated["applied"] and now["withheld_reason"] == calibrated["withheld_reason"]
@@ -463,7 +467,7 @@ def test_register_confidence_on_the_real_ct(tmp_path: Path, capsys, monkeypatch)
     assert code == 0 and "-> success" in out
     result = json.loads((tmp_path / "r.json").read_text())
     evidence = result["confidence_evidence"]
-    assert evidence["depth_scan_tz_mm"] is not None  # one plane: scanned along the beam
+    assert evidence["depth_scan_tz_mm"] is None  # one plane whose depth the registration corrected: not scanned again
     # images formed from the CT itself (a best case), registered to 0.1-0.2 mm in-plane: applied
     assert result["applied"] is True, result
 

@@ -225,7 +225,7 @@ def test_the_measure_does_not_depend_on_where_its_buffers_lie(scene):
     assert (values == values[0]).all(), [len(set(column)) for column in values.T]
 
 
-def test_the_confidence_probes_only_an_estimate_not_corrected_along_the_beam(scene):
+def test_the_confidence_probes_and_scans_only_an_estimate_not_corrected_along_the_beam(scene):
     from dataclasses import replace
 
     from registration.core.assess import assess_on, depth_corrected
@@ -235,12 +235,14 @@ def test_the_confidence_probes_only_an_estimate_not_corrected_along_the_beam(sce
     result = register(volume, xray, seed=0, renderer=renderer)
     assert depth_corrected(result)  # one view: the registration scanned and moved its tz itself
     corrected = assess_on(result, xray, volume, renderer)
+    # neither probed nor scanned along the beam: both terms changed no decision on corrected estimates
     assert corrected.depth_probe is None and corrected.evidence.depth_shift_mm is None
-    assert corrected.depth_scan is not None and corrected.evidence.depth_scan_tz_mm is not None
-    # the same estimate as if no correction had run (the option off): probed, its shift weighed
+    assert corrected.depth_scan is None and corrected.evidence.depth_scan_tz_mm is None
+    # the same estimate as if no correction had run (the option off): probed and scanned, both weighed
     uncorrected = assess_on(replace(result, depth_moves_mm=()), xray, volume, renderer)
     assert uncorrected.depth_probe is not None
     assert uncorrected.evidence.depth_shift_mm == pytest.approx(uncorrected.depth_probe.shift_mm)
-    # everything else is measured the same way: equal where the probe's term does not bite
+    assert uncorrected.depth_scan is not None
+    assert uncorrected.evidence.depth_scan_tz_mm == pytest.approx(uncorrected.depth_scan.tz_mm)
+    # everything else is measured the same way
     assert uncorrected.evidence.margin == corrected.evidence.margin
-    assert uncorrected.evidence.depth_scan_tz_mm == corrected.evidence.depth_scan_tz_mm

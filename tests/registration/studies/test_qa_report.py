@@ -254,3 +254,20 @@ def test_track_report_lists_the_decisions_and_matches_the_document(scene, tmp_pa
         im.load()
         assert im.size[0] > 500
     assert (out / "overlay_checkerboard.png").exists()
+
+
+def test_a_depth_scan_the_confidence_did_not_make_is_scanned_for_the_picture_and_marked(scene):
+    """One view's estimate that the registration corrected along the beam is not scanned by its
+    assessment; the QA picture scans it then (all 25 offsets) and says the confidence did not
+    weigh it. The assessment's own scan is drawn as it is; two views have none."""
+    volume, xray, renderer = scene
+    own = {"tz_mm": 1.0, "offsets_mm": [-2.0, 0.0, 2.0], "similarity": [0.1, 0.2, 0.1], "stopped": False}
+    assert qa_evidence.pictured_scan(own, [xray], np.eye(4), renderer, one_view=True) == (own, True)
+    assert qa_evidence.pictured_scan(None, [xray, xray], np.eye(4), renderer, one_view=False) == (None, True)
+    scan, weighed = qa_evidence.pictured_scan(None, [xray], np.eye(4), renderer, one_view=True)
+    assert weighed is False and len(scan["offsets_mm"]) == 25 and not scan["stopped"]
+    # the truth: the high-passed measure peaks within two 2-mm steps of it on this 4.2 mm-voxel
+    # volume (measured: -0.58 mm)
+    assert abs(scan["tz_mm"]) < 4.0, scan["tz_mm"]
+    png = qa_evidence.depth_figure(scan, None, weighed=False)
+    assert png is not None and png[:8] == b"\x89PNG\r\n\x1a\n"
