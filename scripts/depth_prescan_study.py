@@ -14,7 +14,8 @@ assessed as ``register --confidence`` does. One JSON line per draw with both arm
 registrations per patient); ``volume``: the shared real CT (ROADMAP3D_REAL_CT), clinical-looking
 images of ``--strength``; ``table1``: the four Table I offsets on 27/27 cm fluoro images,
 ``--cases`` rounds (seeds ``seed`` onward); ``ct``: the shared real CT's clean images from the CT
-itself, as ``roadmap3d bench`` registers them.
+itself, as ``roadmap3d bench`` registers them. ``--compare after-capture``: the arms ``shipped``
+and ``after_capture`` (``DepthOptions.scan_after_capture``) instead.
 """
 
 from __future__ import annotations
@@ -30,8 +31,13 @@ KEYS = ("inplane_residual_mm", "translation_residual_mm", "outofplane_residual_m
         "success", "applied", "confidence", "drr_count", "drr_samples", "seconds")  # fmt: skip
 
 
+COMPARE = "scan-first"
+
+
 def arms() -> dict[str, RegistrationOptions]:
     base = RegistrationOptions()
+    if COMPARE == "after-capture":
+        return {"shipped": base, "after_capture": replace(base, depth=replace(base.depth, scan_after_capture=True))}
     before = replace(base, depth=replace(base.depth, scan_first=False, keep_small_moves=False))
     return {"now": before, "prescan_keep": base}
 
@@ -44,7 +50,11 @@ def main() -> int:
     ap.add_argument("--seed", type=int, required=True)
     ap.add_argument("--cases", type=int, default=20)
     ap.add_argument("--strength", type=float, default=1.0)
+    ap.add_argument("--compare", choices=("scan-first", "after-capture"), default="scan-first",
+                    help="the arms compared (see the module's docstring)")  # fmt: skip
     args = ap.parse_args()
+    global COMPARE
+    COMPARE = args.compare
     if args.study == "runs":
         draws.write_runs(sys.stdout, args.seed, args.cases, arms(), KEYS)
     elif args.study == "volume":

@@ -18,6 +18,9 @@ def build_plan(inputs: Inputs, options: RegistrationOptions) -> Plan:
     multi = n_views > 1 and options.optimizes_tz(n_views)
     pair = multi and options.biplane.plane_captures
     stages: list[Stage] = []
+    single = n_views == 1 and not options.optimizes_tz(n_views)
+    depth_runs = (options.polish.enabled and single and options.depth.enabled
+                  and depth_resolvable(inputs.renderer, options.depth))  # fmt: skip
     if pair:
         stages += biplane_stages(options, inputs.renderer)
     else:
@@ -25,9 +28,9 @@ def build_plan(inputs: Inputs, options: RegistrationOptions) -> Plan:
         if multi and options.biplane.plane_a_capture:
             stages.append(PlaneACapture(levels[0], options.margin_mm(0)))
         stages += [anneal(options, lv, n, n_views) for n, lv in enumerate(levels)]
+        if depth_runs and options.depth.scan_first and options.depth.scan_after_capture and len(levels) > 1:
+            stages.insert(len(stages) - len(levels) + 1, depth_prescan_stage(options, 1, after="the capture"))
     if options.polish.enabled:
-        single = n_views == 1 and not options.optimizes_tz(n_views)
-        depth_runs = single and options.depth.enabled and depth_resolvable(inputs.renderer, options.depth)
         if depth_runs and options.depth.scan_first:
             stages.append(depth_prescan_stage(options, len(options.levels)))
         stages += polish_stages(options, pair)

@@ -149,12 +149,17 @@ def _scan_move(
 class DepthPrescan(_AlongTheBeam):
     """One view, before the polish: a scan along the beam from the annealed estimate (+-
     ``bound_mm`` of the initial pose), tz moved to its peak and held, so that the polish runs at
-    the corrected depth; the depth correction after the polish then only rescans."""
+    the corrected depth; the depth correction after the polish then only rescans. ``after``: the
+    stage it follows when not the annealing (``DepthOptions.scan_after_capture``: the capture
+    level, so that the finer levels fit at the corrected depth)."""
+
+    after: str | None = None
 
     def describe(self) -> str:
         d, stride = self.depth, self.stride_words()
         small = "" if d.keep_small_moves else f" when it lies {d.move_mm:g} mm or more away"
-        return (f"scan along the beam before the polish (+-{d.bound_mm:g} mm, {d.scan_step_mm:g} mm steps{stride}): "
+        where = "before the polish" if self.after is None else f"after {self.after}"
+        return (f"scan along the beam {where} (+-{d.bound_mm:g} mm, {d.scan_step_mm:g} mm steps{stride}): "
                 f"tz to its peak{small}")  # fmt: skip
 
     def runs(self, state: State) -> bool:
@@ -166,7 +171,8 @@ class DepthPrescan(_AlongTheBeam):
         moves = () if move is None else (move,)
         # a move below move_mm leaves tz where it was, as the depth correction's scans do
         kept = move if move is not None and (abs(move) >= d.move_mm or d.keep_small_moves) else 0.0
-        return replace(state, space=state.space.holding_tz(tz + kept), depth_moves_mm=moves)
+        moved = (state.depth_moves_mm or ()) + moves
+        return replace(state, space=state.space.holding_tz(tz + kept), depth_moves_mm=moved)
 
 
 def _polish_cost(state: State, stage: _AlongTheBeam, space: SearchSpace, x: Array) -> Callable[[Array], float]:
@@ -197,7 +203,7 @@ def depth_stage(options: RegistrationOptions, margin_index: int) -> DepthCorrect
     return DepthCorrect(d, p.image_px, p.volume_level, options.margin_mm(margin_index), budget)
 
 
-def depth_prescan_stage(options: RegistrationOptions, margin_index: int) -> DepthPrescan:
-    """The scan before the polish of ``options`` (at the polish's level)."""
+def depth_prescan_stage(options: RegistrationOptions, margin_index: int, after: str | None = None) -> DepthPrescan:
+    """The scan before the polish of ``options`` (at the polish's level; ``after``: see :class:`DepthPrescan`)."""
     p = options.polish
-    return DepthPrescan(options.depth, p.image_px, p.volume_level, options.margin_mm(margin_index))
+    return DepthPrescan(options.depth, p.image_px, p.volume_level, options.margin_mm(margin_index), after)

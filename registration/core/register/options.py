@@ -220,6 +220,9 @@ class DepthOptions:
     #: A scan's move below ``move_mm`` still moves tz, without a polish of its own (default True;
     #: False: tz stays where it was).
     keep_small_moves: bool = True
+    #: Scan once more right after the capture level, before the finer annealing (+- ``bound_mm``),
+    #: so that the finer levels fit the plane at the corrected depth (default False).
+    scan_after_capture: bool = False
 
     def __post_init__(self) -> None:
         _at_least("DepthOptions", 1, rounds=self.rounds, polish_evaluations=self.polish_evaluations)
@@ -425,6 +428,7 @@ FLAT_NAMES: dict[str, tuple[str, str | tuple[str, str]]] = {
     "depth_scan_stride": ("depth", "scan_stride"),
     "depth_scan_first": ("depth", "scan_first"),
     "depth_keep_small_moves": ("depth", "keep_small_moves"),
+    "depth_scan_after_capture": ("depth", "scan_after_capture"),
     "rotation_check_deg": ("rotation_check", "turn_deg"),
     "rotation_check_reach": ("rotation_check", ("reach_mm", "reach_deg")),
     "rotation_check_evaluations": ("rotation_check", "evaluations"),
