@@ -204,3 +204,19 @@ def test_the_scan_before_the_polish_moves_tz_first_and_renders_less(scene, sign)
         return sum(s.rays for s in result.stages if not s.stage.startswith("anneal"))
 
     assert rays(first) < 0.8 * rays(late), (rays(first), rays(late))
+
+
+def test_a_scan_after_the_capture_level_moves_tz_before_the_finer_annealing(scene):
+    """``scan_after_capture``: one more scan along the beam right after the capture level, its move
+    recorded first; the estimate as good as the shipped order's (the same tolerances)."""
+    volume, renderer, cases = scene
+    truth, xray = cases[1.0]
+    options = replace(ON, depth=replace(ON.depth, scan_after_capture=True))
+    early = register(volume, xray, truth=truth, seed=0, renderer=renderer, options=options)
+    names = [s.stage.split(" ")[0] for s in early.stages]
+    assert names[:3] == ["anneal", "scan", "anneal"] and names.count("scan") == 2, names
+    assert "after the capture" in early.stages[1].stage
+    # the capture level's estimate is coarse, yet the first scan moves tz most of the way (measured 10.6 of 20 mm)
+    assert early.depth_moves_mm[0] > 6.0, early.depth_moves_mm
+    assert abs(early.depth_tz_mm - 20.0) < 5.0 and early.residual.outofplane_mm < 5.0, early.residual
+    assert early.residual.inplane_mm < 0.3 and early.residual.rotation_deg < 1.0, early.residual
