@@ -15,7 +15,8 @@ registrations per patient); ``volume``: the shared real CT (ROADMAP3D_REAL_CT), 
 images of ``--strength``; ``table1``: the four Table I offsets on 27/27 cm fluoro images,
 ``--cases`` rounds (seeds ``seed`` onward); ``ct``: the shared real CT's clean images from the CT
 itself, as ``roadmap3d bench`` registers them. ``--compare after-capture``: the arms ``shipped``
-and ``after_capture`` (``DepthOptions.scan_after_capture``) instead.
+and ``after_capture`` (``DepthOptions.scan_after_capture``, and ``reach_mm`` from ``--reach-mm``)
+instead.
 """
 
 from __future__ import annotations
@@ -32,12 +33,14 @@ KEYS = ("inplane_residual_mm", "translation_residual_mm", "outofplane_residual_m
 
 
 COMPARE = "scan-first"
+REACH_MM: float | None = None
 
 
 def arms() -> dict[str, RegistrationOptions]:
     base = RegistrationOptions()
     if COMPARE == "after-capture":
-        return {"shipped": base, "after_capture": replace(base, depth=replace(base.depth, scan_after_capture=True))}
+        variant = replace(base.depth, scan_after_capture=True, reach_mm=REACH_MM)
+        return {"shipped": base, "after_capture": replace(base, depth=variant)}
     before = replace(base, depth=replace(base.depth, scan_first=False, keep_small_moves=False))
     return {"now": before, "prescan_keep": base}
 
@@ -52,9 +55,10 @@ def main() -> int:
     ap.add_argument("--strength", type=float, default=1.0)
     ap.add_argument("--compare", choices=("scan-first", "after-capture"), default="scan-first",
                     help="the arms compared (see the module's docstring)")  # fmt: skip
+    ap.add_argument("--reach-mm", type=float, default=None, help="after-capture: the variant's DepthOptions.reach_mm")
     args = ap.parse_args()
-    global COMPARE
-    COMPARE = args.compare
+    global COMPARE, REACH_MM
+    COMPARE, REACH_MM = args.compare, args.reach_mm
     if args.study == "runs":
         draws.write_runs(sys.stdout, args.seed, args.cases, arms(), KEYS)
     elif args.study == "volume":

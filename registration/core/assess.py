@@ -70,8 +70,9 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
         return "no usable overlap between the DRR and the image"
     if getattr(result, "depth_at_bound", False):
         return (
-            f"the depth correction ended at its bound ({result.depth_tz_mm:+.0f} mm along the beam): the patient may "
-            "lie further along the beam than one view can tell; check the estimate by eye before applying it"
+            f"the depth correction ended at or beyond its bound ({result.depth_tz_mm:+.0f} mm along the beam): the "
+            "patient may lie further along the beam than one view can tell; check the estimate by eye before "
+            "applying it"
         )
     shift = getattr(result, "start_shift_mm", 0.0)
     if shifted_start_withheld(result):

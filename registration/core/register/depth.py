@@ -62,8 +62,11 @@ class DepthCorrect(_AlongTheBeam):
         widths = f"+-{d.rescan_mm:g} mm" if d.scan_first else f"+-{d.bound_mm:g} mm, then +-{d.rescan_mm:g} mm"
         small = (f"; a move below {d.move_mm:g} mm moves tz without a polish" if d.keep_small_moves
                  else "")  # fmt: skip
+        within = f"+-{d.bound_mm:g} mm"
+        if d.walk_mm > d.bound_mm:
+            within = f"+-{d.walk_mm:g} mm, trusted within +-{d.bound_mm:g}"
         return (f"depth correction: up to {d.rounds} scans along the beam ({widths}, {d.scan_step_mm:g} mm "
-                f"steps{stride}, tz within +-{d.bound_mm:g} mm), each followed by a polish{first} at "
+                f"steps{stride}, tz within {within}), each followed by a polish{first} at "
                 f"{self.polish_image_px} px: {self.budget.describe()}{small}")  # fmt: skip
 
     def runs(self, state: State) -> bool:
@@ -132,8 +135,8 @@ def _scan_move(
     polish_level = renderer_level(renderer, stage.polish_volume_level)
     polish_voxel_mm = float(renderer.level_volume(polish_level).spacing_mm.max())
     pixel_mm = iso_pixel_mm(view.geometry, level_factor(view.geometry, stage.polish_image_px, polish_voxel_mm))
-    step, bound = d.scan_step_mm, d.bound_mm
-    # the offsets that stay within the bound, from the estimate's tz
+    step, bound = d.scan_step_mm, d.walk_mm
+    # the offsets that stay within the reach, from the estimate's tz
     lo, hi = max(-half, -bound - tz), min(half, bound - tz)
     offsets = tuple(float(o) for o in np.arange(math.ceil(lo / step) * step, hi + 1e-9, step))
     if len(offsets) < 3:

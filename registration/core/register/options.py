@@ -220,6 +220,10 @@ class DepthOptions:
     #: A scan's move below ``move_mm`` still moves tz, without a polish of its own (default True;
     #: False: tz stays where it was).
     keep_small_moves: bool = True
+    #: How far from the initial pose a rescan may still walk tz, mm (None: ``bound_mm``; never less
+    #: than it). An estimate that ends beyond ``bound_mm`` (within a step of it) is still withheld:
+    #: the further reach finds the depth of a patient who lies there, it does not make it trusted.
+    reach_mm: float | None = None
     #: Scan once more right after the capture level, before the finer annealing (+- ``bound_mm``),
     #: so that the finer levels fit the plane at the corrected depth (default False).
     scan_after_capture: bool = False
@@ -235,6 +239,13 @@ class DepthOptions:
         _positive("DepthOptions", move_mm=self.move_mm, bound_mm=self.bound_mm, voxel_mm=self.voxel_mm,
                   max_voxel_mm=self.max_voxel_mm, scan_step_mm=self.scan_step_mm, rescan_mm=self.rescan_mm)  # fmt: skip
         _reach("DepthOptions.polish", self.polish_reach_mm, self.polish_reach_deg, optional=False)
+        if self.reach_mm is not None:
+            _positive("DepthOptions", reach_mm=self.reach_mm)
+
+    @property
+    def walk_mm(self) -> float:
+        """How far from the initial pose tz may go (``reach_mm``, at least ``bound_mm``)."""
+        return self.bound_mm if self.reach_mm is None else max(self.bound_mm, self.reach_mm)
 
 
 @dataclass(frozen=True)
@@ -429,6 +440,7 @@ FLAT_NAMES: dict[str, tuple[str, str | tuple[str, str]]] = {
     "depth_scan_first": ("depth", "scan_first"),
     "depth_keep_small_moves": ("depth", "keep_small_moves"),
     "depth_scan_after_capture": ("depth", "scan_after_capture"),
+    "depth_reach_mm": ("depth", "reach_mm"),
     "rotation_check_deg": ("rotation_check", "turn_deg"),
     "rotation_check_reach": ("rotation_check", ("reach_mm", "reach_deg")),
     "rotation_check_evaluations": ("rotation_check", "evaluations"),
