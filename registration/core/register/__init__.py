@@ -160,7 +160,9 @@ def register(
     start = time.perf_counter()
     inputs, intensity = _matched_intensities(inputs, options)
 
-    def once(inputs: Inputs, wall: Callable[[np.ndarray], float] | None = None) -> RegistrationResult:
+    def once(
+        inputs: Inputs, wall: Callable[[np.ndarray], float] | None = None, options: RegistrationOptions = options
+    ) -> RegistrationResult:
         space = SearchSpace.for_views(inputs.views[0].geometry, inputs.initial_motion,
                                       optimize_tz=options.optimizes_tz(len(inputs.views)),
                                       bound_mm=options.bound_mm, bound_deg=options.bound_deg, wall=wall)  # fmt: skip
@@ -173,7 +175,8 @@ def register(
     else:
         machine = inputs
         inputs, shift_mm = shifted_start(machine, options)
-        result = walk_from_bounds(once, inputs, options)
+        far = far_start(options, len(inputs.views), shift_mm)
+        result = walk_from_bounds(lambda i: once(i, None, far), inputs, options)
         result.start_shift_mm = shift_mm
         if shift_mm:  # the search started from the image shift: its translation-first rival
             result = translation_first(inputs, result, options, callback=callback, start_s=start,
@@ -192,6 +195,18 @@ def register(
         result.beyond_box = beyond_box(result, machine.initial_motion, options)
     result.intensity = intensity
     return result
+
+
+def far_start(options: RegistrationOptions, n_views: int, shift_mm: float) -> RegistrationOptions:
+    """``options`` for one view's search that starts from an image shift of at least
+    ``DepthOptions.far_start_mm`` (an estimate the confidence withholds whatever it is): a scan
+    along the beam after the capture level too, and rescans reaching ``far_reach_mm``
+    (``scan_after_capture``, ``reach_mm``); ``options`` itself otherwise."""
+    d = options.depth
+    if n_views != 1 or d.far_start_mm is None or not shift_mm or shift_mm < d.far_start_mm:
+        return options
+    reach = max(d.walk_mm, d.far_reach_mm)
+    return replace(options, depth=replace(d, scan_after_capture=True, reach_mm=reach))
 
 
 def landmark_depth(options: RegistrationOptions, inputs: Inputs) -> RegistrationOptions:
