@@ -16,7 +16,7 @@ images of ``--strength``; ``table1``: the four Table I offsets on 27/27 cm fluor
 ``--cases`` rounds (seeds ``seed`` onward); ``ct``: the shared real CT's clean images from the CT
 itself, as ``roadmap3d bench`` registers them. ``--compare after-capture``: the arms ``shipped``
 and ``after_capture`` (``DepthOptions.scan_after_capture``, and ``reach_mm`` from ``--reach-mm``)
-instead.
+instead; ``--variant JSON``: the arms ``shipped`` and ``variant`` (those flat keywords).
 """
 
 from __future__ import annotations
@@ -36,8 +36,13 @@ COMPARE = "scan-first"
 REACH_MM: float | None = None
 
 
+VARIANT: dict | None = None
+
+
 def arms() -> dict[str, RegistrationOptions]:
     base = RegistrationOptions()
+    if VARIANT is not None:
+        return {"shipped": base, "variant": RegistrationOptions(**VARIANT)}
     if COMPARE == "after-capture":
         variant = replace(base.depth, scan_after_capture=True, reach_mm=REACH_MM)
         return {"shipped": base, "after_capture": replace(base, depth=variant)}
@@ -56,9 +61,11 @@ def main() -> int:
     ap.add_argument("--compare", choices=("scan-first", "after-capture"), default="scan-first",
                     help="the arms compared (see the module's docstring)")  # fmt: skip
     ap.add_argument("--reach-mm", type=float, default=None, help="after-capture: the variant's DepthOptions.reach_mm")
+    ap.add_argument("--variant", type=json.loads, default=None,
+                    help="the shipped options against these (flat keywords as JSON; arms shipped, variant)")  # fmt: skip
     args = ap.parse_args()
-    global COMPARE, REACH_MM
-    COMPARE, REACH_MM = args.compare, args.reach_mm
+    global COMPARE, REACH_MM, VARIANT
+    COMPARE, REACH_MM, VARIANT = args.compare, args.reach_mm, args.variant
     if args.study == "runs":
         draws.write_runs(sys.stdout, args.seed, args.cases, arms(), KEYS)
     elif args.study == "volume":
