@@ -62,7 +62,7 @@ def main() -> int:
                     help="the arms compared (see the module's docstring)")  # fmt: skip
     ap.add_argument("--reach-mm", type=float, default=None, help="after-capture: the variant's DepthOptions.reach_mm")
     ap.add_argument("--variant", type=json.loads, default=None,
-                    help="the shipped options against these (flat keywords as JSON; arms shipped, variant)")  # fmt: skip
+                    help="the shipped options against these flat keywords (JSON)")  # fmt: skip
     args = ap.parse_args()
     global COMPARE, REACH_MM, VARIANT
     COMPARE, REACH_MM, VARIANT = args.compare, args.reach_mm, args.variant
