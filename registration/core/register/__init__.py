@@ -200,13 +200,12 @@ def register(
 def far_start(options: RegistrationOptions, n_views: int, shift_mm: float) -> RegistrationOptions:
     """``options`` for one view's search that starts from an image shift of at least
     ``DepthOptions.far_start_mm`` (an estimate the confidence withholds whatever it is): a scan
-    along the beam after the capture level too, and rescans reaching ``far_reach_mm``
-    (``scan_after_capture``, ``reach_mm``); ``options`` itself otherwise."""
+    along the beam after the capture level too (``scan_after_capture``); ``options`` itself
+    otherwise."""
     d = options.depth
     if n_views != 1 or d.far_start_mm is None or not shift_mm or shift_mm < d.far_start_mm:
         return options
-    reach = max(d.walk_mm, d.far_reach_mm)
-    return replace(options, depth=replace(d, scan_after_capture=True, reach_mm=reach))
+    return replace(options, depth=replace(d, scan_after_capture=True))
 
 
 def landmark_depth(options: RegistrationOptions, inputs: Inputs) -> RegistrationOptions:

@@ -220,18 +220,18 @@ class DepthOptions:
     #: A scan's move below ``move_mm`` still moves tz, without a polish of its own (default True;
     #: False: tz stays where it was).
     keep_small_moves: bool = True
-    #: How far from the initial pose a rescan may still walk tz, mm (None: ``bound_mm``; never less
-    #: than it). An estimate that ends beyond ``bound_mm`` (within a step of it) is still withheld:
-    #: the further reach finds the depth of a patient who lies there, it does not make it trusted.
-    reach_mm: float | None = None
+    #: How far from the initial pose a rescan may still walk tz, mm (default 40; None: ``bound_mm``;
+    #: never less than it; docs/decisions/2026-12-06-far-start-depth.md). An estimate that ends
+    #: beyond ``bound_mm`` (within a step of it) is still withheld: the further reach finds the
+    #: depth of a patient who lies there, it does not make it trusted.
+    reach_mm: float | None = 40.0
     #: Scan once more right after the capture level, before the finer annealing (+- ``bound_mm``),
     #: so that the finer levels fit the plane at the corrected depth (default False).
     scan_after_capture: bool = False
     #: One view's search that starts from an image shift of at least this, mm, scans after the
-    #: capture level and its rescans reach ``far_reach_mm`` (default 25, the shift beyond which the
-    #: confidence withholds one view's estimate anyway; None: never).
+    #: capture level (default 25, the shift beyond which the confidence withholds one view's
+    #: estimate anyway; None: never).
     far_start_mm: float | None = 25.0
-    far_reach_mm: float = 40.0
 
     def __post_init__(self) -> None:
         _at_least("DepthOptions", 1, rounds=self.rounds, polish_evaluations=self.polish_evaluations)
@@ -248,7 +248,6 @@ class DepthOptions:
             _positive("DepthOptions", reach_mm=self.reach_mm)
         if self.far_start_mm is not None:
             _positive("DepthOptions", far_start_mm=self.far_start_mm)
-        _positive("DepthOptions", far_reach_mm=self.far_reach_mm)
 
     @property
     def walk_mm(self) -> float:
@@ -450,7 +449,6 @@ FLAT_NAMES: dict[str, tuple[str, str | tuple[str, str]]] = {
     "depth_scan_after_capture": ("depth", "scan_after_capture"),
     "depth_reach_mm": ("depth", "reach_mm"),
     "depth_far_start_mm": ("depth", "far_start_mm"),
-    "depth_far_reach_mm": ("depth", "far_reach_mm"),
     "rotation_check_deg": ("rotation_check", "turn_deg"),
     "rotation_check_reach": ("rotation_check", ("reach_mm", "reach_deg")),
     "rotation_check_evaluations": ("rotation_check", "evaluations"),

@@ -222,10 +222,10 @@ def test_a_scan_after_the_capture_level_moves_tz_before_the_finer_annealing(scen
     assert early.residual.inplane_mm < 0.3 and early.residual.rotation_deg < 1.0, early.residual
 
 
-def test_a_far_start_scans_after_the_capture_and_reaches_further():
+def test_a_far_start_scans_after_the_capture_and_every_search_reaches_further():
     """One view's search from an image shift of 25 mm or more (withheld whatever it finds) scans
-    along the beam after the capture level too and may walk tz to 40 mm; the bound that withholds
-    an estimate stays 25 mm. Any other search keeps its options."""
+    along the beam after the capture level too; every one-view search may walk tz to 40 mm, the
+    bound that withholds an estimate stays 25 mm. Any other search keeps its options."""
     from registration.core.register import far_start
 
     base = RegistrationOptions()
@@ -234,4 +234,6 @@ def test_a_far_start_scans_after_the_capture_and_reaches_further():
     off = replace(base, depth=replace(base.depth, far_start_mm=None))
     assert far_start(off, 1, 40.0) is off
     far = far_start(base, 1, 25.0).depth
-    assert far.scan_after_capture and far.walk_mm == 40.0 and far.bound_mm == base.depth.bound_mm == 25.0
+    assert far.scan_after_capture and not base.depth.scan_after_capture
+    assert far.walk_mm == base.depth.walk_mm == 40.0 and far.bound_mm == base.depth.bound_mm == 25.0
+    assert replace(base.depth, reach_mm=None).walk_mm == 25.0
