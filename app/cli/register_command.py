@@ -334,7 +334,11 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     if options.explain:
         plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer, options=engine,
                                  landmarks=inputs.landmark_start)  # fmt: skip
-        _say("plan:\n" + plan.describe() + "\naround it:\n" + engine.start.describe())
+        around = engine.start.describe()
+        far = engine.depth.far_start_mm
+        if len(views) == 1 and far is not None and engine.start.enabled and engine.start.shift_mm is not None:
+            around += f"\none view from an image shift of {far:g} mm or more: a scan along the beam after the capture"
+        _say("plan:\n" + plan.describe() + "\naround it:\n" + around)
     result = register(vol, views, initial_motion=m_init, seed=options.seed, truth=inputs.truth,
                       vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer, options=engine,
                       landmarks=inputs.landmark_start)  # fmt: skip

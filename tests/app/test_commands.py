@@ -490,6 +490,7 @@ def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None
     assert code == 0
     assert "start: " in out and "5 landmarks, reprojection error 0.0 px rms" in out  # exact picks
     assert "estimate from landmarks: a fine polish" in out  # the plan says how a landmark start is treated
+    assert "one view from an image shift of 25 mm or more: a scan along the beam after the capture" in out
     result = json.loads(result_path.read_text())
     # exact picks give the true motion as the start (to rounding), and the registration keeps it
     np.testing.assert_allclose(result["landmark_start"]["patient_motion"], truth, atol=1e-6)
