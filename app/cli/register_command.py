@@ -310,7 +310,13 @@ def _estimate_geometry(result: Any, views: list, renderer: Any, inputs: Inputs) 
 
 def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Outcome:
     """Prepare the volume for the views (cached), register, and run what was asked after it."""
-    from registration.core.register import RegistrationOptions, StartOptions, register, registration_plan
+    from registration.core.register import (
+        RegistrationOptions,
+        StartOptions,
+        around_the_plan,
+        register,
+        registration_plan,
+    )
 
     compiling = kernels_to_compile()
     clock.lap("loading the engine")
@@ -334,11 +340,7 @@ def register_inputs(options: Register, inputs: Inputs, clock: _Stopwatch) -> Out
     if options.explain:
         plan = registration_plan(vol, views, initial_motion=m_init, renderer=prepared.renderer, options=engine,
                                  landmarks=inputs.landmark_start)  # fmt: skip
-        around = engine.start.describe()
-        far = engine.depth.far_start_mm
-        if len(views) == 1 and far is not None and engine.start.enabled and engine.start.shift_mm is not None:
-            around += f"\none view from an image shift of {far:g} mm or more: a scan along the beam after the capture"
-        _say("plan:\n" + plan.describe() + "\naround it:\n" + around)
+        _say("plan:\n" + plan.describe() + "\naround it:\n" + around_the_plan(engine, len(views)))
     result = register(vol, views, initial_motion=m_init, seed=options.seed, truth=inputs.truth,
                       vessel_points_mm=inputs.vessel_points, renderer=prepared.renderer, options=engine,
                       landmarks=inputs.landmark_start)  # fmt: skip

@@ -208,6 +208,17 @@ def far_start(options: RegistrationOptions, n_views: int, shift_mm: float) -> Re
     return replace(options, depth=replace(d, scan_after_capture=True))
 
 
+def around_the_plan(options: RegistrationOptions, n_views: int) -> str:
+    """The rules that move the search's start or change its plan on the way (what
+    ``register --explain`` prints after the plan): :meth:`StartOptions.describe` and
+    :func:`far_start`'s."""
+    lines = options.start.describe()
+    far = options.depth.far_start_mm
+    if n_views == 1 and far is not None and options.start.enabled and options.start.shift_mm is not None:
+        lines += f"\none view from an image shift of {far:g} mm or more: a scan along the beam after the capture"
+    return lines
+
+
 def landmark_depth(options: RegistrationOptions, inputs: Inputs) -> RegistrationOptions:
     """``options`` with one view's depth correction reaching ``StartOptions.landmark_depth_mm``
     from a landmark start (never less than its own bound); ``options`` itself otherwise."""
