@@ -136,7 +136,7 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
     say = log or (lambda _msg: None)
     sizes = ((64, 64), (128, 128)) if quick else ((64, 64), (128, 128), (256, 256))
     say("DRR renderer vs scipy reference ...")
-    drr = bench_drr(sizes=sizes, repeats=5 if quick else 30)
+    drr = bench_drr(sizes=sizes, repeats=4 if quick else 30, rounds=2 if quick else 5)
     say("gradient difference ...")
     gd_ms = bench_gradient_difference()
     say("registration over T1-T4 (27/27 cm, fluoro) ...")

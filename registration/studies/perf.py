@@ -72,54 +72,88 @@ def bench_geometry(pixels: int) -> CArm:
     )
 
 
-def _timings(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> tuple[float, float, float]:
-    """Median wall, median process-CPU and minimum wall milliseconds of ``fn()`` over ``repeats`` calls."""
+def median_ms(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup``."""
     for _ in range(warmup):
         fn()
-    wall, cpu = [], []
+    wall = []
     for _ in range(max(1, repeats)):
-        c0 = time.process_time()
         t0 = time.perf_counter()
         fn()
         wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return float(np.median(wall) * 1e3), float(np.median(cpu) * 1e3), float(np.min(wall) * 1e3)
+    return float(np.median(wall) * 1e3)
 
 
-def median_ms(fn: Callable[[], object], repeats: int, *, warmup: int = 1) -> float:
-    """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup``."""
-    return _timings(fn, repeats, warmup=warmup)[0]
+def round_ratios(reference_ms: Sequence[float], fast_ms: Sequence[Sequence[float]]) -> dict:
+    """Speed-ups of rounds, each one reference call against the median of the fast calls beside it.
+
+    ``speedup`` is the median over rounds, ``speedup_min`` the least (the round the load hurt the
+    most), ``speedup_of_minima`` the reference's fastest call over the fast renderer's fastest
+    (both closest to an unloaded machine) and ``speedup_rounds`` every round's ratio.
+    """
+    if not reference_ms or len(reference_ms) != len(fast_ms) or any(len(f) == 0 for f in fast_ms):
+        raise ValueError("every round needs one reference time and at least one fast time")
+    ratios = [float(r) / float(np.median(f)) for r, f in zip(reference_ms, fast_ms, strict=True)]
+    return {
+        "speedup": round(float(np.median(ratios)), 1),
+        "speedup_min": round(min(ratios), 1),
+        "speedup_of_minima": round(float(min(reference_ms)) / float(min(min(f) for f in fast_ms)), 1),
+        "speedup_rounds": [round(r, 1) for r in ratios],
+    }
 
 
-def _bench_one(image_px: int, volume_px: int, repeats: int, reference_repeats: int, masked: bool) -> dict:
+def _bench_one(image_px: int, volume_px: int, repeats: int, rounds: int, masked: bool) -> dict:
     volume = bench_volume(volume_px)
     geometry = bench_geometry(image_px)
     renderer = DRRRenderer(volume, levels=1)
     mask = geometry.field_mask() if masked else None
     out = np.empty((geometry.rows, geometry.cols), dtype=np.float32)
     render = lambda: renderer.render(geometry, mask=mask, out=out)  # noqa: E731
-    fast_ms, fast_cpu_ms, fast_min_ms = _timings(render, repeats, warmup=3)
-    images: list[np.ndarray] = []
-    ref_ms = median_ms(lambda: images.append(render_reference(volume, geometry)), reference_repeats, warmup=0)
+    for _ in range(3):  # warm-up: compiled code, caches
+        render()
+    # rounds interleave the two renderers, so that a burst of load on the shared machine slows
+    # both within a round instead of one of them; each round's fast calls follow two untimed ones
+    per_round = max(1, repeats // max(1, rounds))
+    ref_ms: list[float] = []
+    fast_rounds: list[list[float]] = []
+    cpu_ms: list[float] = []
+    reference = None
+    for _ in range(max(1, rounds)):
+        t0 = time.perf_counter()
+        reference = render_reference(volume, geometry)
+        ref_ms.append((time.perf_counter() - t0) * 1e3)
+        render()  # the first calls after the reference run on cold caches and sleeping threads
+        render()
+        walls = []
+        for _ in range(per_round):
+            c0 = time.process_time()
+            t0 = time.perf_counter()
+            render()
+            walls.append((time.perf_counter() - t0) * 1e3)
+            cpu_ms.append((time.process_time() - c0) * 1e3)
+        fast_rounds.append(walls)
+    fast_all = [w for walls in fast_rounds for w in walls]
+    fast_ms = float(np.median(fast_all))
     before = renderer.samples_per_level[0]
     renderer.render(geometry, mask=mask, out=out)
     samples = renderer.samples_per_level[0] - before
     fast = renderer.render(geometry)
-    ref = images[-1]
-    scale = float(ref.max()) or 1.0
+    scale = float(reference.max()) or 1.0
     return {
         "image_px": int(image_px),
         "volume_px": int(volume_px),
         "ms_median": round(fast_ms, 4),
-        "ms_min": round(fast_min_ms, 4),
-        "cpu_ms_median": round(fast_cpu_ms, 4),
+        "ms_min": round(min(fast_all), 4),
+        "cpu_ms_median": round(float(np.median(cpu_ms)), 4),
         "threads": numba.get_num_threads(),
         # the work of one DRR, whatever the machine's load: its bilinear samples
         "samples_per_drr": int(samples),
         "ns_per_sample": round(fast_ms * 1e6 / samples, 3) if samples else None,
-        "reference_ms_median": round(ref_ms, 2),
-        "speedup": round(ref_ms / fast_ms, 1),
-        "max_rel_error": round(float(np.abs(fast - ref).max()) / scale, 5),
+        "reference_ms_median": round(float(np.median(ref_ms)), 2),
+        "reference_ms_min": round(min(ref_ms), 2),
+        "rounds": len(ref_ms),
+        **round_ratios(ref_ms, fast_rounds),
+        "max_rel_error": round(float(np.abs(fast - reference).max()) / scale, 5),
     }
 
 
@@ -127,24 +161,23 @@ def bench_drr(
     sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES,
     repeats: int = 50,
     *,
-    reference_repeats: int = 3,
+    rounds: int = 5,
     masked: bool = True,
 ) -> list[dict]:
-    """Median DRR time of the fast renderer and of the reference, per (image, volume) size.
+    """DRR times of the fast renderer and of the reference, per (image, volume) size, in rounds.
 
-    Each record: ``image_px`` and ``volume_px`` (edge lengths), ``ms_median`` (fast renderer,
-    ``repeats`` calls into a reused buffer, with the circular field mask when ``masked``),
-    ``ms_min`` (the fastest call: close to the unloaded machine when others share it),
-    ``cpu_ms_median`` (its process CPU time per call), ``threads`` (numba threads),
+    Each round renders the reference once (:func:`registration.core.drr.render_reference` at its
+    default step of half a voxel, whole image) and then the fast renderer ``repeats // rounds``
+    times into a reused buffer (with the circular field mask when ``masked``). Each record:
+    ``image_px`` and ``volume_px`` (edge lengths); ``ms_median`` and ``ms_min`` of the fast
+    renderer over all its calls (the minimum is close to the unloaded machine when others share
+    it); ``cpu_ms_median`` (its process CPU time per call); ``threads`` (numba threads);
     ``samples_per_drr`` (bilinear samples of one masked DRR: the load-free work) and
-    ``ns_per_sample`` (``ms_median`` over them),
-    ``reference_ms_median`` (:func:`registration.core.drr.render_reference` at its default step of
-    half a voxel, ``reference_repeats`` calls, whole image), ``speedup`` and ``max_rel_error``
-    (max |fast - reference| over the reference's maximum, whole image).
+    ``ns_per_sample`` (``ms_median`` over them); ``reference_ms_median`` and ``reference_ms_min``;
+    ``rounds``; the speed-ups of :func:`round_ratios`; ``max_rel_error`` (max |fast - reference|
+    over the reference's maximum, whole image).
     """
-    return [
-        _bench_one(int(image_px), int(volume_px), repeats, reference_repeats, masked) for image_px, volume_px in sizes
-    ]
+    return [_bench_one(int(image_px), int(volume_px), repeats, rounds, masked) for image_px, volume_px in sizes]
 
 
 def bench_gradient_difference(image_px: int = 128, repeats: int = 200) -> float:
