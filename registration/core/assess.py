@@ -238,5 +238,6 @@ def _evidence(
         depth_scan_tz_mm=None if scan is None else float(scan.tz_mm),
         rival_gain=None if check is None or check.rival_gain is None else float(check.rival_gain),
         beam_margin=beam,
+        planes_apart=None if len(views) < 2 else float(result.planes_disagreed),
     )
     return evidence, probe, scan

@@ -65,6 +65,13 @@ The confidence is a logistic function of what the engine knows about the estimat
     view sees little anatomy (a head moved far, half out of its field), its measure stays flat
     there and the depth along the first beam is a guess: two views' estimates 9-14 mm off
     along plane A's beam were applied that way.
+``planes_apart``
+    Two views: 1 when the planes' own captures still disagreed after their rounds (in some
+    search of the registration: :attr:`RegistrationResult.planes_disagreed`), 0 when they
+    agreed. The pair's search then chose between the planes' starts; read by the term
+    ``planes_apart`` only with a flat peak (``margin`` below ``apart_margin_good``): a choice
+    the measure barely makes. A two-view estimate 34 degrees off from a 40-degree turn was
+    applied that way (margin 0.0015; right estimates whose planes disagreed had 0.006 and more).
 ``spine_pull_mm``
     Single plane, a volume with a cervical spine: how far the estimate moves in the image plane
     at the iso-center when a short local search from it fits the head alone (the spine below
@@ -126,6 +133,7 @@ class Evidence:
     rival_gain: float | None = None
     spine_pull_mm: float | None = None
     beam_margin: float | None = None
+    planes_apart: float | None = None
     #: A hard reason to withhold whatever the score (e.g. "no usable pixel", "stopped").
     veto: str | None = None
 
@@ -251,6 +259,12 @@ class ConfidenceRule:
     #: counted on fresh far and clinical draws (docs/decisions/2026-12-06-beam-margin.md).
     beam_weight: float = 3000.0
     beam_good: float = 0.002
+    #: per unit of relative margin below ``apart_margin_good`` when the planes' own captures
+    #: disagreed (two views): a margin of 0.0015 costs 5. Read on the capture study's full run,
+    #: seed 0, counted on fresh seeds and clinical-looking images
+    #: (docs/decisions/2026-12-07-planes-apart.md).
+    apart_weight: float = 1500.0
+    apart_margin_good: float = 0.005
     threshold: float = 0.5
 
     def terms(self, e: Evidence) -> dict[str, float]:
@@ -280,6 +294,8 @@ class ConfidenceRule:
             out["spine"] = -self.spine_weight * max(0.0, e.spine_pull_mm - self.spine_free_mm)
         if e.beam_margin is not None and self.beam_weight:
             out["beam"] = -self.beam_weight * max(0.0, self.beam_good - e.beam_margin)
+        if e.planes_apart and e.margin is not None and self.apart_weight:
+            out["planes_apart"] = -self.apart_weight * e.planes_apart * max(0.0, self.apart_margin_good - e.margin)
         return out
 
     def score(self, e: Evidence) -> float:
@@ -310,6 +326,7 @@ _REASONS = {
     "rival": "another out-of-plane rotation fits the image about as well (a rotation optimum)",
     "spine": "the head alone fits elsewhere: the neck moved relative to the head (register the cranium)",
     "beam": "one view's depth along its beam is not confirmed by the other view (little anatomy in its field)",
+    "planes_apart": "the planes' own captures disagreed and the measure barely prefers the estimate the pair chose",
 }
 
 

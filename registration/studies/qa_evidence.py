@@ -69,6 +69,7 @@ TERM_PICTURES = {
     "deficit": "the measure's level over the run",
     "beam": "the evidence's beam_margin (how much the other plane's measure falls when the estimate moves "
     "along one plane's beam)",
+    "planes_apart": "the parameter profiles (their margins at +-1), the planes' own captures having disagreed",
     "spine": "the evidence's spine_pull_mm (how far the head alone, without the spine below the skull base, "
     "moves the estimate)",
 }

@@ -67,7 +67,7 @@ from registration.core.register.options import (
     RotationCheckOptions,
     StartOptions,
 )
-from registration.core.register.plan import Plan, Run, State
+from registration.core.register.plan import PLANES_DISAGREE, Plan, Run, State
 from registration.core.register.result import Progress, RegistrationResult, RotationCheck, StageCost
 from registration.core.register.rotation_check import RIVAL_DISTINCT_DEG, rotation_check
 from registration.core.register.shift_start import look_again, shifted_start
@@ -193,6 +193,8 @@ def register(
 
             result = held_by_landmarks(held, machine, result)
         result.beyond_box = beyond_box(result, machine.initial_motion, options)
+    # every search's stages are kept in order: a stage that ran only on the planes' disagreement
+    result.planes_disagreed = any(c.stage.endswith(f"({PLANES_DISAGREE[0]})") for c in result.stages)
     result.intensity = intensity
     return result
 

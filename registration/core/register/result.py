@@ -141,6 +141,9 @@ class RegistrationResult:
     translation_first: bool = False
     #: Each stage that ran, in order, with its cost (a walk's restarts follow the first search's).
     stages: tuple[StageCost, ...] = ()
+    #: Two views: whether the planes' own captures still disagreed after their rounds in some
+    #: search of this registration (its pair's capture then ran from several starts).
+    planes_disagreed: bool = False
 
     @property
     def success(self) -> bool | None:
@@ -198,6 +201,8 @@ class RegistrationResult:
             out["fine_polished"] = True
         if self.translation_first:
             out["translation_first"] = True
+        if self.planes_disagreed:
+            out["planes_disagreed"] = True
         if self.stages:
             out["stages"] = [c.to_dict() for c in self.stages]
         return out

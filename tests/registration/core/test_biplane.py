@@ -350,3 +350,37 @@ def _blank_view(geometry: CArm):  # noqa: ANN202
 
     shape = (geometry.rows, geometry.cols)
     return XRayImage(np.ones(shape, np.float32), np.ones(shape, bool), geometry)
+
+
+def test_planes_whose_captures_disagree_are_said_and_their_flat_choice_withheld(scene):
+    """Plane B sees the head 12 mm further cranial than plane A (two moments, not one): the
+    planes' own captures cannot agree on what both see, the result says so, and the confidence
+    weighs it against a flat peak."""
+    from registration.core.assess import assess_on
+    from registration.core.confidence import DEFAULT_RULE, Evidence
+    from registration.core.drr import DRRRenderer
+    from registration.core.geometry import rigid
+    from registration.sim.phantom import make_head_phantom
+    from registration.sim.xray import simulate_xray
+
+    volume, views, truth = scene
+    same = register(volume, views, options=FAST)
+    assert not same.planes_disagreed and "planes_disagreed" not in same.to_dict()
+    anatomy = make_head_phantom(seed=0, contrast=False)
+    apart = simulate_xray(anatomy, views[1].geometry, motion=rigid(None, (0.0, 0.0, 12.0)) @ truth,
+                          kind="exposure", seed=1)  # fmt: skip
+    result = register(volume, [views[0], apart], options=FAST)
+    assert result.planes_disagreed and result.to_dict()["planes_disagreed"] is True
+    assert any(c.stage.endswith("(when the planes disagree)") for c in result.stages)
+    renderer = DRRRenderer(volume, levels=3)
+    assert assess_on(result, [views[0], apart], volume, renderer).evidence.planes_apart == 1.0
+    assert assess_on(same, views, volume, renderer).evidence.planes_apart == 0.0
+    # The rule at the evidence of the capture study's wrong two-view estimate (seed 0, 40 deg,
+    # moment 2: margin 0.0015, capture runs apart, beam margin 0.0039): applied at 0.88 when the
+    # planes' disagreement is not weighed, withheld with it; the least margin of a right estimate
+    # whose planes disagreed there (0.0061) keeps its decision.
+    recorded = Evidence(margin=0.0015, agreement=0.0, edges=0.26, beam_margin=0.0039)
+    assert DEFAULT_RULE.assess(recorded).applied
+    withheld = DEFAULT_RULE.assess(replace(recorded, planes_apart=1.0))
+    assert not withheld.applied and "planes' own captures disagreed" in withheld.reason, withheld
+    assert DEFAULT_RULE.assess(replace(recorded, margin=0.0061, planes_apart=1.0)).applied
