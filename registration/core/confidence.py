@@ -262,7 +262,7 @@ class ConfidenceRule:
     #: per unit of relative margin below ``apart_margin_good`` when the planes' own captures
     #: disagreed (two views): a margin of 0.0015 costs 5. Read on the capture study's full run,
     #: seed 0, counted on fresh seeds and clinical-looking images
-    #: (docs/decisions/2026-12-07-planes-apart.md).
+    #: (docs/decisions/2026-12-06-planes-apart.md).
     apart_weight: float = 1500.0
     apart_margin_good: float = 0.005
     threshold: float = 0.5
