@@ -295,7 +295,9 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
     record["plane_disagreement_mm"] = plane_a_disagreement_mm(both.patient_motion, single.patient_motion,
                                                               views[0].geometry)  # fmt: skip
     single_conf = assessment_fields(assess(single, views[0], alone))
-    record.update({f"single_{k}": v for k, v in single_conf.items() if k in ("confidence", "applied")})
+    kept = ("confidence", "applied", "withheld_reason", "confidence_evidence")
+    record.update({f"single_{k}": v for k, v in single_conf.items() if k in kept})
+    record["single_depth_tz_mm"] = single.depth_tz_mm
     return record
 
 

@@ -53,3 +53,7 @@ def test_real_ct_moment_registers_through_the_prepared_volume() -> None:
     stages = record["stages"]
     assert stages[0]["stage"].startswith("each plane's own capture")
     assert sum(s["drrs"] for s in stages) == record["drr_count"]
+    # plane A's own estimate keeps its decision's evidence beside the pair's; the pair's planes agreed
+    assert record["single_confidence_evidence"]["margin"] is not None
+    assert isinstance(record["single_withheld_reason"], str) and record["single_depth_tz_mm"] is not None
+    assert record["confidence_evidence"]["planes_apart"] == 0.0
