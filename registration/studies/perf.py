@@ -167,9 +167,9 @@ def bench_drr(
     """DRR times of the fast renderer and of the reference, per (image, volume) size, in rounds.
 
     Each round renders the reference once (:func:`registration.core.drr.render_reference` at its
-    default step of half a voxel, whole image) and then the fast renderer ``repeats // rounds``
-    times into a reused buffer (with the circular field mask when ``masked``). Each record:
-    ``image_px`` and ``volume_px`` (edge lengths); ``ms_median`` and ``ms_min`` of the fast
+    default step of half a voxel, whole image) and then, after two untimed calls, the fast
+    renderer ``repeats // rounds`` times into a reused buffer (with the circular field mask when
+    ``masked``). Each record: ``image_px`` and ``volume_px`` (edge lengths); ``ms_median`` and ``ms_min`` of the fast
     renderer over all its calls (the minimum is close to the unloaded machine when others share
     it); ``cpu_ms_median`` (its process CPU time per call); ``threads`` (numba threads);
     ``samples_per_drr`` (bilinear samples of one masked DRR: the load-free work) and
