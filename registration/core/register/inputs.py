@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.core.depth import DEPTH_VOLUME_LEVEL
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import check_rigid
 from registration.core.images import XRayImage
@@ -108,6 +109,8 @@ def prepared_volume(
         translations=3 if options.optimizes_tz(len(views)) else 2,
     )
     levels = [k for k in options.volume_levels() if k <= CAPTURE_64.volume_level or supports_level(volume, k)]
+    if len(views) == 1:  # the confidence's depth probe renders one view's estimate at its own level
+        levels = sorted({*levels, DEPTH_VOLUME_LEVEL})
     if scans_level0(volume, len(views), options):
         levels = [0, *levels]
     return prepare_volume(volume, [v.geometry for v in views], reach=reach, levels=levels, store=store)

@@ -310,3 +310,26 @@ def test_an_isotropic_3dra_finer_than_the_floor_keeps_its_own_pyramid() -> None:
     vol = _volume((0.712, 0.712, 0.712), extent_mm=180.0, couch=False)
     prep = prepare_volume(vol, g, cache=False)
     assert prep.spacing_mm[1] == pytest.approx(2 * 0.712) and prep.spacing_mm[2] == pytest.approx(4 * 0.712)
+
+
+@pytest.mark.parametrize("polish", [{"enabled": False}, {"volume_level": 2}], ids=["polish off", "polish at level 2"])
+def test_one_view_gets_the_depth_probes_level_whatever_its_polish(polish: dict) -> None:
+    """The confidence's depth probe renders one view's estimate at level 1: a CT's levels are
+    built in mm, not a pyramid, so that level is prepared even when the polish is off or renders
+    coarser (the assessment found no level to render before)."""
+    from registration.core.depth import DEPTH_VOLUME_LEVEL, depth_probe
+    from registration.core.images import XRayImage
+    from registration.core.register import PolishOptions, RegistrationOptions, prepared_volume
+
+    g = _view(20.0, -10.0, fmt_cm=27.0, pixels=128)
+    vol = _volume((1.0, 1.0, 3.0), extent_mm=240.0)
+    image = DRRRenderer(vol, levels=1).render(g)
+    view = XRayImage(image, np.ones(image.shape, dtype=bool), g, kind="drr")
+    options = RegistrationOptions(polish=PolishOptions(**polish))
+    assert DEPTH_VOLUME_LEVEL not in options.volume_levels()  # what the search itself renders
+    prepared = prepared_volume(vol, (view,), np.eye(4), options)
+    assert prepared.renderer.has_level(DEPTH_VOLUME_LEVEL)
+    probe = depth_probe(prepared.renderer, view, np.eye(4))
+    # the image is the volume's own DRR at the true pose: the probe stays within a fraction of
+    # level 1's 2 mm voxel of it, along the beam and across
+    assert abs(probe.tz_mm) < 1.0 and probe.shift_mm < 0.5, probe.to_dict()
