@@ -116,6 +116,9 @@ RUNNERS: dict[type, tuple[str, str]] = {
 def run(options: object, *, in_worker: bool = False) -> int:
     """Run the command whose options these are."""
     module, function = RUNNERS[type(options)]
+    seed = getattr(options, "seed", None)
+    if isinstance(seed, int) and seed < 0:  # refused before any work: numpy takes no negative seed
+        raise UserError(f"--seed must be a non-negative integer, got {seed}")
     if isinstance(options, Register) and not in_worker:
         small_pages()
         if options.pacs is None and options.image:
