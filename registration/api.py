@@ -154,11 +154,15 @@ class XRayImage(_images.XRayImage):
         isocenter_mm: ArrayLike = (0.0, 0.0, 0.0),
         sid_mm: float | None = None,
         sod_mm: float | None = None,
+        pixel_mm: float | None = None,
     ) -> XRayImage:
-        """An XA/RF DICOM image (``frame`` of a multi-frame run, 0-based)."""
+        """An XA/RF DICOM image (``frame`` of a multi-frame run, 0-based). ``sid_mm``, ``sod_mm``,
+        ``pixel_mm``: the source-detector and source-iso-center distances and the detector's pixel
+        size, for files that lack them; given for a file that has them, they replace its values."""
         from registration.io import dicom
 
-        return cls._of(dicom.read_xray(path, frame=frame, isocenter_mm=isocenter_mm, sid_mm=sid_mm, sod_mm=sod_mm))
+        return cls._of(dicom.read_xray(path, frame=frame, isocenter_mm=isocenter_mm, sid_mm=sid_mm, sod_mm=sod_mm,
+                                       pixel_mm=pixel_mm))  # fmt: skip
 
     @classmethod
     def from_file(
@@ -167,14 +171,22 @@ class XRayImage(_images.XRayImage):
         geometry: str | os.PathLike[str] | dict | None = None,
         *,
         isocenter_mm: ArrayLike = (0.0, 0.0, 0.0),
+        sid_mm: float | None = None,
+        sod_mm: float | None = None,
+        pixel_mm: float | None = None,
     ) -> XRayImage:
         """A TIFF or PNG image with its geometry (a JSON side file or a dict; default ``<image>.json``),
-        see :mod:`registration.io.image_files` for the keys; a DICOM file is read as :meth:`from_dicom`."""
+        see :mod:`registration.io.image_files` for the keys; a DICOM file is read as :meth:`from_dicom`.
+        ``sid_mm``, ``sod_mm``: as for :meth:`from_dicom`; ``pixel_mm``: for a DICOM file only (an
+        image file's pixel size is in its geometry)."""
         from registration.io.image_files import is_image_file, read_image_file
 
         if not is_image_file(path):
-            return cls.from_dicom(path, isocenter_mm=isocenter_mm)
-        return cls._of(read_image_file(path, geometry=geometry, isocenter_mm=isocenter_mm))
+            return cls.from_dicom(path, isocenter_mm=isocenter_mm, sid_mm=sid_mm, sod_mm=sod_mm, pixel_mm=pixel_mm)
+        if pixel_mm is not None:
+            raise ValueError(f"{path}: pixel_mm is for DICOM files; an image file's pixel size is in its geometry")
+        image = read_image_file(path, geometry=geometry, isocenter_mm=isocenter_mm, sid_mm=sid_mm, sod_mm=sod_mm)
+        return cls._of(image)
 
     @classmethod
     def from_array(

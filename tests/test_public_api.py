@@ -111,3 +111,21 @@ def test_register_and_assess_with_one_preparation() -> None:
     decision = registration.assess(result, ex.image, preparation)
     assert decision.applied and decision.confidence > 0.5, decision
     np.testing.assert_array_equal(registration.register(ex.volume, ex.image).patient_motion, result.patient_motion)
+
+
+def test_an_xa_without_its_pixel_size_or_distances_is_read_with_them_given(tmp_path: Path) -> None:
+    """A file without ImagerPixelSpacing and DistanceSourceToDetector (as the shared coronary XA
+    lacks them) is refused with the Python argument named, and read with them given, by
+    ``from_dicom`` and by ``from_file``; the C-arm then has exactly the given values."""
+    import registration
+    from registration.io.dicom import DicomError
+    from tests.registration.io.test_dicom import xa_file
+
+    stored = np.tile(np.linspace(100, 3000, 32), (32, 1)).astype(np.uint16)
+    path = xa_file(tmp_path / "xa.dcm", stored, sid=None, imager_spacing=None)
+    with pytest.raises(DicomError, match=r"supply it with pixel_mm \(--pixel-mm\)"):
+        registration.XRayImage.from_dicom(path, sid_mm=1000.0)
+    for read in (registration.XRayImage.from_dicom, registration.XRayImage.from_file):
+        image = read(path, sid_mm=1000.0, sod_mm=750.0, pixel_mm=0.3)
+        assert image.geometry.pixel_mm == (0.3, 0.3) and image.geometry.sid_mm == 1000.0
+        assert image.geometry.sod_mm == 750.0 and image.shape == (32, 32)

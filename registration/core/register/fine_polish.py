@@ -141,7 +141,8 @@ def fine_polish(
         """Level 0 prepared for the scan and the polish from ``motion``."""
         reach_mm = options.start.fine_polish_reach_mm + (scan_mm or 0.0)
         reach = Reach.of_search(reach_mm, options.start.fine_polish_reach_deg, initial_motion=motion, isocenter_mm=iso)
-        return prepare_volume(inputs.volume, [v.geometry for v in inputs.views], reach=reach, levels=(0,)).renderer
+        levels = tuple(sorted({0, options.start.beam_scan_level}))
+        return prepare_volume(inputs.volume, [v.geometry for v in inputs.views], reach=reach, levels=levels).renderer
 
     space = SearchSpace.for_views(inputs.views[0].geometry, estimate, optimize_tz=True, bound_mm=options.bound_mm,
                                   bound_deg=options.bound_deg, wall=wall)  # fmt: skip
@@ -153,7 +154,8 @@ def fine_polish(
     if scan_mm is None:
         state = Plan((polish,)).run(state)
     else:  # scan and polish; once more when the scan moved the estimate
-        scan = BeamScan(polish.image_px, 0, polish.margin_mm, scan_mm)
+        level = options.start.beam_scan_level
+        scan = BeamScan(max(16, polish.image_px >> level), level, polish.margin_mm, scan_mm)
         for round_ in range(BEAM_SCAN_ROUNDS):
             if round_:  # the second round reaches from where the first ended: prepared around it
                 r = state.run

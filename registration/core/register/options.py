@@ -315,6 +315,9 @@ class StartOptions:
     #: 1.5 mm steps, at the fine polish's images and level) to where the views' measure is best
     #: (default 15.0, > 0; None: never): another view's depth that the search left off.
     beam_scan_mm: float | None = 15.0
+    #: The scan's volume level; its images are the fine polish's halved once per level (default
+    #: 0: the fine polish's images and level, >= 0).
+    beam_scan_level: int = 0
     #: Its image size, pixels across (default 256, >= 16).
     fine_polish_px: int = 256
     #: Its reach either side of the estimate, mm and degrees (default 3.0 and 2.0, > 0).
@@ -347,6 +350,7 @@ class StartOptions:
         _at_least("StartOptions", 0, fine_polish_evaluations=self.fine_polish_evaluations,
                   translation_first_evaluations=self.translation_first_evaluations)  # fmt: skip
         _at_least("StartOptions", 16, fine_polish_px=self.fine_polish_px)
+        _at_least("StartOptions", 0, beam_scan_level=self.beam_scan_level)
         _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm,
                   fine_polish_beyond_mm=self.fine_polish_beyond_mm, beam_scan_mm=self.beam_scan_mm,
                   fine_polish_reach_mm=self.fine_polish_reach_mm,
@@ -382,7 +386,8 @@ class StartOptions:
             if self.beam_scan_mm is not None:
                 lines.append(
                     f"two views' estimate from {away}: moved along each view's beam within +-{self.beam_scan_mm:g} mm "
-                    f"to where the views fit best, at {self.fine_polish_px} px, volume level 0"
+                    f"to where the views fit best, at {max(16, self.fine_polish_px >> self.beam_scan_level)} px, "
+                    f"volume level {self.beam_scan_level}"
                 )
             lines.append(
                 f"two views' estimate from {away}: a fine polish at "

@@ -103,7 +103,8 @@ def _pixel_spacing(path: Path, ds: Dataset, frame: int, pixel_mm: float | None) 
         spacing_tag = "PixelSpacing"
         if spacing is None:
             raise DicomError(
-                path, f"missing {tag_name('ImagerPixelSpacing')} (and no PixelSpacing): supply it with --pixel-mm"
+                path,
+                f"missing {tag_name('ImagerPixelSpacing')} (and no PixelSpacing): supply it with pixel_mm (--pixel-mm)",
             )
         warnings.warn(
             f"{path}: no {tag_name('ImagerPixelSpacing')}; using {tag_name('PixelSpacing')} {spacing} as the "
