@@ -208,6 +208,8 @@ class XRayImage(_images.XRayImage):
             raise ValueError("give exactly one of intensity= or line_integrals=")
         values = np.asarray(intensity if intensity is not None else line_integrals, dtype=np.float64)
         field = np.ones(values.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+        if field.shape != values.shape:
+            raise ValueError(f"mask has shape {field.shape}, the image {values.shape}: one flag per pixel is needed")
         if intensity is not None:
             values = _images.line_integrals(values, mask=field, i0=i0)
         image = np.where(field, values, 0.0).astype(np.float32)
@@ -232,6 +234,9 @@ def register(
     ``patient_motion`` is ``M`` (CONVENTIONS §4); ``.to_dict()`` gives its JSON form.
     """
     if preparation is not None:
+        if not isinstance(preparation, Preparation):
+            raise TypeError(f"preparation must be a Preparation (Preparation.of(volume, images)), "
+                            f"got {type(preparation).__name__}")  # fmt: skip
         options.setdefault("renderer", preparation.renderer)
     return _register(volume, images, **options)
 
@@ -275,6 +280,18 @@ def assess(
     evidence), or the volume (then prepared here for ``images``)."""
     from registration.studies.cases import confidence_fields
 
+    if not isinstance(result, RegistrationResult):
+        raise TypeError(f"result must be a RegistrationResult (what register returns), got {type(result).__name__}")
+    views = tuple(images) if isinstance(images, Sequence) else (images,)
+    if not views or not all(isinstance(v, _images.XRayImage) for v in views):
+        raise TypeError("images must be the XRayImage (or the sequence of them) the result was registered on")
+    if result.views and (len(views) != len(result.views)
+                         or any(v.geometry != g for v, g in zip(views, result.views, strict=False))):  # fmt: skip
+        raise ValueError(f"images: {len(views)} view(s) that are not the {len(result.views)} the result was "
+                         "registered on (each image's C-arm must be the one registered)")  # fmt: skip
+    if not isinstance(preparation, Preparation | _volume.Volume):
+        raise TypeError(f"preparation must be the registration's Preparation or the Volume, "
+                        f"got {type(preparation).__name__}")  # fmt: skip
     if isinstance(preparation, _volume.Volume):
         preparation = Preparation.of(preparation, images)
     fields = confidence_fields(preparation.volume, images, result, preparation.probe_renderer())
@@ -386,6 +403,8 @@ def simulate_example(offset: str = "T4", *, pixels: int = 256, seed: int = 0) ->
 
     if offset not in TABLE_I:
         raise ValueError(f"offset must be one of {', '.join(TABLE_I)}, got {offset!r}")
+    if isinstance(pixels, bool) or not isinstance(pixels, int | np.integer) or pixels < 16:
+        raise ValueError(f"pixels must be an integer >= 16 (the image's size across), got {pixels!r}")
     recipe = VolumeRecipe(
         phantom_seed=seed, volume_format_cm=27.0, source="resampled", voxels=128, contrast=True, noise_seed=seed
     )

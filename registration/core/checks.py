@@ -12,6 +12,7 @@ parameters of an estimate ended on the search bounds, so a result there is never
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -89,6 +90,44 @@ def check_information(volume: Volume, image: XRayImage) -> None:
         raise NoInformationError(
             f"the X-ray image{name} has {edges} of {field} field pixels with gradient (at least {needed} needed): "
             "a constant or blank image (RescaleSlope 0?) has no edges to align"
+        )
+
+
+def check_in_field(volume: Volume, image: XRayImage, motion: np.ndarray, reach_mm: float) -> None:
+    """Raise :class:`NoInformationError` when no ray of ``image``'s detector can meet ``volume``
+    moved by ``motion`` (the start), even moved ``reach_mm`` further (the search's range): seen
+    from the source, its bounding sphere grown by the reach lies beside the detector's corners by
+    more than twice its angular radius, or wholly behind the source. Only a gross misplacement
+    (a wrong iso-center, a volume or an initial motion metres off) is refused."""
+    g = image.geometry
+    n = np.asarray(volume.shape[::-1], dtype=np.float64) - 1.0  # (i, j, k)
+    corners = np.array([[i, j, k, 1.0] for i in (0.0, n[0]) for j in (0.0, n[1]) for k in (0.0, n[2])])
+    world = (motion @ volume.index_to_world @ corners.T).T[:, :3]
+    center = world.mean(axis=0)
+    radius = float(np.linalg.norm(world - center, axis=1).max()) + float(reach_mm)
+    source = g.source_mm
+    u, v, w = g.detector_axes()
+    w = w if float(w @ (g.detector_center_mm - source)) > 0 else -w  # from the source toward the detector
+    rel = center - source
+    distance = float(np.linalg.norm(rel))
+    if distance <= radius:
+        return  # the source inside the sphere: rays meet it
+    spread = 2.0 * math.asin(radius / distance)
+    if float(rel @ w) / distance < -math.sin(spread):
+        outside = True  # wholly behind the source
+    else:
+        edges = g.detector_corners_mm - source
+        lo_u, hi_u = (f(np.arctan2(edges @ u, edges @ w)) for f in (np.min, np.max))
+        lo_v, hi_v = (f(np.arctan2(edges @ v, edges @ w)) for f in (np.min, np.max))
+        a_u, a_v = math.atan2(float(rel @ u), float(rel @ w)), math.atan2(float(rel @ v), float(rel @ w))
+        outside = a_u + spread < lo_u or a_u - spread > hi_u or a_v + spread < lo_v or a_v - spread > hi_v
+    if outside:
+        name = f" {volume.label!r}" if volume.label else ""
+        off = float(np.linalg.norm(center - np.asarray(g.isocenter_mm)))
+        raise NoInformationError(
+            f"the volume{name} does not project into the X-ray image's detector at the start, even moved "
+            f"{reach_mm:g} mm (its center lies {off:.0f} mm from the iso-center): check the volume's position, "
+            "the iso-center and the initial motion"
         )
 
 

@@ -59,6 +59,12 @@ def residuals(
     ``success`` is judged on the in-plane part when tz was not optimised (a single view,
     CONVENTIONS §4) and on the whole translation when it was (biplane, §6).
     """
+    if not isinstance(geometry, CArm):
+        raise TypeError(f"geometry must be a CArm (an image's .geometry), got {type(geometry).__name__}")
+    for name, motion in (("estimate", estimate), ("truth", truth)):
+        if not isinstance(motion, np.ndarray | list | tuple):
+            raise TypeError(f"{name} must be a 4x4 patient motion (a result's .patient_motion), "
+                            f"got {type(motion).__name__}")  # fmt: skip
     m_est = check_rigid(estimate, name="estimated motion")
     m_true = check_rigid(truth, name="true motion")
     err = m_est @ invert_rigid(m_true)
@@ -71,7 +77,10 @@ def residuals(
     rot = rotation_angle_deg(err)
     mtre = None
     if vessel_points_mm is not None:
-        pts = np.asarray(vessel_points_mm, dtype=np.float64).reshape(-1, 3)
+        pts = np.asarray(vessel_points_mm, dtype=np.float64)
+        if pts.size and (pts.ndim != 2 or pts.shape[1] != 3):
+            raise ValueError(f"vessel_points_mm must be an (N, 3) array of points in mm, got shape {pts.shape}")
+        pts = pts.reshape(-1, 3)
         if len(pts):
             # Points of the 3DRA sit at M_true @ X in the image; the estimate puts them at M_est @ X.
             moved_true = apply(m_true, pts)

@@ -190,6 +190,8 @@ def write_volume_file(volume: Volume, path: str | os.PathLike[str]) -> Path:
     fmt = volume_format(path)
     if fmt is None:
         raise VolumeFileError(path, f"not a NIfTI, NRRD or MetaImage file name ({', '.join(VOLUME_SUFFIXES)})")
+    if not path.parent.is_dir():
+        raise VolumeFileError(path, f"no such folder: {path.parent}")
     tmp = path.with_name(f".{path.name}.partial{''.join(path.suffixes)}")
     try:
         if fmt == "NIfTI":

@@ -27,7 +27,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from registration.core.checks import check_information, parameters_at_bounds
+from registration.core.checks import check_in_field, check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import invert_rigid, matrix_to_offsets
 from registration.core.images import XRayImage
@@ -147,7 +147,10 @@ def register(
     with two or more views, the search is held near the poses the landmarks allow
     (``StartOptions.landmark_wall``).
     """
-    options = options or RegistrationOptions()
+    options = RegistrationOptions() if options is None else options
+    _check_arguments(options, seed, callback, landmarks, renderer)
+    if vessel_points_mm is not None:
+        vessel_points_mm = _checked_points(vessel_points_mm)
     if landmarks is not None:
         options = replace(options, start=replace(options.start, from_landmarks=True))
         if initial_motion is None:
@@ -157,6 +160,7 @@ def register(
     wall = landmark_wall(inputs, options)
     for view in inputs.views:
         check_information(inputs.volume, view)  # no edges, no registration (NoInformationError)
+        check_in_field(inputs.volume, view, inputs.initial_motion, options.bound_mm)
     start = time.perf_counter()
     inputs, intensity = _matched_intensities(inputs, options)
 
@@ -197,6 +201,31 @@ def register(
     result.planes_disagreed = any(c.stage.endswith(f"({PLANES_DISAGREE[0]})") for c in result.stages)
     result.intensity = intensity
     return result
+
+
+def _check_arguments(options: object, seed: object, callback: object, landmarks: object, renderer: object) -> None:
+    """TypeError or ValueError naming the argument of :func:`register` that is not what it takes."""
+    if not isinstance(options, RegistrationOptions):
+        hint = " (RegistrationOptions(**options) takes a dict's keywords)" if isinstance(options, dict) else ""
+        raise TypeError(f"options must be a RegistrationOptions{hint}, got {type(options).__name__}")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if callback is not None and not callable(callback):
+        raise TypeError(f"callback must be callable (it is called with a Progress), got {type(callback).__name__}")
+    if landmarks is not None and not isinstance(landmarks, LandmarkStart):
+        raise TypeError(f"landmarks must be a LandmarkStart (landmark_start(...)), got {type(landmarks).__name__}")
+    if renderer is not None and not isinstance(renderer, DRRRenderer):
+        raise TypeError(f"renderer must be a DRRRenderer, got {type(renderer).__name__}")
+
+
+def _checked_points(points: ArrayLike) -> np.ndarray:
+    """``vessel_points_mm`` as a finite (N, 3) float array, or ValueError."""
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
+        raise ValueError(f"vessel_points_mm must be an (N, 3) array of points in mm, got shape {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError("vessel_points_mm holds NaN or infinite values")
+    return p
 
 
 def far_start(options: RegistrationOptions, n_views: int, shift_mm: float) -> RegistrationOptions:

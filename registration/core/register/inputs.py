@@ -44,12 +44,15 @@ def check_inputs(
     """Validate what the caller gave (ValueError saying what is wrong) and prepare the renderer."""
     if not isinstance(volume, Volume):
         raise ValueError(f"volume must be a Volume, got {type(volume).__name__}")
+    if not isinstance(views, XRayImage | Sequence):
+        raise ValueError(f"views must be an XRayImage or a sequence of them, got {type(views).__name__}")
     views = (views,) if isinstance(views, XRayImage) else tuple(views)
     if not views:
         raise ValueError("at least one X-ray view is needed")
     for n, view in enumerate(views):
         if not isinstance(view, XRayImage):
             raise ValueError(f"view {n} must be an XRayImage, got {type(view).__name__}")
+    _check_directions(views)
     m_init = np.eye(4) if initial_motion is None else check_rigid(initial_motion, name="initial motion")
     truth_m = None if truth is None else check_rigid(truth, name="true motion")
     if renderer is None:
@@ -57,6 +60,26 @@ def check_inputs(
     elif renderer.volume is not volume:
         raise ValueError("renderer was prepared for another volume")
     return Inputs(volume, views, m_init, truth_m, renderer)
+
+
+#: Views registered together must look along beams at least this far apart (degrees, the lines'
+#: angle): closer, the depth they share is unresolved (the same beam twice: not at all).
+MIN_VIEW_ANGLE_DEG = 2.0
+
+
+def _check_directions(views: tuple[XRayImage, ...]) -> None:
+    """ValueError when two views look along (nearly) the same line."""
+    for a in range(len(views)):
+        for b in range(a + 1, len(views)):
+            da, db = (np.asarray(views[n].geometry.direction, dtype=np.float64) for n in (a, b))
+            cos = abs(float(da @ db)) / max(float(np.linalg.norm(da) * np.linalg.norm(db)), 1e-12)
+            angle = float(np.degrees(np.arccos(min(1.0, cos))))
+            if angle < MIN_VIEW_ANGLE_DEG:
+                raise ValueError(
+                    f"views {a} and {b} look along beams {angle:.1f} deg apart: views registered together must "
+                    f"look from directions at least {MIN_VIEW_ANGLE_DEG:g} deg apart (two planes of a biplane "
+                    "system, not two frames or copies of one plane)"
+                )
 
 
 def with_landmarks(inputs: Inputs, landmarks: LandmarkStart | None) -> Inputs:

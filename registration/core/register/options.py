@@ -12,6 +12,7 @@ names (``_mm``, ``_deg``, ``_px``). Why a default is what it is: ``docs/decision
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import Any
 
@@ -407,6 +408,8 @@ class StartOptions:
 
 
 def _check_level(level: Level) -> None:
+    if not isinstance(level, Level):
+        raise TypeError(f"levels must be Level(image_px, volume_level, schedule, restarts), got {type(level).__name__}")
     if level.image_px < 16:
         raise ValueError(f"image_px must be >= 16, got {level.image_px}")
     if level.volume_level < 0:
@@ -519,6 +522,8 @@ class RegistrationOptions:
                 if target_group != group:
                     continue
                 if isinstance(target, tuple):
+                    if value is not None and not isinstance(value, tuple | list):
+                        raise ValueError(f"{name} must be two numbers (mm, deg), got {value!r}")
                     pair = (None, None) if value is None else tuple(value)
                     if len(pair) != 2:
                         raise ValueError(f"{name} must be two numbers (mm, deg), got {value}")
@@ -540,8 +545,12 @@ class RegistrationOptions:
             raise ValueError(f"intensity must be 'auto', 'as-read' or 'match', got {self.intensity!r}")
         if not self.levels:
             raise ValueError("at least one level is needed")
-        if not (self.bound_mm > 0 and self.bound_deg > 0):
-            raise ValueError("bound_mm and bound_deg must be positive")
+        bounds = (self.bound_mm, self.bound_deg)
+        if not all(isinstance(b, numbers.Real) and math.isfinite(b) and b > 0 for b in bounds):
+            raise ValueError(f"bound_mm and bound_deg must be positive finite numbers, got {bounds}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
+                                         or self.threads < 1):  # fmt: skip
+            raise ValueError(f"threads must be None (one per core) or an integer >= 1, got {self.threads!r}")
         for level in self.levels:
             _check_level(level)
         for group, kind in _GROUPS.items():
