@@ -152,9 +152,9 @@ class LandmarksPanel(BasePanel):
             )
             self.picking = gui.add_checkbox("Pick landmarks", initial_value=False)
             self.table = gui.add_markdown(self.picks.table_markdown())
-            self.undo_button = gui.add_button("Undo last pick")
-            self.clear_button = gui.add_button("Clear")
-            self.start_button = gui.add_button("Start from landmarks", icon=viser.Icon.TARGET)
+            self.undo_button = gui.add_button("Undo last pick", disabled=True)
+            self.clear_button = gui.add_button("Clear", disabled=True)
+            self.start_button = gui.add_button("Start from landmarks", icon=viser.Icon.TARGET, disabled=True)
         self.picking.on_update(ctx.guarded(lambda _e: self._picking_changed()))
         self.undo_button.on_click(ctx.guarded(lambda _e: self._edit(self.picks.undo)))
         self.clear_button.on_click(ctx.guarded(lambda _e: self._edit(self.clear)))
@@ -186,6 +186,7 @@ class LandmarksPanel(BasePanel):
             said = self.picks.click(geometries, meshes, pose, *ray)
             self.start = None
             self.table.content = self.picks.table_markdown()
+            self._update_buttons()
         self.ctx.message(said)
         return said
 
@@ -194,9 +195,17 @@ class LandmarksPanel(BasePanel):
             change()
             self.start = None
             self.table.content = self.picks.table_markdown()
+            self._update_buttons()
 
     def clear(self) -> None:
         self.picks = LandmarkPicks()
+
+    def _update_buttons(self) -> None:
+        """Undo and Clear once something is picked; the start once some plane has enough pairs."""
+        nothing = not self.picks.pairs and self.picks.pending is None
+        self.undo_button.disabled = self.clear_button.disabled = nothing
+        counts = [sum(p.plane == n for p in self.picks.pairs) for n in range(2)]
+        self.start_button.disabled = max(counts) < MIN_PAIRS
 
     # ----- the start ------------------------------------------------------------------------
     def start_from_landmarks(self) -> LandmarkStart:
@@ -222,6 +231,7 @@ class LandmarksPanel(BasePanel):
                 self.picks = LandmarkPicks()
                 self.start = None
                 self.table.content = self.picks.table_markdown()
+                self._update_buttons()
 
     def close(self) -> None:
         if self._clicks is not None:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import viser
 
+from app.web.run_chart import CHART_PADDING
 from app.web.session import ROTATION_RANGE_DEG, TRANSLATION_RANGE_MM
 from app.web.session_state import PLANE_B_PRIMARY_DEG
 from registration.core.geometry import DEFAULT_SID_MM, IMAGE_FORMATS_CM, OFFSET_NAMES, TABLE_I
@@ -157,6 +158,7 @@ class Layout:
             ),
             title="Convergence: gradient difference (best) and temperature",
             height=190,
+            padding=CHART_PADDING,  # room for the top tick's label
         )
 
     def _motion_tab(self, gui: Any) -> None:

@@ -49,7 +49,9 @@ class PacsPanel(BasePanel):
         gui = ctx.server.gui
         with ctx.layout.control_tab("PACS", viser.Icon.SERVER):
             self.info = gui.add_markdown(self._server_line())
-            self.refresh_button = gui.add_button("List studies", icon=viser.Icon.REFRESH)
+            # without a PACS there is nothing to list: the button waits for one
+            self.refresh_button = gui.add_button("List studies", icon=viser.Icon.REFRESH,
+                                                 disabled=not self._configured())  # fmt: skip
             self.patient = gui.add_dropdown("Patient", (NONE,))
             self.study = gui.add_dropdown("Study", (NONE,))
             self.volume_series = gui.add_dropdown("3DRA / CT", (NONE,))
@@ -79,11 +81,21 @@ class PacsPanel(BasePanel):
             self.start_node(**node)
 
     # ----- helpers -----------------------------------------------------------------------
+    def _configured(self) -> bool:
+        """A PACS was given: the app's settings, ``ROADMAP3D_PACS_URL`` or the server's PACS config file."""
+        import os
+
+        from registration.io.pacs_settings import default_config_path
+
+        return bool(self._settings or os.environ.get("ROADMAP3D_PACS_URL") or default_config_path().is_file())
+
     def _server_line(self) -> str:
         import os
 
         url = self._settings.display_url if self._settings else os.environ.get("ROADMAP3D_PACS_URL")
         if not url:
+            if self._configured():
+                return "<small>PACS: as set in the server's PACS config file.</small>"
             return "<small>No PACS configured: start with `roadmap3d app --pacs URL` (DICOMweb).</small>"
         return f"<small>PACS: {url.split('@')[-1]}</small>"
 

@@ -395,8 +395,8 @@ class Presenter:
         if residual is None:
             o = matrix_to_offsets(motion, s.geometry())
             readout = (
-                f"**Roadmap offset: {o[0]:+.2f}, {o[1]:+.2f}, {o[2]:+.2f} mm; "
-                f"{o[3]:+.2f}, {o[4]:+.2f}, {o[5]:+.2f}°** (no ground truth for your data)"
+                f"**Roadmap offset: {', '.join(status.signed(v, 2) for v in o[:3])} mm; "
+                f"{', '.join(status.signed(v, 2) for v in o[3:])}°** (no ground truth for your data)"
             )
         elif s.biplane:  # six offsets: the whole (3-D) translation counts, tz along plane A's beam too
             readout = (

@@ -15,6 +15,8 @@ if TYPE_CHECKING:
 
 #: The chart is drawn at most this often (per second) while a run plays.
 CHART_HZ = 5.0
+#: The app's charts' padding (px: top, right, bottom, left): the top tick's label stays inside.
+CHART_PADDING = (14, 10, 0, 0)
 
 
 def motion_chart(gui: Any) -> Any:
@@ -44,6 +46,7 @@ def motion_chart(gui: Any) -> Any:
         ),
         title="Estimated (roadmap) and true motion (mm, view frame); latency (ms, log)",
         height=220,
+        padding=CHART_PADDING,  # room for the top tick's label
     )
 
 

@@ -128,6 +128,12 @@ def badge_state(run: RunState, residual: Residual | None, *, biplane: bool = Fal
     return f"✗ MISALIGNED  (≥ 1 mm{criterion} or ≥ 3°; sensor alignment only)", RED
 
 
+def signed(value: float, digits: int) -> str:
+    """``value`` with its sign and ``digits`` decimals, never "-0.0" (a value that rounds to 0 is +0)."""
+    v = round(float(value), digits)
+    return f"{(v if v != 0 else 0.0):+.{digits}f}"
+
+
 def moved_text(what: str, offsets: Sequence[float], *, has_truth: bool, autocorrect: bool, restarted: bool) -> str:
     """The status line after the motion controls moved the patient (the phantom) or the roadmap
     (the user's data, which has no truth). ``what``: the control ("T4 (Table I)", "Random",
@@ -135,7 +141,7 @@ def moved_text(what: str, offsets: Sequence[float], *, has_truth: bool, autocorr
     ``restarted``: the roadmap went back to the sensor pose."""
     o = [float(v) for v in offsets]
     t_mm, r_deg = float(np.linalg.norm(o[:3])), float(np.linalg.norm(o[3:]))
-    amount = f"{o[0]:+.1f}, {o[1]:+.1f}, {o[2]:+.1f} mm; {o[3]:+.1f}, {o[4]:+.1f}, {o[5]:+.1f}°"
+    amount = f"{', '.join(signed(v, 1) for v in o[:3])} mm; {', '.join(signed(v, 1) for v in o[3:])}°"
     if not has_truth:
         if t_mm == 0.0 and r_deg == 0.0:
             return f"{what}: the roadmap is back at the sensor pose."

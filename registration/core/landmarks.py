@@ -261,7 +261,8 @@ def landmark_start(geometries: CArm | Sequence[CArm], landmarks: Sequence[Landma
     if any(lm.plane >= len(geometries) for lm in landmarks):
         raise ValueError("a landmark names plane B but only one view was given")
     if max(counts, default=0) < MIN_PAIRS:
-        raise ValueError(f"a landmark start needs at least {MIN_PAIRS} landmarks on one view, got {counts}")
+        have = ", ".join(f"{n} on plane {'AB'[p] if p < 2 else p + 1}" for p, n in enumerate(counts))
+        raise ValueError(f"a landmark start needs at least {MIN_PAIRS} pairs on one view; there are {have}")
     best = int(np.argmax(counts))
     picked = [n for n, lm in enumerate(landmarks) if lm.plane == best]
     motion, kept = _pnp(geometries[best], [landmarks[n] for n in picked])

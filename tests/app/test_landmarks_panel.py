@@ -33,6 +33,9 @@ def test_picked_pairs_start_the_roadmap_at_the_patient(fresh: RoadmapApp) -> Non
     points, dirs = _outer_points(bone)
     panel = app.landmarks
     panel.clear()
+    panel._update_buttons()
+    # nothing to undo, clear or start from yet: the buttons wait for picks
+    assert panel.undo_button.disabled and panel.clear_button.disabled and panel.start_button.disabled
     _, _, n = g.detector_axes()
     picked = 0
     rng = np.random.default_rng(3)  # a user's clicks: 1.5 px (0.5 mm at the iso-center) off, per axis
@@ -47,6 +50,8 @@ def test_picked_pairs_start_the_roadmap_at_the_patient(fresh: RoadmapApp) -> Non
         said = panel.click(p + 400.0 * d, -d)
         assert f"pair {picked + 1}" in said, said
         picked += 1
+        assert not panel.undo_button.disabled and not panel.clear_button.disabled
+        assert panel.start_button.disabled == (picked < 4)  # four pairs on one image give a pose
     assert picked >= 4
     # each volume point is where the click met the surface: within 1 mm of the aimed vertex
     got = np.array([pair.volume_mm for pair in panel.picks.pairs])

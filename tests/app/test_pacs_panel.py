@@ -148,3 +148,19 @@ def test_a_received_run_goes_to_play_run(fresh: RoadmapApp, small_export: Path, 
         playback.use_phantom_run()
         app.phantom_button.value = True
         panel.close()
+
+
+def test_list_studies_waits_for_a_pacs(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Without a PACS (no settings, no ROADMAP3D_PACS_URL, no config file) "List studies" is
+    disabled: a click used to put "no PACS URL: ... write it into <the server's path>" on the
+    app's status line; given one, or a config file, it is enabled."""
+    panel = object.__new__(PacsPanel)
+    panel._settings = None
+    monkeypatch.delenv("ROADMAP3D_PACS_URL", raising=False)
+    monkeypatch.setenv("ROADMAP3D_PACS_CONFIG", str(tmp_path / "pacs.json"))
+    assert not panel._configured() and "No PACS configured" in panel._server_line()
+    (tmp_path / "pacs.json").write_text('{"url": "http://pacs.example/dicom-web"}')
+    assert panel._configured() and "config file" in panel._server_line()
+    (tmp_path / "pacs.json").unlink()
+    monkeypatch.setenv("ROADMAP3D_PACS_URL", "http://pacs.example/dicom-web")
+    assert panel._configured() and "pacs.example" in panel._server_line()

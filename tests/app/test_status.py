@@ -96,3 +96,13 @@ def test_moved_text_names_the_motion_and_the_next_step() -> None:
     )
     assert "the roadmap moved by hand" in moved_text("Roadmap offset", t4, has_truth=False, autocorrect=False,
                                                       restarted=False)  # fmt: skip
+
+
+def test_signed_offsets_never_read_minus_zero() -> None:
+    from app.web.status import signed
+
+    assert [signed(v, 1) for v in (-0.04, -0.0, 0.0, 0.04, -0.06, 1.25)] == ["+0.0", "+0.0", "+0.0", "+0.0", "-0.1",
+                                                                             "+1.2"]  # fmt: skip
+    text = moved_text("Patient motion", [0.0, -0.01, 0.0, 0.0, -0.02, 0.3], has_truth=True,
+                             autocorrect=False, restarted=False)  # fmt: skip
+    assert "-0.0" not in text and "+0.0, +0.0, +0.0 mm; +0.0, +0.0, +0.3°" in text

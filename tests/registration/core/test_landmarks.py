@@ -174,3 +174,13 @@ def test_an_estimate_far_from_what_the_landmarks_say_is_not_applied() -> None:
     assert far.start_offset_mm() >= ONE_VIEW_MAX_START_MM and one.start_offset_mm() < ONE_VIEW_MAX_START_MM
     assert "cannot confirm the depth" in veto(SimpleNamespace(patient_motion=truth), far)
     assert veto(SimpleNamespace(patient_motion=truth), both) is None
+
+
+def test_too_few_pairs_are_counted_per_plane() -> None:
+    a = CArm(primary_deg=0.0, rows=256, cols=256, pixel_mm=(1.5, 1.5))
+    b = CArm(primary_deg=90.0, rows=256, cols=256, pixel_mm=(1.5, 1.5))
+    rng = np.random.default_rng(4)
+    picks = _picks(a, np.eye(4), rng.uniform(-60, 60, (3, 3)), rng, 0.0)
+    picks += _picks(b, np.eye(4), rng.uniform(-60, 60, (2, 3)), rng, 0.0, plane=1)
+    with pytest.raises(ValueError, match="needs at least 4 pairs on one view; there are 3 on plane A, 2 on plane B"):
+        landmark_start((a, b), picks)
