@@ -85,8 +85,12 @@ class Monitor:
                 drr_count=self.drr_count,
                 elapsed_s=time.perf_counter() - self.start_s,
             )
-            if self.callback(progress):
-                self.stop.set()
+            try:
+                if self.callback(progress):
+                    self.stop.set()
+            except BaseException:
+                self.stop.set()  # the other capture runs stop too, and the exception reaches the caller
+                raise
             return self.stop.is_set()
 
 

@@ -68,6 +68,27 @@ def test_callback_stops_and_sees_progress(setup):
     assert seen[0].temperature > 0
 
 
+def test_a_callback_that_raises_stops_every_capture_run(setup):
+    """The exception reaches the caller, and the capture runs beside the one whose report raised
+    stop at their next report instead of running to their ends (about 670 more calls before)."""
+    from registration.sim.xray import simulate_xray
+
+    volume, anatomy = setup
+    geometry = CArm.for_format(27.0, pixels=128)
+    xray = simulate_xray(anatomy, geometry, kind="fluoro", seed=0)
+    calls = []
+
+    def callback(progress):
+        calls.append(progress.iteration)
+        if len(calls) == 10:
+            raise RuntimeError("the notebook's plot failed")
+
+    with pytest.raises(RuntimeError, match="the notebook's plot failed"):
+        register(volume, xray, callback=callback)
+    # four capture runs share the monitor: the others may each be inside one report at most
+    assert len(calls) <= 10 + 3, len(calls)
+
+
 def test_bad_input(setup):
     from registration.sim.xray import simulate_xray
 
