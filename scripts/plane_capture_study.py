@@ -9,7 +9,8 @@ differences (before) against each weighted by the share of its field it compares
 with the translation-first candidate (:mod:`registration.core.register.translation_first`).
 ``--arms far-polish``: two views' fine polish only after a start away from the machine-based pose
 (before) against also for an estimate 25 mm or more from it (now). ``--arms beam-scan``: the fine
-polish alone (before) against the beam scan before it (now).
+polish alone (before) against the beam scan before it (now). ``--arms beam-scan-level``: the beam
+scan on the fine polish's images and level 0 (now) against half those images on level 1.
 
     PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
     PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
@@ -18,8 +19,9 @@ polish alone (before) against the beam scan before it (now).
 ``phantom``: the biplane study's quick moments; ``ct``: the shared real CT (ROADMAP3D_REAL_CT),
 both planes, clinical images at ``--strength``, as ``validate volume --biplane --realism clinical``;
 ``capture``: the capture study's moments at ``--mm`` and ``--deg`` (its translation, rotation or
-combined sweep). Prints one JSON line per draw and arm: right (3-D criterion), applied, the 3-D
-residual, DRRs and seconds.
+combined sweep; quick: 256/192 px and a 128³ 3DRA, ``--full``: the full study's 512/384 px and
+256³). Prints one JSON line per draw and arm: right (3-D criterion), applied, the 3-D residual,
+DRRs and seconds.
 """
 
 from __future__ import annotations
@@ -48,6 +50,10 @@ ARM_SETS = {
     "beam-scan": {
         "fine polish alone": RegistrationOptions(start=StartOptions(beam_scan_mm=None)),
         "beam scan, then the fine polish": RegistrationOptions(),
+    },
+    "beam-scan-level": {
+        "beam scan on level 0": RegistrationOptions(),
+        "beam scan on level 1": RegistrationOptions(start=StartOptions(beam_scan_level=1)),
     },
     "translation-first": {
         "search only": RegistrationOptions(start=StartOptions(translation_first_evaluations=0)),
@@ -88,12 +94,13 @@ def ct(arms: dict, seed: int, moments: int, strength: float) -> None:
             print(_line(arm, f"ct/s{seed}/{record.get('case')}", record), flush=True)
 
 
-def capture(arms: dict, seed: int, moments: int, mm: float, deg: float) -> None:
+def capture(arms: dict, seed: int, moments: int, mm: float, deg: float, full: bool = False) -> None:
     from registration.studies.capture import CaptureConfig, capture_tasks
     from registration.studies.execution import execute
 
     sweep = "combined" if mm and deg else ("rotation" if deg else "translation")
-    config = dataclasses.replace(CaptureConfig.quick_config(seed=seed), sweeps=(sweep,), translations_mm=(mm,),
+    base = CaptureConfig(seed=seed) if full else CaptureConfig.quick_config(seed=seed)
+    config = dataclasses.replace(base, sweeps=(sweep,), translations_mm=(mm,),
                                  rotations_deg=(deg,), registrations_per_level=moments)  # fmt: skip
     for arm, options in arms.items():
         for task in capture_tasks(config, options):
@@ -109,6 +116,7 @@ def main() -> None:
     parser.add_argument("--mm", type=float, default=50.0)
     parser.add_argument("--deg", type=float, default=0.0)
     parser.add_argument("--arms", choices=tuple(ARM_SETS), default="plane-capture")
+    parser.add_argument("--full", action="store_true", help="capture: the full study's images and 3DRA")
     args = parser.parse_args()
     arms = ARM_SETS[args.arms]
     if args.draws == "phantom":
@@ -116,7 +124,7 @@ def main() -> None:
     elif args.draws == "ct":
         ct(arms, args.seed, args.moments, args.strength)
     else:
-        capture(arms, args.seed, args.moments, args.mm, args.deg)
+        capture(arms, args.seed, args.moments, args.mm, args.deg, args.full)
 
 
 if __name__ == "__main__":
