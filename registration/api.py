@@ -206,7 +206,15 @@ class XRayImage(_images.XRayImage):
         """
         if (intensity is None) == (line_integrals is None):
             raise ValueError("give exactly one of intensity= or line_integrals=")
-        values = np.asarray(intensity if intensity is not None else line_integrals, dtype=np.float64)
+        given = np.asarray(intensity if intensity is not None else line_integrals)
+        name = "intensity" if intensity is not None else "line_integrals"
+        if np.iscomplexobj(given) or not (np.issubdtype(given.dtype, np.number) or given.dtype == bool):
+            raise ValueError(f"{name} must hold real numbers, got dtype {given.dtype}")
+        values = given.astype(np.float64)
+        if intensity is not None and (values < 0).any():
+            raise ValueError("intensity must be >= 0 (detector counts, air bright); line_integrals= takes attenuation")
+        if i0 is not None and not (np.isfinite(i0) and i0 > 0):
+            raise ValueError(f"i0 (the unattenuated intensity) must be a positive number, got {i0}")
         field = np.ones(values.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
         if field.shape != values.shape:
             raise ValueError(f"mask has shape {field.shape}, the image {values.shape}: one flag per pixel is needed")

@@ -120,3 +120,15 @@ def test_a_mask_of_another_shape_is_named(example) -> None:
     with pytest.raises(ValueError, match=r"mask has shape \(4, 4\), the image \(8, 8\)"):
         R.XRayImage.from_array(carm=example.image.geometry.resized(8, 8), line_integrals=np.ones((8, 8)),
                                mask=np.ones((4, 4), dtype=bool))  # fmt: skip
+
+
+def test_from_array_takes_real_intensities_and_a_positive_i0(example) -> None:
+    carm = example.image.geometry.resized(8, 8)
+    with pytest.raises(ValueError, match="intensity must be >= 0"):
+        R.XRayImage.from_array(carm=carm, intensity=-np.ones((8, 8)))
+    with pytest.raises(ValueError, match="must hold real numbers, got dtype complex128"):
+        R.XRayImage.from_array(carm=carm, line_integrals=np.ones((8, 8)) * (1 + 1j))
+    with pytest.raises(ValueError, match=r"i0 \(the unattenuated intensity\) must be a positive number"):
+        R.XRayImage.from_array(carm=carm, intensity=np.ones((8, 8)), i0=0.0)
+    image = R.XRayImage.from_array(carm=carm, intensity=np.full((8, 8), 50.0), i0=100.0)
+    assert np.allclose(image.image, np.log(2.0))  # -log(I / I0)

@@ -301,7 +301,8 @@ class PlaybackPanel(BasePanel):
         def progress(done: int, total: int) -> None:
             if done % 15 == 0:
                 self.message.content = (
-                    f"Simulating the run: frame {done}/{total} ({time.perf_counter() - start:.0f} s; once, then cached)"
+                    f"Simulating the run's X-ray images: {done} of {total}, every plane's "
+                    f"({time.perf_counter() - start:.0f} s so far; once, then cached)"
                 )
 
         self.message.content = "Loading the run ..."
