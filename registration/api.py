@@ -240,6 +240,12 @@ def register(
     call. Other keyword options are those of :func:`registration.core.register.register`
     (``initial_motion``, ``options``, ``seed``, ``callback``, ``truth``, ...). The result's
     ``patient_motion`` is ``M`` (CONVENTIONS §4); ``.to_dict()`` gives its JSON form.
+
+    What it cannot take is refused before any work, naming the argument (``TypeError`` or
+    ``ValueError``): views registered together must look along beams at least 2° apart, and a
+    start that puts the volume where no ray of a detector meets it, even moved by the search's
+    range, raises :class:`~registration.core.checks.NoInformationError`, as a volume or an image
+    without edges does.
     """
     if preparation is not None:
         if not isinstance(preparation, Preparation):
@@ -284,8 +290,9 @@ def assess(
     preparation: Preparation | _volume.Volume,
 ) -> Assessment:
     """Whether to trust ``result``: the apply/withhold decision the command line and the web app
-    make. ``preparation``: the one the registration used (its probe levels render the
-    evidence), or the volume (then prepared here for ``images``)."""
+    make. ``images``: those ``result`` was registered on (``ValueError`` for others);
+    ``preparation``: the one the registration used (its probe levels render the evidence), or the
+    volume (then prepared here for ``images``)."""
     from registration.studies.cases import confidence_fields
 
     if not isinstance(result, RegistrationResult):
