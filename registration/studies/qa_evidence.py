@@ -227,7 +227,7 @@ def profiles_figure(
             if isinstance(rival, (int, float)) and math.isfinite(rival):
                 ax.axhline(1e3 * float(rival), color="#7048e8", lw=0.9, ls="-")
                 ax.text(x[0], 1e3 * float(rival), " rotation check's rival", fontsize=6, color="#7048e8", va="bottom")
-        ax.set_title(f"{p.name} ({p.unit})", fontsize=9)
+        ax.set_title(f"{p.name} ({'°' if p.unit == 'deg' else p.unit})", fontsize=9)
         ax.tick_params(labelsize=7)
         fails = (term == "margin" and not out_of_plane and p.margin(steps[0]) < rule.margin_good) or (
             term in ("rotation_margin", "rival") and out_of_plane
@@ -239,7 +239,7 @@ def profiles_figure(
         if fails:
             _mark_withheld(ax, reason)
     for ax in grid[:, 0]:
-        ax.set_ylabel("vs the estimate (x 1e-3)", fontsize=7)
+        ax.set_ylabel("measure − the estimate's (×10⁻³)", fontsize=7)
     title = "Gradient difference around the estimate (orange dots: the confidence's margin probes; dashed: the margin"
     fig.suptitle(f"{title} it asks for)" if cols > 3 else f"{title}\nit asks for)", fontsize=8)
     fig.tight_layout(rect=(0, 0, 1, 0.92 if rows == 1 else 0.94))
