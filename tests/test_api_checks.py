@@ -132,3 +132,14 @@ def test_from_array_takes_real_intensities_and_a_positive_i0(example) -> None:
         R.XRayImage.from_array(carm=carm, intensity=np.ones((8, 8)), i0=0.0)
     image = R.XRayImage.from_array(carm=carm, intensity=np.full((8, 8), 50.0), i0=100.0)
     assert np.allclose(image.image, np.log(2.0))  # -log(I / I0)
+
+
+def test_a_volume_or_field_too_small_says_how_much_is_needed(example) -> None:
+    tiny = R.Volume.from_array(np.zeros((4, 4, 4)), np.eye(4))
+    with pytest.raises(ValueError, match=r"too small to downsample by 4: at least 8 voxels along each axis"):
+        tiny.downsample(4)
+    strip = np.zeros(example.image.shape, dtype=bool)
+    strip[:, 100:104] = True  # a field 4 pixels wide
+    thin = R.XRayImage.from_array(carm=example.image.geometry, line_integrals=example.image.image, mask=strip)
+    with pytest.raises(ValueError, match=r"the image's field \(1024 pixels of 256x256\) holds no 8x8 block"):
+        thin.downsample(8)

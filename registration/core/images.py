@@ -94,7 +94,8 @@ class XRayImage:
         img = np.where(self.mask, self.image, 0.0).reshape(r, factor, c, factor).mean(axis=(1, 3))
         mask = self.mask.reshape(r, factor, c, factor).all(axis=(1, 3))
         if not mask.any():
-            raise ValueError(f"no {factor}x{factor} block lies wholly inside the field")
+            raise ValueError(f"the image's field ({int(self.mask.sum())} pixels of {rows}x{cols}) holds no "
+                             f"{factor}x{factor} block wholly inside it: too small or thin to register")  # fmt: skip
         img = np.where(mask, img, 0.0).astype(np.float32)
         meta = {**self.meta, "downsampled_by": factor * int(self.meta.get("downsampled_by", 1))}
         return XRayImage(img, mask, self.geometry.resized(r, c), self.kind, meta)

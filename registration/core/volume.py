@@ -122,7 +122,8 @@ class Volume:
         fi, fj, fk = int(fi), int(fj), int(fk)
         nk, nj, ni = self.shape[0] // fk, self.shape[1] // fj, self.shape[2] // fi
         if min(nk, nj, ni) < 2:
-            raise ValueError(f"volume {self.shape} too small to downsample by {factor}")
+            raise ValueError(f"volume {self.shape} too small to downsample by {factor}: at least "
+                             f"{2 * max(fi, fj, fk)} voxels along each axis are needed")  # fmt: skip
         d = self.data[: nk * fk, : nj * fj, : ni * fi]
         d = d.reshape(nk, fk, nj, fj, ni, fi).mean(axis=(1, 3, 5), dtype=np.float64)
         affine = self.index_to_world.copy()
