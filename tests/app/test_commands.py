@@ -503,7 +503,7 @@ def test_register_from_landmarks(exported: Path, tmp_path: Path, capsys) -> None
     assert code == 2 and "--landmarks and --initial-motion" in err
     landmarks.write_text(json.dumps({"landmarks": entries[:3]}))
     code, _, err = run(["register", "--volume", volume, "--image", image, "--landmarks", str(landmarks)], capsys)
-    assert code == 2 and "at least 4 landmarks" in err
+    assert code == 2 and "needs at least 4 pairs on one view; there are 3 on plane A" in err
 
 
 def test_estimating_the_geometry_needs_two_planes(exported: Path, capsys: pytest.CaptureFixture[str]) -> None:
