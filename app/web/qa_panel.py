@@ -25,6 +25,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import cv2
+import matplotlib
 import numpy as np
 import viser
 
@@ -39,6 +40,19 @@ LARGE_PANEL_PX = 1000
 #: Where the app's Write report puts its folders (``ROADMAP3D_REPORTS`` overrides).
 REPORTS_ENV = "ROADMAP3D_REPORTS"
 _MODE_OF_LABEL = {label: mode for mode, label in OVERLAY_LABELS.items()}
+#: The app's dark panel behind the evidence plots, and matplotlib's settings that draw them on it
+#: (the reports keep matplotlib's white).
+PANEL_RGB = (37, 38, 43)
+DARK_PLOTS = {
+    "figure.facecolor": "#25262b", "axes.facecolor": "#25262b", "savefig.facecolor": "#25262b",
+    "text.color": "#c1c2c5", "axes.labelcolor": "#c1c2c5", "axes.titlecolor": "#c1c2c5",
+    "xtick.color": "#c1c2c5", "ytick.color": "#c1c2c5", "axes.edgecolor": "#5c5f66",
+    "legend.facecolor": "#25262b", "legend.edgecolor": "#5c5f66",
+}  # fmt: skip
+
+
+def _blank() -> np.ndarray:
+    return np.full((8, 8, 3), PANEL_RGB, np.uint8)
 
 
 @dataclass(frozen=True)
@@ -75,10 +89,10 @@ class ComparePanel(BasePanel):
         gui = ctx.server.gui
         with ctx.layout.view_tab("Evidence", viser.Icon.CHART_LINE):
             self.evidence_text = gui.add_markdown("Register to see the evidence the confidence reads.")
-            self.profiles_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label=None, format="png")
-            self.profiles_b_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label=None, format="png",
+            self.profiles_image = gui.add_image(_blank(), label=None, format="png")
+            self.profiles_b_image = gui.add_image(_blank(), label=None, format="png",
                                                   visible=False)  # fmt: skip
-            self.depth_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label=None, format="png")
+            self.depth_image = gui.add_image(_blank(), label=None, format="png")
         with ctx.layout.control_tab("Compare", viser.Icon.LAYERS_INTERSECT):
             self.overlay = gui.add_dropdown(
                 "Overlay",
@@ -193,20 +207,23 @@ class ComparePanel(BasePanel):
         evidence = assessment.get("confidence_evidence") or {}
         reason = assessment.get("withheld_reason") or ""
         profiles = qa_evidence.parameter_profiles(volume, views[0], result.patient_motion, renderer=renderer)
-        png = qa_evidence.profiles_figure(profiles, evidence=evidence, reason=reason, columns=3)
+        with matplotlib.rc_context(DARK_PLOTS):
+            png = qa_evidence.profiles_figure(profiles, evidence=evidence, reason=reason, columns=3)
         term = qa_evidence.withheld_term(evidence) if evidence else None
         scan, weighed = qa_evidence.pictured_scan(assessment.get("depth_scan"), views, result.patient_motion,
                                                   renderer, one_view="tz" not in tuple(result.parameters))  # fmt: skip
-        depth = qa_evidence.depth_figure(scan, assessment.get("depth_probe"), reason=reason, term=term,
-                                         weighed=weighed)  # fmt: skip
+        with matplotlib.rc_context(DARK_PLOTS):
+            depth = qa_evidence.depth_figure(scan, assessment.get("depth_probe"), reason=reason, term=term,
+                                             weighed=weighed)  # fmt: skip
         self.profiles_image.image = _png_to_rgb(png)
         if len(views) > 1:  # biplane: plane B's measure around the same estimate
             profiles_b = qa_evidence.parameter_profiles(volume, views[1], result.patient_motion, renderer=renderer)
-            png_b = qa_evidence.profiles_figure(profiles_b, evidence=evidence, reason=reason, columns=3)
+            with matplotlib.rc_context(DARK_PLOTS):
+                png_b = qa_evidence.profiles_figure(profiles_b, evidence=evidence, reason=reason, columns=3)
             self.profiles_b_image.image = _png_to_rgb(png_b)
         self.profiles_b_image.visible = len(views) > 1
         self.plane_b_shown = len(views) > 1
-        self.depth_image.image = _png_to_rgb(depth) if depth is not None else np.full((8, 8, 3), 255, np.uint8)
+        self.depth_image.image = _png_to_rgb(depth) if depth is not None else _blank()
         verdict = (
             f"Confidence {assessment['confidence']:.2f}: **applied**."
             if assessment["applied"]

@@ -290,7 +290,7 @@ def depth_figure(
     ax.axvline(peak, color="#2f9e44", lw=1.0, label=label)
     ax.axvline(0.0, color="#495057", lw=0.8, ls=":", label="estimate")
     if rule.scan_weight and weighed:
-        ax.axvspan(x.min(), rule.scan_free_mm, color="#ffe3e3", alpha=0.7, lw=0,
+        ax.axvspan(x.min(), rule.scan_free_mm, color="#e03131", alpha=0.18, lw=0,  # light or dark paper
                    label=f"peak here withholds (< {rule.scan_free_mm:g} mm)")  # fmt: skip
     if probe:
         ax.axvline(float(probe["tz_mm"]), color="#f08c00", lw=1.0, ls="--",  # type: ignore[arg-type]
