@@ -79,6 +79,13 @@ def draw_message(rgb: np.ndarray, text: str, color: tuple[int, int, int]) -> np.
     return rgb
 
 
+def waiting_tile(text: str = "Press Play: the run's frames appear here") -> np.ndarray:
+    """The Play run tile before a run plays: the app's dark panel with a line of text."""
+    rgb = np.full((DISPLAY_PX, DISPLAY_PX, 3), (37, 38, 43), np.uint8)
+    cv2.putText(rgb, text, (16, DISPLAY_PX // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (193, 194, 197), 1, cv2.LINE_AA)
+    return rgb
+
+
 class UploadedRun:
     """A run read from the user's file: its frames, times and geometry (no truth)."""
 
@@ -111,8 +118,7 @@ class PlaybackPanel(BasePanel):
         self.ctx = ctx
         gui = ctx.server.gui
         with ctx.layout.view_tab("Play run", viser.Icon.PLAYER_PLAY):
-            self.image = gui.add_image(np.zeros((DISPLAY_PX, DISPLAY_PX, 3), np.uint8), label=None, format="jpeg",
-                                       jpeg_quality=85)  # fmt: skip
+            self.image = gui.add_image(waiting_tile(), label=None, format="jpeg", jpeg_quality=85)
             self.message = gui.add_markdown(PHANTOM_RUN_TEXT)
             with gui.add_folder("Playback", expand_by_default=True):
                 self.play_button = gui.add_button("Play", color="green", icon=viser.Icon.PLAYER_PLAY)
