@@ -350,11 +350,15 @@ def track(
 ) -> TrackingRun:
     """Follow the patient's motion over a fluoroscopy run (CONVENTIONS §7), frame by frame.
 
-    Each frame gets ``status`` applied/withheld/unchanged, its ``patient_motion`` and a
-    ``confidence``; options are those of :func:`registration.core.tracking.track_run`
+    ``frames``: one plane's frames, or a biplane run as ``[frames_a, frames_b]`` (one frame per
+    time each). Each frame gets ``status`` applied/withheld/unchanged, its ``patient_motion`` and
+    a ``confidence``; options are those of :func:`registration.core.tracking.track_run`
     (``realtime=False`` processes every frame).
     """
-    return track_run(volume, [list(frames)], times_s, **options)
+    runs = list(frames)
+    if runs and all(isinstance(r, Sequence) and not isinstance(r, str | bytes) for r in runs):
+        return track_run(volume, [list(r) for r in runs], times_s, **options)  # planes A and B
+    return track_run(volume, [runs], times_s, **options)
 
 
 def render_drr(volume: _volume.Volume, carm: CArm, motion: ArrayLike | None = None) -> XRayImage:

@@ -143,3 +143,16 @@ def test_a_volume_or_field_too_small_says_how_much_is_needed(example) -> None:
     thin = R.XRayImage.from_array(carm=example.image.geometry, line_integrals=example.image.image, mask=strip)
     with pytest.raises(ValueError, match=r"the image's field \(1024 pixels of 256x256\) holds no 8x8 block"):
         thin.downsample(8)
+
+
+def test_track_takes_one_plane_or_a_biplane_pair_of_frame_lists(example, monkeypatch) -> None:
+    """A biplane run given as [frames_a, frames_b] reaches the tracker as two planes (it was taken
+    as one plane of two 'frames' and refused with a frame count that named nothing)."""
+    import registration.api as api
+
+    seen = []
+    monkeypatch.setattr(api, "track_run", lambda volume, runs, times, **kw: seen.append([len(r) for r in runs]))
+    frames = [example.image, example.image, example.image]
+    R.track(example.volume, frames, [0.0, 0.1, 0.2])
+    R.track(example.volume, (frames, frames), [0.0, 0.1, 0.2])
+    assert seen == [[3], [3, 3]]
