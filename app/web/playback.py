@@ -81,8 +81,8 @@ def draw_message(rgb: np.ndarray, text: str, color: tuple[int, int, int]) -> np.
 
 def waiting_tile(text: str = "Press Play: the run's frames appear here") -> np.ndarray:
     """The Play run tile before a run plays: the app's dark panel with a line of text."""
-    rgb = np.full((DISPLAY_PX, DISPLAY_PX, 3), (37, 38, 43), np.uint8)
-    cv2.putText(rgb, text, (16, DISPLAY_PX // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (193, 194, 197), 1, cv2.LINE_AA)
+    rgb = np.full((DISPLAY_PX, DISPLAY_PX, 3), views.PANEL_RGB, np.uint8)
+    cv2.putText(rgb, text, (16, DISPLAY_PX // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, views.PANEL_TEXT_RGB, 1, cv2.LINE_AA)
     return rgb
 
 

@@ -31,6 +31,7 @@ import viser
 
 from app.web.layout import VIEW_PANEL_PX
 from app.web.panels import BasePanel, PanelContext
+from app.web.views import PANEL_RGB, PANEL_TEXT_RGB, hex_of
 from registration.studies.qa_images import CHECKER_TILE_PX, OVERLAY_LABELS, OVERLAY_MODES
 
 log = logging.getLogger(__name__)
@@ -42,12 +43,12 @@ REPORTS_ENV = "ROADMAP3D_REPORTS"
 _MODE_OF_LABEL = {label: mode for mode, label in OVERLAY_LABELS.items()}
 #: The app's dark panel behind the evidence plots, and matplotlib's settings that draw them on it
 #: (the reports keep matplotlib's white).
-PANEL_RGB = (37, 38, 43)
+_PAPER, _INK, _EDGE = hex_of(PANEL_RGB), hex_of(PANEL_TEXT_RGB), "#5c5f66"
 DARK_PLOTS = {
-    "figure.facecolor": "#25262b", "axes.facecolor": "#25262b", "savefig.facecolor": "#25262b",
-    "text.color": "#c1c2c5", "axes.labelcolor": "#c1c2c5", "axes.titlecolor": "#c1c2c5",
-    "xtick.color": "#c1c2c5", "ytick.color": "#c1c2c5", "axes.edgecolor": "#5c5f66",
-    "legend.facecolor": "#25262b", "legend.edgecolor": "#5c5f66",
+    "figure.facecolor": _PAPER, "axes.facecolor": _PAPER, "savefig.facecolor": _PAPER,
+    "text.color": _INK, "axes.labelcolor": _INK, "axes.titlecolor": _INK,
+    "xtick.color": _INK, "ytick.color": _INK, "axes.edgecolor": _EDGE,
+    "legend.facecolor": _PAPER, "legend.edgecolor": _EDGE,
 }  # fmt: skip
 
 

@@ -24,6 +24,15 @@ from registration.studies.qa_images import (
 
 RGB = np.ndarray
 
+#: The app's dark panel and its text (Mantine's dark theme, as viser draws it), for tiles and plots.
+PANEL_RGB = (37, 38, 43)
+PANEL_TEXT_RGB = (193, 194, 197)
+
+
+def hex_of(rgb: tuple[int, int, int]) -> str:
+    return "#{:02x}{:02x}{:02x}".format(*rgb)
+
+
 __all__ = [
     "angles_text",
     "draw_outline",

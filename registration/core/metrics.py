@@ -46,6 +46,14 @@ class Residual:
         )
 
 
+def vessel_points(points: ArrayLike) -> np.ndarray:
+    """``points`` as an (N, 3) float array of mm (N may be 0), or ValueError naming the shape."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.size and (pts.ndim != 2 or pts.shape[1] != 3):
+        raise ValueError(f"vessel_points_mm must be an (N, 3) array of points in mm, got shape {pts.shape}")
+    return pts.reshape(-1, 3)
+
+
 def residuals(
     estimate: ArrayLike,
     truth: ArrayLike,
@@ -77,10 +85,7 @@ def residuals(
     rot = rotation_angle_deg(err)
     mtre = None
     if vessel_points_mm is not None:
-        pts = np.asarray(vessel_points_mm, dtype=np.float64)
-        if pts.size and (pts.ndim != 2 or pts.shape[1] != 3):
-            raise ValueError(f"vessel_points_mm must be an (N, 3) array of points in mm, got shape {pts.shape}")
-        pts = pts.reshape(-1, 3)
+        pts = vessel_points(vessel_points_mm)
         if len(pts):
             # Points of the 3DRA sit at M_true @ X in the image; the estimate puts them at M_est @ X.
             moved_true = apply(m_true, pts)

@@ -33,7 +33,7 @@ from registration.core.geometry import invert_rigid, matrix_to_offsets
 from registration.core.images import XRayImage
 from registration.core.intensity import match_views
 from registration.core.landmarks import LandmarkStart
-from registration.core.metrics import residuals
+from registration.core.metrics import residuals, vessel_points
 from registration.core.problem import support_mask
 from registration.core.register.biplane import (
     CROSS_START_MM,
@@ -220,9 +220,9 @@ def _check_arguments(options: object, seed: object, callback: object, landmarks:
 
 def _checked_points(points: ArrayLike) -> np.ndarray:
     """``vessel_points_mm`` as a finite (N, 3) float array, or ValueError."""
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
-        raise ValueError(f"vessel_points_mm must be an (N, 3) array of points in mm, got shape {p.shape}")
+    p = vessel_points(points)
+    if not len(p):
+        raise ValueError(f"vessel_points_mm must be an (N, 3) array of points in mm, got shape {np.shape(points)}")
     if not np.isfinite(p).all():
         raise ValueError("vessel_points_mm holds NaN or infinite values")
     return p
