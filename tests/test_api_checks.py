@@ -156,3 +156,14 @@ def test_track_takes_one_plane_or_a_biplane_pair_of_frame_lists(example, monkeyp
     R.track(example.volume, frames, [0.0, 0.1, 0.2])
     R.track(example.volume, (frames, frames), [0.0, 0.1, 0.2])
     assert seen == [[3], [3, 3]]
+
+
+def test_a_volume_beyond_float32_says_so_not_nan() -> None:
+    # 1e39 is finite in float64 but not in the volume's float32: the message names the range
+    data = np.zeros((4, 4, 4))
+    data[1, 2, 3] = 1e39
+    with pytest.raises(ValueError, match=r"1 voxels beyond float32's range"):
+        R.Volume.from_array(data, np.eye(4))
+    data[1, 2, 3] = np.nan
+    with pytest.raises(ValueError, match="1 NaN or infinite voxels"):
+        R.Volume.from_array(data, np.eye(4))

@@ -180,7 +180,7 @@ class CalibrationView:
                 "Simulate the rotational run", icon=viser.Icon.PLAYER_PLAY, hint="Low resolution, cached afterwards"
             )
             self.run_bar = gui.add_progress_bar(0.0, visible=False)
-            self.frame = gui.add_slider("Frame", 0, 1, 1, 0, disabled=True)
+            self.frame = gui.add_slider("Frame", 0, 1, 1, 0, disabled=True, visible=False)
             self.run_image = gui.add_image(np.zeros((256, 256, 3), np.uint8), label=None, format="jpeg", visible=False)
             self.run_readout = gui.add_markdown("")
         self.enabled.on_update(lambda _e: self._on_enabled())
@@ -330,6 +330,7 @@ class CalibrationView:
             self.run_button.label = "Simulated (cached)"
             self.frame.max = len(self.frames) - 1
             self.frame.disabled = False
+            self.frame.visible = True
             self.run_image.visible = True
         self._show_frame()
 

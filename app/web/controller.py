@@ -472,7 +472,7 @@ class Controller:
             if run.result is None and run.error is None and not run.abandoned:
                 return  # a fresh state (the patient moved, new data): nothing ran
             residual = s.residual() if s.has_truth else None
-            text, error = status.run_outcome(run, residual, biplane=s.biplane)
+            text, error = status.run_outcome(run, residual, biplane=s.graded_biplane)
             if getattr(run, "skull_spine", None) is not None:
                 text += f" · {run.skull_spine.message()}"
         self.message(text, error=error)

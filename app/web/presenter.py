@@ -391,14 +391,14 @@ class Presenter:
             run = s.run
             progress, result, running, error = run.progress, run.result, run.running, run.error
             assessment = run.assessment
-            badge_text, badge_color = status.badge_state(run, residual, biplane=s.biplane)
+            badge_text, badge_color = status.badge_state(run, residual, biplane=s.graded_biplane)
         if residual is None:
             o = matrix_to_offsets(motion, s.geometry())
             readout = (
                 f"**Roadmap offset: {', '.join(status.signed(v, 2) for v in o[:3])} mm; "
                 f"{', '.join(status.signed(v, 2) for v in o[3:])}°** (no ground truth for your data)"
             )
-        elif s.biplane:  # six offsets: the whole (3-D) translation counts, tz along plane A's beam too
+        elif s.graded_biplane:  # six offsets: the whole (3-D) translation counts, tz along plane A's beam too
             readout = (
                 f"**{residual.readout()}** · out-of-plane {abs(residual.outofplane_mm):.2f} mm "
                 "(along plane A's beam, seen by plane B)"

@@ -42,7 +42,8 @@ def motion_chart(gui: Any) -> Any:
         axes=(
             {"stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
             {"scale": "mm", "stroke": "#adb5bd", "grid": {"stroke": "#2c2e33"}},
-            {"scale": "ms", "side": 1, "stroke": "#ffd43b", "grid": {"show": False}},
+            # the log axis: labelled decades without a tick mark at every 1-9 multiple
+            {"scale": "ms", "side": 1, "stroke": "#ffd43b", "grid": {"show": False}, "ticks": {"show": False}},
         ),
         title="Estimated (roadmap) and true motion (mm, view frame); latency (ms, log)",
         height=220,

@@ -152,6 +152,17 @@ class Session:
         """Biplane mode is on (never for the user's data: one file, one plane)."""
         return self.settings.biplane and self.data.fixed_xray is None
 
+    @property
+    def graded_biplane(self) -> bool:
+        """Whether the estimate is graded as two views' (the whole 3-D translation): the shown
+        result's own views when there is one (ticking Biplane afterwards does not re-grade a
+        single-plane result), else the mode."""
+        with self.lock:
+            result = self.run.result
+        if result is not None:
+            return len(getattr(result, "views", ())) > 1
+        return self.biplane
+
     def _xray_state(self) -> tuple[CArmSettings, Array, tuple]:
         with self.lock:
             settings, motion = self.settings, self.true_motion.copy()
@@ -218,7 +229,7 @@ class Session:
         with self.lock:
             est = self.estimate if estimate is None else estimate
             return residuals(
-                est, self.true_motion, self.geometry(), self.data.vessel_points_mm(), optimizes_tz=self.biplane
+                est, self.true_motion, self.geometry(), self.data.vessel_points_mm(), optimizes_tz=self.graded_biplane
             )
 
     # ----- changes ----------------------------------------------------------------------

@@ -40,11 +40,18 @@ class Volume:
             raise ValueError(f"volume must have at least 2 voxels along each axis, got {data.shape}")
         if not np.issubdtype(data.dtype, np.number):
             raise ValueError(f"volume data must be numeric, got dtype {data.dtype}")
-        data = np.ascontiguousarray(data, dtype=np.float32)
+        with np.errstate(over="ignore"):  # values beyond float32 are reported below
+            source, data = data, np.ascontiguousarray(data, dtype=np.float32)
         # the float64 sum of float32 values cannot overflow: it is finite iff every voxel is
         if not math.isfinite(float(np.sum(data, dtype=np.float64))):
-            bad = int(np.count_nonzero(~np.isfinite(data)))
-            raise ValueError(f"volume contains {bad} NaN or infinite voxels")
+            bad = ~np.isfinite(data)
+            too_large = int(np.count_nonzero(bad & np.isfinite(source))) if source.dtype != np.float32 else 0
+            if too_large:
+                raise ValueError(
+                    f"volume has {too_large} voxels beyond float32's range (|value| > "
+                    f"{float(np.finfo(np.float32).max):.3g}): rescale the intensities"
+                )
+            raise ValueError(f"volume contains {int(np.count_nonzero(bad))} NaN or infinite voxels")
         affine = np.asarray(self.index_to_world, dtype=np.float64)
         if affine.shape != (4, 4) or not np.all(np.isfinite(affine)):
             raise ValueError("index_to_world must be a finite 4x4 matrix")

@@ -109,12 +109,14 @@ def test_calibration_shows_the_dodecahedron_its_image_and_the_error(calibration:
 def test_rotational_run_frames(calibration: RoadmapApp) -> None:
     app = calibration
     view = app.calibration
+    if view.frames is None:  # nothing simulated yet: no frame slider that looks live
+        assert not view.frame.visible
     view.enabled.value = True
     view.run_button.value = True  # simulated at low resolution (or loaded from the cache)
     assert wait_until(lambda: view.frames is not None and view.idle.is_set(), 60)
     assert view.frames is not None
     n = TEST_CONFIG.run_projections
-    assert len(view.frames) == n and view.frame.max == n - 1 and not view.frame.disabled
+    assert len(view.frames) == n and view.frame.max == n - 1 and not view.frame.disabled and view.frame.visible
     assert view.frames.images.shape[1:] == (TEST_CONFIG.run_pixels, TEST_CONFIG.run_pixels)
     shown = []
     for index in (0, n // 2):

@@ -72,6 +72,18 @@ def test_t4_then_register_reaches_sub_millimetre(fresh: RoadmapApp) -> None:
     assert not reports or len(reports) + app.presenter.live_skipped - skipped_before == reports[-1]
     assert not any(c.disabled for c in app.carm_controls + app.motion_controls)
 
+    # Ticking Biplane afterwards does not re-grade this single-plane result in 3-D: the readout and
+    # the badge still give the in-plane grade of the same estimate.
+    badge, readout = app.badge.content, app.readout.content
+    try:
+        app.biplane.value = True
+        assert wait_until(lambda: shown(app), 30)
+        assert app.readout.content == readout and app.badge.content == badge, (app.readout.content, app.badge.content)
+        assert "out-of-plane" not in app.readout.content and "3-D" not in app.badge.content
+    finally:
+        app.biplane.value = False
+    assert wait_until(lambda: shown(app), 30)
+
 
 def test_live_frames_show_the_newest_report_and_count_the_skipped_ones(app: RoadmapApp) -> None:
     """Reports that arrive while the presenter is busy are not queued: its next frame draws the
