@@ -42,19 +42,23 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--pairs", type=int, default=4)
     ap.add_argument("--noise-mm", type=float, default=3.0)
-    ap.add_argument("--only", default="", help="register only the cases named so (picks drawn for all)")
+    ap.add_argument("--only", default="", help="register only the cases so named, comma-separated (picks for all)")
     ap.add_argument("--without-wall", action="store_true", help="two views' search not held by the landmarks")
     ap.add_argument("--planes", choices=("both", "biplane", "single_plane"), default="both")
+    ap.add_argument("--aimed", action="store_true", help="both C-arms aimed at the moved head")
+    ap.add_argument("--beam-line-mm", type=float, default=None, help="two views' last line search (0: off)")
     ap.add_argument("--fine-polish-evaluations", type=int, default=None, help="two views' fine polish budget")
     ap.add_argument("--depth-bound-mm", type=float, default=None, help="one view's depth correction bound")
     args = ap.parse_args()
     options = WITHOUT_WALL if args.without_wall else FROM_LANDMARKS
     if args.fine_polish_evaluations is not None:
         options = replace(options, start=replace(options.start, fine_polish_evaluations=args.fine_polish_evaluations))
+    if args.beam_line_mm is not None:
+        options = replace(options, start=replace(options.start, beam_line_mm=args.beam_line_mm or None))
     if args.depth_bound_mm is not None:
         options = replace(options, depth=replace(options.depth, bound_mm=args.depth_bound_mm))
     rng = np.random.default_rng([args.seed, 0x1A])
-    config = CaptureConfig.quick_config(seed=args.seed)
+    config = replace(CaptureConfig.quick_config(seed=args.seed), aimed=args.aimed)
     tasks = [t for t in capture_tasks(config) if t.extra["level"] >= 2]
     rows: dict[str, list[tuple[bool, bool]]] = {"biplane": [], "single_plane": []}
     for task in tasks:
@@ -63,7 +67,7 @@ def main() -> int:
         truth = _offset_motion(case)
         views, _ = case_views(case, volume, truth)
         landmarks = picked_landmarks(volume, views, truth, pairs=args.pairs, noise_mm=args.noise_mm, rng=rng)
-        if args.only not in task.case_id:
+        if not any(part in task.case_id for part in args.only.split(",")):
             continue
         for name, vs, lms in (
             ("biplane", list(views), landmarks),
@@ -103,7 +107,9 @@ def main() -> int:
                         "confidence": round(decided.confidence, 4),
                         "beam_margin": decided.evidence.beam_margin,
                         "fine_polish_evaluations": options.start.fine_polish_evaluations,
+                        "beam_line_mm": options.start.beam_line_mm,
                         "depth_bound_mm": options.depth.bound_mm,
+                        "aimed": args.aimed,
                     }
                 ),
                 flush=True,

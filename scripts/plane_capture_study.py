@@ -11,6 +11,8 @@ with the translation-first candidate (:mod:`registration.core.register.translati
 (before) against also for an estimate 25 mm or more from it (now). ``--arms beam-scan``: the fine
 polish alone (before) against the beam scan before it (now). ``--arms beam-scan-level``: the beam
 scan on the fine polish's images and level 0 (now) against half those images on level 1.
+``--arms beam-line``: the fine polish last (before) against a line search along each beam after it
+(now).
 
     PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
     PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
@@ -54,6 +56,10 @@ ARM_SETS = {
     "beam-scan-level": {
         "beam scan on level 0": RegistrationOptions(),
         "beam scan on level 1": RegistrationOptions(start=StartOptions(beam_scan_level=1)),
+    },
+    "beam-line": {
+        "fine polish last": RegistrationOptions(start=StartOptions(beam_line_mm=None)),
+        "a line search along each beam last": RegistrationOptions(),
     },
     "translation-first": {
         "search only": RegistrationOptions(start=StartOptions(translation_first_evaluations=0)),

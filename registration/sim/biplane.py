@@ -16,7 +16,7 @@ returns the views the engine registers with: each image on its plane's machine-b
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -147,6 +147,7 @@ def simulate_biplane(
     seed: int = 0,
     pixels: tuple[int | None, int | None] = (None, None),
     calibrated: bool = True,
+    isocenter_mm: ArrayLike | None = None,
 ) -> BiplaneShot:
     """Image ``phantom`` (or any :class:`~registration.sim.xray.Attenuator`, e.g. a CT's
     :class:`~registration.sim.volume_xray.VolumeAttenuator`) moved by ``motion`` through both
@@ -156,12 +157,15 @@ def simulate_biplane(
     formed with its true (bent) geometry (:func:`~registration.sim.xray.simulate_xray`: exact
     line integrals, Poisson noise) with its own noise stream; each view carries the plane's
     machine-based geometry when ``calibrated`` (else the true one) and ``meta["plane"]``.
+    ``isocenter_mm``: both planes' iso-center in the world (default: the origin).
     """
     system = system or BiplaneSystem()
     m = np.eye(4) if motion is None else np.asarray(motion, dtype=np.float64)
     views, trues = [], []
     for plane, (primary, secondary), n in zip(system.planes(), angles_deg, pixels, strict=True):
         nominal = plane.nominal(primary, secondary, pixels=n)
+        if isocenter_mm is not None:
+            nominal = replace(nominal, isocenter_mm=tuple(float(v) for v in np.asarray(isocenter_mm).reshape(3)))
         true = system.true_geometry(plane, nominal)
         noise_seed = int((int(seed) * 1_000_003 + zlib.crc32(plane.name.encode())) % (2**31 - 1))
         image = simulate_xray(phantom, true, motion=m, kind=kind, seed=noise_seed)

@@ -28,7 +28,7 @@ import numpy as np
 
 from registration import __version__
 from registration.core.assess import assess, plane_a_disagreement_mm
-from registration.core.geometry import rigid
+from registration.core.geometry import apply, rigid
 from registration.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION_MM
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationOptions
@@ -93,6 +93,10 @@ class BiplaneCase:
     kind: str
     seed: int
     ct_path: str | None = None
+    #: Both C-arms aimed at the moved head: their iso-center follows the patient's translation (as
+    #: when the table is panned back to the anatomy), so the head stays in both fields while the
+    #: machine-based pose is off by the whole offset.
+    aimed: bool = False
 
     def prepare_key(self) -> tuple:
         return ("biplane-volume", self.ct_path, self.phantom_seed, self.volume_format_cm, self.volume_voxels)
@@ -216,7 +220,9 @@ def case_views(case: BiplaneCase, volume: Volume, motion: np.ndarray) -> tuple[A
         from registration.sim.volume_xray import VolumeAttenuator
 
         anatomy, source = VolumeAttenuator(volume), CT_IMAGES
-    shot = simulate_biplane(anatomy, case.angles_deg, motion=motion, kind=case.kind, seed=case.seed, pixels=case.pixels)
+    iso = apply(motion, np.zeros(3)) if case.aimed else None
+    shot = simulate_biplane(anatomy, case.angles_deg, motion=motion, kind=case.kind, seed=case.seed, pixels=case.pixels,
+                            isocenter_mm=iso)  # fmt: skip
     return shot.views, source
 
 

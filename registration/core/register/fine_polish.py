@@ -97,6 +97,67 @@ class BeamScan:
         return replace(state, x=x, f=f)
 
 
+#: The final line search's tolerance along each beam (mm) and its evaluations at most per view.
+BEAM_LINE_XTOL_MM = 0.1
+BEAM_LINE_EVALUATIONS = 16
+
+
+@dataclass(frozen=True)
+class BeamLine:
+    """Two or more views, after the fine polish: the estimate moved along each view's central ray
+    within ``reach_mm`` to the views' best measure by a bounded 1-D search (Brent). The polish's
+    trust region can shrink before it has climbed a flat direction, and the flattest is along
+    a beam that the other view sees little of."""
+
+    image_px: int
+    volume_level: int
+    margin_mm: float | None
+    reach_mm: float
+
+    def describe(self) -> str:
+        return (f"line search at {self.image_px} px, volume level {self.volume_level}: each view's central ray "
+                f"+-{self.reach_mm:g} mm to {BEAM_LINE_XTOL_MM:g} mm")  # fmt: skip
+
+    def runs(self, state: State) -> bool:
+        return len(state.run.inputs.views) > 1
+
+    def run(self, state: State) -> State:
+        r, space = state.run, state.space
+        problem = r.problem(self.image_px, self.volume_level, self.margin_mm, state.motion)
+        cost = cost_function(problem, space, r.monitor, None)
+        x = np.asarray(state.x, dtype=np.float64)
+        f = float(cost(x))
+        for view in r.inputs.views:
+            x, f, stopped = self._along(state, cost, x, f, np.asarray(view.geometry.direction, dtype=np.float64))
+            if stopped:
+                break
+        return replace(state, x=x, f=f)
+
+    def _along(
+        self, state: State, cost: Callable[[np.ndarray], float], x: np.ndarray, f: float, direction: np.ndarray
+    ) -> tuple[np.ndarray, float, bool]:
+        """The best of ``x`` moved along ``direction`` within the reach, its cost, and whether the
+        monitor stopped the registration."""
+        from scipy.optimize import minimize_scalar
+
+        space, monitor = state.space, state.run.monitor
+        base, best, stopped = space.motion(x), [x, f], [False]
+
+        def along_beam(t: float) -> float:
+            if stopped[0]:
+                return best[1]
+            xt = space.from_motion(rigid(None, t * direction) @ base)
+            ft = float(cost(xt))
+            if ft < best[1]:
+                best[:] = [xt, ft]
+            stopped[0] = bool(monitor.report(state.number, 0.0, xt, ft, best[0], best[1], 0, space))
+            return ft
+
+        minimize_scalar(along_beam, bounds=(-self.reach_mm, self.reach_mm), method="bounded",
+                        options={"xatol": BEAM_LINE_XTOL_MM, "maxiter": BEAM_LINE_EVALUATIONS})  # fmt: skip
+        return best[0], best[1], stopped[0]
+
+
 def fine_polish_stage(options: RegistrationOptions) -> Polish:
     f = options.start
     budget = PolishBudget(f.fine_polish_evaluations, f.fine_polish_reach_mm, f.fine_polish_reach_deg,
@@ -139,7 +200,7 @@ def fine_polish(
 
     def prepared_at(motion: np.ndarray) -> DRRRenderer:
         """Level 0 prepared for the scan and the polish from ``motion``."""
-        reach_mm = options.start.fine_polish_reach_mm + (scan_mm or 0.0)
+        reach_mm = options.start.fine_polish_reach_mm + (scan_mm or 0.0) + (options.start.beam_line_mm or 0.0)
         reach = Reach.of_search(reach_mm, options.start.fine_polish_reach_deg, initial_motion=motion, isocenter_mm=iso)
         levels = tuple(sorted({0, options.start.beam_scan_level}))
         return prepare_volume(inputs.volume, [v.geometry for v in inputs.views], reach=reach, levels=levels).renderer
@@ -166,6 +227,9 @@ def fine_polish(
             state = Plan((polish,)).run(state)
             if not moved:
                 break
+    if options.start.beam_line_mm is not None and not monitor.stopped:
+        line = BeamLine(polish.image_px, polish.volume_level, polish.margin_mm, options.start.beam_line_mm)
+        state = Plan((line,)).run(state)
     if monitor.stopped or not monitor.stages:
         return result
     polished = state.motion

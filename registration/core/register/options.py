@@ -319,6 +319,10 @@ class StartOptions:
     #: The scan's volume level; its images are the fine polish's halved once per level (default
     #: 0: the fine polish's images and level, >= 0).
     beam_scan_level: int = 0
+    #: After the fine polish, the estimate is moved along each view's central ray within this
+    #: reach (mm; a bounded line search to 0.1 mm at the fine polish's images and level 0) to
+    #: where the views' measure is best (default 3.0, > 0; None: never).
+    beam_line_mm: float | None = 3.0
     #: Its image size, pixels across (default 256, >= 16).
     fine_polish_px: int = 256
     #: Its reach either side of the estimate, mm and degrees (default 3.0 and 2.0, > 0).
@@ -354,6 +358,7 @@ class StartOptions:
         _at_least("StartOptions", 0, beam_scan_level=self.beam_scan_level)
         _positive("StartOptions", shift_mm=self.shift_mm, recheck_mm=self.recheck_mm,
                   fine_polish_beyond_mm=self.fine_polish_beyond_mm, beam_scan_mm=self.beam_scan_mm,
+                  beam_line_mm=self.beam_line_mm,
                   fine_polish_reach_mm=self.fine_polish_reach_mm,
                   fine_polish_reach_deg=self.fine_polish_reach_deg,
                   fine_polish_xtol=self.fine_polish_xtol, landmark_wall=self.landmark_wall,
@@ -395,6 +400,11 @@ class StartOptions:
                 f"{self.fine_polish_px} px, volume level 0, {self.fine_polish_evaluations} evaluations over "
                 f"+-{self.fine_polish_reach_mm:g} mm / {self.fine_polish_reach_deg:g} deg (COBYQA)"
             )
+            if self.beam_line_mm is not None:
+                lines.append(
+                    f"after it, a line search along each view's beam within +-{self.beam_line_mm:g} mm at "
+                    f"{self.fine_polish_px} px, volume level 0"
+                )
         if self.from_landmarks and self.landmark_depth_mm is not None:
             reach = f"+-{self.landmark_depth_mm:g} mm"
             lines.append(f"one view from landmarks: the depth correction reaches {reach} from their start")

@@ -12,7 +12,7 @@ import pytest
 from registration.core.geometry import offsets_to_matrix, rigid
 from registration.core.metrics import residuals
 from registration.core.register import RegistrationOptions, StartOptions
-from registration.core.register.fine_polish import far_from_machine, fine_polish, started_away
+from registration.core.register.fine_polish import BEAM_LINE_EVALUATIONS, far_from_machine, fine_polish, started_away
 from registration.core.register.inputs import check_inputs
 from tests.registration.core.two_views import phantom_pair
 
@@ -37,10 +37,11 @@ def test_an_estimate_from_far_away_is_polished_onto_the_truth(pair) -> None:
     assert polished.residual.rotation_deg < before.rotation_deg
     assert polished.fine_polished and polished.to_dict()["fine_polished"] is True
     # its stages after the search's: the beam scan and the polish, twice when the scan moved the
-    # estimate (at most BEAM_SCAN_ROUNDS times)
+    # estimate (at most BEAM_SCAN_ROUNDS times), then the line search along each beam
     added = polished.stages[len(far.stages) :]
     names = [s.stage.split(" at ")[0] for s in added]
-    assert names in (["beam scan", "fine polish"], ["beam scan", "fine polish"] * 2), names
+    rounds = (["beam scan", "fine polish"], ["beam scan", "fine polish"] * 2)
+    assert names in [r + ["line search"] for r in rounds], names
     assert added[1].stage.startswith("fine polish at 256 px, volume level 0")
     assert polished.drr_count == far.drr_count + sum(s.drrs for s in added) > far.drr_count
     # the offsets stay relative to the search's own start: they move by the polish's correction
@@ -106,9 +107,9 @@ def test_the_beam_scan_brings_back_a_depth_left_off_along_one_beam(pair) -> None
     # (as from 1.2 mm above: within a few tenths)
     assert scanned.residual.translation_mm < 0.4, scanned.residual
     assert scanned.stages[len(far.stages)].stage.startswith("beam scan at 256 px, volume level 0")
-    # without it the polish's +-3 mm reach cannot get there
-    alone = fine_polish(inputs, far, RegistrationOptions(start=StartOptions(beam_scan_mm=None)), callback=None,
-                        start_s=now)  # fmt: skip
+    # without it (and without the line search after the polish) the polish's +-3 mm reach cannot get there
+    without = RegistrationOptions(start=StartOptions(beam_scan_mm=None, beam_line_mm=None))
+    alone = fine_polish(inputs, far, without, callback=None, start_s=now)
     assert alone.residual.translation_mm > 4.0, alone.residual
     assert not any(s.stage.startswith("beam scan") for s in alone.stages)
     assert "moved along each view's beam within +-15 mm" in options.start.describe()
@@ -143,3 +144,26 @@ def test_a_second_scan_round_is_prepared_around_where_the_first_ended(pair, monk
     iso = np.asarray(xrays[0].geometry.isocenter_mm)
     # the second preparation lies where the first round ended: at least one scan step away
     assert np.linalg.norm(centers[1][:3, :3] @ iso + centers[1][:3, 3] - (off[:3, :3] @ iso + off[:3, 3])) >= 1.5
+
+
+def test_the_line_search_climbs_the_depth_a_short_polish_left(pair) -> None:
+    volume, xrays, truth, options, right = pair
+    inputs = check_inputs(volume, xrays, None, truth, None, options)
+    # 2 mm off along plane A's central ray, which plane A barely sees; a polish of a few
+    # evaluations (no beam scan) stands for one whose trust region shrank before it climbed there
+    along = np.asarray(xrays[0].geometry.direction)
+    far = replace(right, patient_motion=rigid(None, 2.0 * along) @ truth, start_shift_mm=40.0)
+    short = StartOptions(beam_scan_mm=None, fine_polish_evaluations=3)
+    now = time.perf_counter()
+    left = fine_polish(inputs, far, replace(options, start=replace(short, beam_line_mm=None)), callback=None,
+                       start_s=now)  # fmt: skip
+    lined = fine_polish(inputs, far, replace(options, start=short), callback=None, start_s=now)
+    assert left.residual.translation_mm > 1.5, left.residual  # the short polish barely moved
+    # the line search's tolerance is 0.1 mm along the ray; plane B (lateral, 1 mm pixels at the
+    # iso-center) holds the depth to a few tenths
+    assert lined.residual.translation_mm < 0.5, lined.residual
+    assert lined.stages[-1].stage.startswith("line search at 256 px, volume level 0")
+    assert 0 < lined.stages[-1].drrs <= 2 * 2 * (BEAM_LINE_EVALUATIONS + 1)  # two views, each image per view
+    assert "a line search along each view's beam within +-3 mm" in options.start.describe()
+    with pytest.raises(ValueError, match="beam_line_mm"):
+        StartOptions(beam_line_mm=-1.0)
