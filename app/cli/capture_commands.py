@@ -36,7 +36,7 @@ def capture_config(args: CaptureStudy) -> capture.CaptureConfig:
     if not args.landmark_error_mm >= 0:
         raise ValueError(f"--landmark-error-mm must be >= 0, got {args.landmark_error_mm}")
     return replace(config, sweeps=tuple(dict.fromkeys(args.sweep)), landmark_pairs=args.from_landmarks,
-                   landmark_noise_mm=float(args.landmark_error_mm))  # fmt: skip
+                   landmark_noise_mm=float(args.landmark_error_mm), aimed=bool(args.aimed))  # fmt: skip
 
 
 def run_capture_study(args: CaptureStudy) -> int:
