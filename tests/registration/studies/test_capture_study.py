@@ -181,3 +181,40 @@ def test_a_moment_from_landmarks_registers_and_is_checked_against_them() -> None
     summary = capture_summary([{**record, **task.extra, "case_id": task.case_id}], config={"seed": 0,
                               "landmark_pairs": 4, "landmark_noise_mm": 3.0}, wall_seconds=1.0)  # fmt: skip
     assert summary["biplane"]["runs"] == 1
+
+
+def test_aimed_moments_keep_the_head_in_both_fields() -> None:
+    from registration.core.geometry import apply
+    from registration.studies.biplane import _offset_motion, case_views, study_volume
+
+    config = replace(CaptureConfig.quick_config(seed=3), registrations_per_level=1, sweeps=("translation",))
+    fixed, aimed = capture_tasks(config), capture_tasks(replace(config, aimed=True))
+    for a, b in zip(fixed, aimed, strict=True):
+        # the same moment (offset, angles, noise), its own case id, the record says which
+        assert replace(b.case, aimed=False) == a.case and b.case.aimed and b.extra["aimed"]
+        assert b.case_id == a.case_id.replace("-fluoro/", "-fluoro-aimed/")
+    task = aimed[-1]  # 80 mm
+    case = task.case
+    volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
+    motion = _offset_motion(case)
+    head = apply(motion, np.zeros(3))  # the phantom's centre (the unmoved iso-center), moved
+    assert np.linalg.norm(head) == pytest.approx(80.0, abs=1e-6)
+    views, _ = case_views(case, volume, motion)
+    fixed_views, _ = case_views(replace(case, aimed=False), volume, motion)
+    for view, still in zip(views, fixed_views, strict=True):
+        # aimed: the iso-center is the moved head's centre, which projects onto the detector's centre
+        np.testing.assert_allclose(view.geometry.isocenter_mm, head, atol=1e-9)
+        np.testing.assert_allclose(still.geometry.isocenter_mm, 0.0, atol=1e-12)
+        # the moved head lands where the unmoved one lands in the fixed C-arm (both geometries the
+        # plane's calibrated one, a few pixels from the detector's centre): the aimed C-arm is the
+        # fixed one translated
+        at = np.asarray(view.geometry.project(head[None, :]))[0]
+        np.testing.assert_allclose(at, np.asarray(still.geometry.project(np.zeros((1, 3))))[0], atol=1e-6)
+        # and the head's image itself moves there: its line integrals' centroid is near the detector's
+        # centre aimed, far from it in the fixed C-arm (the head moved 80 mm)
+        mid = (np.asarray(view.image.shape) - 1) / 2
+        off = [np.linalg.norm(np.average(np.indices(im.shape).reshape(2, -1), axis=1, weights=im.ravel()) - mid)
+               for im in (view.image, still.image)]  # fmt: skip
+        assert off[0] < off[1], off
+    summary = capture_summary([], config={"aimed": True}, wall_seconds=0.0)
+    assert "both C-arms aimed at the moved head" in capture_report_md(summary, "x.png")
