@@ -58,65 +58,14 @@ BEAM_SCAN_ROUNDS = 2
 
 
 @dataclass(frozen=True)
-class BeamScan:
+class AlongEachBeam:
     """Two or more views: the estimate moved along each view's central ray in turn, within
-    ``reach_mm`` in ``BEAM_SCAN_STEP_MM`` steps, to where the views' measure at this level is best.
-    One view barely sees a move along its own beam; far from the machine-based pose another view
-    may see too little of the head to hold it, and the search leaves the depth along that beam
-    several millimetres off, where the full images still tell it."""
+    ``reach_mm``, to where the views' measure at this level is best (how: :meth:`along`)."""
 
     image_px: int
     volume_level: int
     margin_mm: float | None
     reach_mm: float
-
-    def describe(self) -> str:
-        return (f"beam scan at {self.image_px} px, volume level {self.volume_level}: each view's central ray "
-                f"+-{self.reach_mm:g} mm in {BEAM_SCAN_STEP_MM:g} mm steps")  # fmt: skip
-
-    def runs(self, state: State) -> bool:
-        return len(state.run.inputs.views) > 1
-
-    def run(self, state: State) -> State:
-        r, space = state.run, state.space
-        problem = r.problem(self.image_px, self.volume_level, self.margin_mm, state.motion)
-        cost = cost_function(problem, space, r.monitor, None)
-        x, f = np.asarray(state.x, dtype=np.float64), cost(state.x)
-        steps = np.arange(1, int(self.reach_mm / BEAM_SCAN_STEP_MM) + 1) * BEAM_SCAN_STEP_MM
-        for view in r.inputs.views:
-            along = np.asarray(view.geometry.direction, dtype=np.float64)
-            base, best_x, best_f = space.motion(x), x, f
-            for t in np.concatenate([steps, -steps]):
-                xt = space.from_motion(rigid(None, t * along) @ base)
-                ft = cost(xt)
-                if ft < best_f:
-                    best_x, best_f = xt, ft
-                if r.monitor.report(state.number, 0.0, xt, ft, best_x, best_f, 0, space):
-                    return replace(state, x=best_x, f=best_f)
-            x, f = best_x, best_f
-        return replace(state, x=x, f=f)
-
-
-#: The final line search's tolerance along each beam (mm) and its evaluations at most per view.
-BEAM_LINE_XTOL_MM = 0.1
-BEAM_LINE_EVALUATIONS = 16
-
-
-@dataclass(frozen=True)
-class BeamLine:
-    """Two or more views, after the fine polish: the estimate moved along each view's central ray
-    within ``reach_mm`` to the views' best measure by a bounded 1-D search (Brent). The polish's
-    trust region can shrink before it has climbed a flat direction, and the flattest is along
-    a beam that the other view sees little of."""
-
-    image_px: int
-    volume_level: int
-    margin_mm: float | None
-    reach_mm: float
-
-    def describe(self) -> str:
-        return (f"line search at {self.image_px} px, volume level {self.volume_level}: each view's central ray "
-                f"+-{self.reach_mm:g} mm to {BEAM_LINE_XTOL_MM:g} mm")  # fmt: skip
 
     def runs(self, state: State) -> bool:
         return len(state.run.inputs.views) > 1
@@ -128,34 +77,68 @@ class BeamLine:
         x = np.asarray(state.x, dtype=np.float64)
         f = float(cost(x))
         for view in r.inputs.views:
-            x, f, stopped = self._along(state, cost, x, f, np.asarray(view.geometry.direction, dtype=np.float64))
-            if stopped:
+            direction = np.asarray(view.geometry.direction, dtype=np.float64)
+            base, best, stopped = space.motion(x), [x, f], [False]
+
+            def at(t: float, base: np.ndarray = base, direction: np.ndarray = direction,
+                   best: list = best, stopped: list = stopped) -> float:  # fmt: skip
+                """The cost ``t`` mm along the ray from ``base``; keeps the best, notes a stop."""
+                if stopped[0]:
+                    return best[1]
+                xt = space.from_motion(rigid(None, t * direction) @ base)
+                ft = float(cost(xt))
+                if ft < best[1]:
+                    best[:] = [xt, ft]
+                stopped[0] = bool(r.monitor.report(state.number, 0.0, xt, ft, best[0], best[1], 0, space))
+                return ft
+
+            self.along(at)
+            x, f = best
+            if stopped[0]:
                 break
         return replace(state, x=x, f=f)
 
-    def _along(
-        self, state: State, cost: Callable[[np.ndarray], float], x: np.ndarray, f: float, direction: np.ndarray
-    ) -> tuple[np.ndarray, float, bool]:
-        """The best of ``x`` moved along ``direction`` within the reach, its cost, and whether the
-        monitor stopped the registration."""
+    def along(self, at: Callable[[float], float]) -> None:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class BeamScan(AlongEachBeam):
+    """The ray scanned in ``BEAM_SCAN_STEP_MM`` steps either side. One view barely sees a move
+    along its own beam; far from the machine-based pose another view may see too little of the
+    head to hold it, and the search leaves the depth along that beam several millimetres off,
+    where the full images still tell it."""
+
+    def describe(self) -> str:
+        return (f"beam scan at {self.image_px} px, volume level {self.volume_level}: each view's central ray "
+                f"+-{self.reach_mm:g} mm in {BEAM_SCAN_STEP_MM:g} mm steps")  # fmt: skip
+
+    def along(self, at: Callable[[float], float]) -> None:
+        steps = np.arange(1, int(self.reach_mm / BEAM_SCAN_STEP_MM) + 1) * BEAM_SCAN_STEP_MM
+        for t in np.concatenate([steps, -steps]):
+            at(float(t))
+
+
+#: The final line search's tolerance along each beam (mm) and its evaluations at most per view.
+BEAM_LINE_XTOL_MM = 0.1
+BEAM_LINE_EVALUATIONS = 16
+
+
+@dataclass(frozen=True)
+class BeamLine(AlongEachBeam):
+    """After the fine polish, a bounded 1-D search (Brent) along each ray. The polish's trust
+    region can shrink before it has climbed a flat direction, and the flattest is along a beam
+    that the other view sees little of."""
+
+    def describe(self) -> str:
+        return (f"line search at {self.image_px} px, volume level {self.volume_level}: each view's central ray "
+                f"+-{self.reach_mm:g} mm to {BEAM_LINE_XTOL_MM:g} mm")  # fmt: skip
+
+    def along(self, at: Callable[[float], float]) -> None:
         from scipy.optimize import minimize_scalar
 
-        space, monitor = state.space, state.run.monitor
-        base, best, stopped = space.motion(x), [x, f], [False]
-
-        def along_beam(t: float) -> float:
-            if stopped[0]:
-                return best[1]
-            xt = space.from_motion(rigid(None, t * direction) @ base)
-            ft = float(cost(xt))
-            if ft < best[1]:
-                best[:] = [xt, ft]
-            stopped[0] = bool(monitor.report(state.number, 0.0, xt, ft, best[0], best[1], 0, space))
-            return ft
-
-        minimize_scalar(along_beam, bounds=(-self.reach_mm, self.reach_mm), method="bounded",
+        minimize_scalar(at, bounds=(-self.reach_mm, self.reach_mm), method="bounded",
                         options={"xatol": BEAM_LINE_XTOL_MM, "maxiter": BEAM_LINE_EVALUATIONS})  # fmt: skip
-        return best[0], best[1], stopped[0]
 
 
 def fine_polish_stage(options: RegistrationOptions) -> Polish:

@@ -153,11 +153,12 @@ def test_the_shift_left_is_near_zero_at_a_right_estimate_and_measures_a_wrong_on
 
 def test_explain_names_the_start_rules_with_their_thresholds() -> None:
     lines = StartOptions(shift_mm=25.0, walk_hops=3, recheck_mm=5.0).describe().splitlines()
-    assert len(lines) == 6 and "25 mm" in lines[0] and "3 times" in lines[1]
+    assert len(lines) == 7 and "25 mm" in lines[0] and "3 times" in lines[1]
     assert "5 mm" in lines[2] and "13 deg" in lines[2]
     assert "translations alone (80 evaluations at 64 px)" in lines[3]
     assert "along each view's beam within +-15 mm" in lines[4] and "256 px, volume level 0" in lines[4]
     assert "fine polish at 256 px" in lines[5] and "+-3 mm / 2 deg (COBYQA)" in lines[5]
+    assert "line search along each view's beam within +-3 mm" in lines[6]
     only_walk = StartOptions(shift_mm=None, recheck_mm=None, fine_polish_evaluations=0)
     assert len(only_walk.describe().splitlines()) == 1  # the walk only
     assert "stays in its box" in StartOptions(enabled=False).describe()
