@@ -123,8 +123,8 @@ class CaptureStudy:
     landmark_error_mm: float = 3.0
     """The landmarks' picking error, mm (volume and image)."""
     aimed: bool = False
-    """Aim both C-arms at the moved head (the table panned back to the anatomy): the head stays in both
-    fields while the machine-based pose is off by the whole offset."""
+    """Aim both C-arms at the moved head (the table panned back to the anatomy, centred within 15 mm): the
+    head stays in both fields while the machine-based pose is off by the whole offset."""
 
 
 @dataclass

@@ -94,8 +94,8 @@ class BiplaneCase:
     seed: int
     ct_path: str | None = None
     #: Both C-arms aimed at the moved head: their iso-center follows the patient's translation (as
-    #: when the table is panned back to the anatomy), so the head stays in both fields while the
-    #: machine-based pose is off by the whole offset.
+    #: when the table is panned back to the anatomy) up to a centring miss of ``AIM_MISS_MM``, so the
+    #: head stays in both fields while the machine-based pose is off by the whole offset.
     aimed: bool = False
 
     def prepare_key(self) -> tuple:
@@ -207,6 +207,21 @@ def centred_ct(path: str) -> Volume:
 # --------------------------------------------------------------------------------------
 # One case
 # --------------------------------------------------------------------------------------
+#: An aimed moment's iso-center lies this far from the moved head's centre, in a random direction
+#: (the anatomy centred by eye, not exactly).
+AIM_MISS_MM = 15.0
+
+
+def aimed_isocenter_mm(case: BiplaneCase, motion: np.ndarray) -> np.ndarray | None:
+    """Where an aimed case's C-arms point (None: not aimed, the iso-center at the origin)."""
+    if not case.aimed:
+        return None
+    from registration.studies.runs import random_unit_vector
+
+    miss = AIM_MISS_MM * random_unit_vector(np.random.default_rng([case.seed, 0xA1]))
+    return apply(motion, np.zeros(3)) + miss
+
+
 def case_views(case: BiplaneCase, volume: Volume, motion: np.ndarray) -> tuple[Any, str]:
     """Both frames of the case's moment, and where their pixels came from."""
     from registration.sim.biplane import simulate_biplane
@@ -220,9 +235,8 @@ def case_views(case: BiplaneCase, volume: Volume, motion: np.ndarray) -> tuple[A
         from registration.sim.volume_xray import VolumeAttenuator
 
         anatomy, source = VolumeAttenuator(volume), CT_IMAGES
-    iso = apply(motion, np.zeros(3)) if case.aimed else None
     shot = simulate_biplane(anatomy, case.angles_deg, motion=motion, kind=case.kind, seed=case.seed, pixels=case.pixels,
-                            isocenter_mm=iso)  # fmt: skip
+                            isocenter_mm=aimed_isocenter_mm(case, motion))  # fmt: skip
     return shot.views, source
 
 

@@ -295,7 +295,8 @@ def capture_report_md(summary: dict, image: str) -> str:
         "translation (random 3-D direction) and rotation (random axis)"
         + (
             ", both C-arms aimed at the moved head (their iso-center follows the translation, as when the table is "
-            "panned back to the anatomy: the head stays in both fields, the machine-based pose is off by the offset)"
+            "panned back to the anatomy, missing the head's centre by 15 mm in a random direction: the head stays in "
+            "both fields, the machine-based pose is off by the offset)"
             if cfg.get("aimed")
             else ""
         )

@@ -185,7 +185,7 @@ def test_a_moment_from_landmarks_registers_and_is_checked_against_them() -> None
 
 def test_aimed_moments_keep_the_head_in_both_fields() -> None:
     from registration.core.geometry import apply
-    from registration.studies.biplane import _offset_motion, case_views, study_volume
+    from registration.studies.biplane import AIM_MISS_MM, _offset_motion, case_views, study_volume
 
     config = replace(CaptureConfig.quick_config(seed=3), registrations_per_level=1, sweeps=("translation",))
     fixed, aimed = capture_tasks(config), capture_tasks(replace(config, aimed=True))
@@ -202,13 +202,13 @@ def test_aimed_moments_keep_the_head_in_both_fields() -> None:
     views, _ = case_views(case, volume, motion)
     fixed_views, _ = case_views(replace(case, aimed=False), volume, motion)
     for view, still in zip(views, fixed_views, strict=True):
-        # aimed: the iso-center is the moved head's centre, which projects onto the detector's centre
-        np.testing.assert_allclose(view.geometry.isocenter_mm, head, atol=1e-9)
+        # aimed: the iso-center is the moved head's centre, missed by the centring's 15 mm
+        iso = np.asarray(view.geometry.isocenter_mm)
+        assert np.linalg.norm(iso - head) == pytest.approx(AIM_MISS_MM, abs=1e-9)
+        np.testing.assert_allclose(iso, views[0].geometry.isocenter_mm, atol=1e-12)  # one iso-center
         np.testing.assert_allclose(still.geometry.isocenter_mm, 0.0, atol=1e-12)
-        # the moved head lands where the unmoved one lands in the fixed C-arm (both geometries the
-        # plane's calibrated one, a few pixels from the detector's centre): the aimed C-arm is the
-        # fixed one translated
-        at = np.asarray(view.geometry.project(head[None, :]))[0]
+        # the aimed C-arm is the fixed one translated: the iso-center lands where the origin lands
+        at = np.asarray(view.geometry.project(iso[None, :]))[0]
         np.testing.assert_allclose(at, np.asarray(still.geometry.project(np.zeros((1, 3))))[0], atol=1e-6)
         # and the head's image itself moves there: its line integrals' centroid is near the detector's
         # centre aimed, far from it in the fixed C-arm (the head moved 80 mm)
