@@ -218,3 +218,15 @@ def test_aimed_moments_keep_the_head_in_both_fields() -> None:
         assert off[0] < off[1], off
     summary = capture_summary([], config={"aimed": True}, wall_seconds=0.0)
     assert "both C-arms aimed at the moved head" in capture_report_md(summary, "x.png")
+
+
+def test_validate_capture_aimed_reaches_the_configuration() -> None:
+    import tyro
+
+    from app.cli.capture_commands import capture_config
+    from app.cli.options import CaptureStudy
+
+    args = tyro.cli(CaptureStudy, args=["--quick", "--aimed", "--from-landmarks", "4"])
+    config = capture_config(args)
+    assert config.aimed and config.landmark_pairs == 4 and config.quick
+    assert not capture_config(tyro.cli(CaptureStudy, args=["--quick"])).aimed
