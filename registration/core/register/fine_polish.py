@@ -9,8 +9,9 @@ polish on the full images and the volume's own grid ends 0.6 mm off. This stage 
 polish (COBYQA, the local search that needs the fewest of these dear level-0 DRRs), on a level-0
 preparation made for it, only after such a search or when the estimate lies beyond the clinical
 offsets (25 mm) from the machine-based pose although the search started there: registrations that
-stay near the machine-based pose are untouched and cost nothing more. Decision record:
-``docs/decisions/2026-12-04-fine-polish.md``.
+stay near the machine-based pose are untouched and cost nothing more. Before the polish the
+estimate is scanned along each view's beam (:class:`BeamScan`), after it searched along each beam
+once more (:class:`BeamLine`). Decision record: ``docs/decisions/2026-12-04-fine-polish.md``.
 """
 
 from __future__ import annotations
