@@ -248,10 +248,13 @@ def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
     fig, axes = plt.subplots(1, len(sweeps), figsize=(4.6 * len(sweeps), 4.0), squeeze=False)
     for ax, sweep in zip(axes[0], sweeps, strict=True):
         key, label = _SWEEP_AXES[sweep]
-        for plane, colour, name in (("biplane", "#4a7ab5", "biplane"), ("single_plane", "#f0ad4e", "single plane A")):
+        # biplane drawn wider beneath single plane, so both show where their curves coincide
+        for plane, colour, name, width in (("biplane", "#4a7ab5", "biplane", 4.0),
+                                           ("single_plane", "#f0ad4e", "single plane A", 1.5)):  # fmt: skip
             rows = summary[plane]["sweeps"][sweep]
             x = [r[key] for r in rows]
-            ax.plot(x, [100 * r["success_rate"] for r in rows], "o-", color=colour, label=f"{name}: success")
+            ax.plot(x, [100 * r["success_rate"] for r in rows], "o-", color=colour, lw=width, ms=2 * width + 1,
+                    label=f"{name}: success")  # fmt: skip
             wrong = [100 * r["applied_wrong"] / r["runs"] for r in rows]
             ax.plot(x, wrong, "x--", color=colour, alpha=0.8, label=f"{name}: applied and wrong")
         ax.axhline(100 * CAPTURE_SHARE, color="#d9534f", ls=":", lw=1)
