@@ -12,7 +12,7 @@ with the translation-first candidate (:mod:`registration.core.register.translati
 polish alone (before) against the beam scan before it (now). ``--arms beam-scan-level``: the beam
 scan on the fine polish's images and level 0 (now) against half those images on level 1.
 ``--arms beam-line``: the fine polish last (before) against a line search along each beam after it
-(now).
+(now). ``--arms beam-scan-reach``: the beam scan's +-15 mm (now) against +-30 mm.
 
     PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
     PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
@@ -60,6 +60,10 @@ ARM_SETS = {
     "beam-line": {
         "fine polish last": RegistrationOptions(start=StartOptions(beam_line_mm=None)),
         "a line search along each beam last": RegistrationOptions(),
+    },
+    "beam-scan-reach": {
+        "beam scan +-15 mm": RegistrationOptions(),
+        "beam scan +-30 mm": RegistrationOptions(start=StartOptions(beam_scan_mm=30.0)),
     },
     "translation-first": {
         "search only": RegistrationOptions(start=StartOptions(translation_first_evaluations=0)),
