@@ -179,10 +179,10 @@ def test_bad_depth_options():
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
-def test_the_scan_before_the_polish_moves_tz_first_and_renders_less(scene, sign):
-    """The shipped order (a scan along the beam before the polish, then rescans, every move kept)
-    against the polish first: the same depth within the scans' reach, the in-plane error as low,
-    and fewer rays after the annealing, because the polish no longer runs at the wrong depth."""
+def test_the_scan_before_the_polish_moves_tz_first(scene, sign):
+    """The shipped order (a scan along the beam before the polish, then rescans, every move kept):
+    the scan moves tz first, and the depth and the in-plane error are as good as the polish-first
+    order's (its rays: the next test)."""
     volume, renderer, cases = scene
     truth, xray = cases[sign]
     first = register(volume, xray, truth=truth, seed=0, renderer=renderer, options=ON)
@@ -198,12 +198,23 @@ def test_the_scan_before_the_polish_moves_tz_first_and_renders_less(scene, sign)
     assert abs(first.depth_tz_mm - 20.0 * sign) < 5.0 and first.residual.outofplane_mm < 5.0, first.residual
     assert first.residual.inplane_mm < 0.3 and first.residual.rotation_deg < 1.0, first.residual
 
-    # rays after the annealing (deterministic): measured 1.63 M against 3.19 M and 1.58 M against
-    # 2.37 M; at least a fifth fewer
-    def rays(result):
-        return sum(s.rays for s in result.stages if not s.stage.startswith("anneal"))
 
-    assert rays(first) < 0.8 * rays(late), (rays(first), rays(late))
+def test_the_scan_before_the_polish_renders_less_over_both_directions(scene):
+    """Rays after the annealing, the shipped order against the polish first, over the two cases
+    (20 mm towards and away from the source): the polish no longer runs at the wrong depth."""
+    volume, renderer, cases = scene
+    after = replace(ON, depth=replace(ON.depth, scan_first=False, keep_small_moves=False))
+
+    def rays(options):
+        results = [register(volume, xray, truth=truth, seed=0, renderer=renderer, options=options)
+                   for truth, xray in cases.values()]  # fmt: skip
+        return sum(s.rays for r in results for s in r.stages if not s.stage.startswith("anneal"))
+
+    first, late = rays(ON), rays(after)
+    # deterministic on one machine, not across CPUs (float rounding moves a rescan): measured
+    # 3.21 M against 5.56 M on one, 4.07 M against 5.58 M on another (one case alone went either
+    # way there); at least 15 % fewer over both
+    assert first < 0.85 * late, (first, late)
 
 
 def test_a_scan_after_the_capture_level_moves_tz_before_the_finer_annealing(scene):
