@@ -111,6 +111,7 @@ def _bench_one(image_px: int, volume_px: int, repeats: int, rounds: int, masked:
     render = lambda: renderer.render(geometry, mask=mask, out=out)  # noqa: E731
     for _ in range(3):  # warm-up: compiled code, caches
         render()
+    render_reference(volume, geometry)  # its first call is up to 3x slower: untimed, like ours
     # rounds interleave the two renderers, so that a burst of load on the shared machine slows
     # both within a round instead of one of them; each round's fast calls follow two untimed ones
     per_round = max(1, repeats // max(1, rounds))
@@ -166,8 +167,9 @@ def bench_drr(
 ) -> list[dict]:
     """DRR times of the fast renderer and of the reference, per (image, volume) size, in rounds.
 
-    Each round renders the reference once (:func:`registration.core.drr.render_reference` at its
-    default step of half a voxel, whole image) and then, after two untimed calls, the fast
+    After an untimed warm-up of both, each round renders the reference once
+    (:func:`registration.core.drr.render_reference` at its default step of half a voxel, whole
+    image) and then, after two untimed calls, the fast
     renderer ``repeats // rounds`` times into a reused buffer (with the circular field mask when
     ``masked``). Each record: ``image_px`` and ``volume_px`` (edge lengths); ``ms_median`` and ``ms_min`` of the fast
     renderer over all its calls (the minimum is close to the unloaded machine when others share

@@ -66,10 +66,15 @@ def test_drr_speedups_are_per_round_with_the_least_and_the_minima() -> None:
         round_ratios([500.0], [[]])
 
 
-def test_the_drr_bench_renders_like_the_reference_in_rounds() -> None:
-    from registration.studies.perf import bench_drr
+def test_the_drr_bench_renders_like_the_reference_in_rounds(monkeypatch) -> None:
+    from registration.studies import perf
 
-    (row,) = bench_drr(sizes=((32, 32),), repeats=4, rounds=2)
+    calls = []
+    real = perf.render_reference
+    monkeypatch.setattr(perf, "render_reference", lambda *a, **k: calls.append(1) or real(*a, **k))
+    (row,) = perf.bench_drr(sizes=((32, 32),), repeats=4, rounds=2)
+    # one untimed warm-up call of the reference (its first is the slowest), then one per round
+    assert len(calls) == 3
     assert row["rounds"] == 2 and len(row["speedup_rounds"]) == 2
     assert row["speedup_min"] <= row["speedup"] and row["ms_min"] <= row["ms_median"]
     # Joseph's method against trilinear samples at half a voxel: the same line integrals within
