@@ -12,7 +12,8 @@ with the translation-first candidate (:mod:`registration.core.register.translati
 polish alone (before) against the beam scan before it (now). ``--arms beam-scan-level``: the beam
 scan on the fine polish's images and level 0 (now) against half those images on level 1.
 ``--arms beam-line``: the fine polish last (before) against a line search along each beam after it
-(now). ``--arms beam-scan-reach``: the beam scan's +-15 mm (now) against +-30 mm.
+(now). ``--arms beam-scan-reach``: the beam scan's +-15 mm (now) against +-30 mm. ``--arms pair-budgets``:
+the coarse polish's and the pair's polish's evaluations (60 and 30 now) against fewer.
 
     PYTHONPATH=. python scripts/plane_capture_study.py phantom --seed 4 --moments 12
     PYTHONPATH=. python scripts/plane_capture_study.py ct --seed 62 --moments 10 --strength 1
@@ -64,6 +65,14 @@ ARM_SETS = {
     "beam-scan-reach": {
         "beam scan +-15 mm": RegistrationOptions(),
         "beam scan +-30 mm": RegistrationOptions(start=StartOptions(beam_scan_mm=30.0)),
+    },
+    "pair-budgets": {
+        "coarse 60, pair 30": RegistrationOptions(),
+        "coarse 30, pair 30": RegistrationOptions(biplane=BiplaneOptions(coarse_polish_evaluations=30)),
+        "coarse 60, pair 20": RegistrationOptions(biplane=BiplaneOptions(polish_evaluations=20)),
+        "coarse 30, pair 20": RegistrationOptions(
+            biplane=BiplaneOptions(coarse_polish_evaluations=30, polish_evaluations=20)
+        ),
     },
     "translation-first": {
         "search only": RegistrationOptions(start=StartOptions(translation_first_evaluations=0)),
