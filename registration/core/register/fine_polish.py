@@ -58,6 +58,28 @@ BEAM_SCAN_STEP_MM = 1.5
 BEAM_SCAN_ROUNDS = 2
 
 
+class _Walk:
+    """The cost ``t`` mm along one ray from ``base`` (called with ``t``), keeping the best pose
+    seen and whether the monitor stopped the registration (then it evaluates no more)."""
+
+    def __init__(self, state: State, cost: Callable[[np.ndarray], float], base: np.ndarray,
+                 direction: np.ndarray, x: np.ndarray, f: float) -> None:  # fmt: skip
+        self.state, self.cost, self.base, self.direction = state, cost, base, direction
+        self.best_x, self.best_f, self.stopped = x, f, False
+
+    def __call__(self, t: float) -> float:
+        if self.stopped:
+            return self.best_f
+        space = self.state.space
+        xt = space.from_motion(rigid(None, t * self.direction) @ self.base)
+        ft = float(self.cost(xt))
+        if ft < self.best_f:
+            self.best_x, self.best_f = xt, ft
+        monitor = self.state.run.monitor
+        self.stopped = bool(monitor.report(self.state.number, 0.0, xt, ft, self.best_x, self.best_f, 0, space))
+        return ft
+
+
 @dataclass(frozen=True)
 class AlongEachBeam:
     """Two or more views: the estimate moved along each view's central ray in turn, within
@@ -78,24 +100,10 @@ class AlongEachBeam:
         x = np.asarray(state.x, dtype=np.float64)
         f = float(cost(x))
         for view in r.inputs.views:
-            direction = np.asarray(view.geometry.direction, dtype=np.float64)
-            base, best, stopped = space.motion(x), [x, f], [False]
-
-            def at(t: float, base: np.ndarray = base, direction: np.ndarray = direction,
-                   best: list = best, stopped: list = stopped) -> float:  # fmt: skip
-                """The cost ``t`` mm along the ray from ``base``; keeps the best, notes a stop."""
-                if stopped[0]:
-                    return best[1]
-                xt = space.from_motion(rigid(None, t * direction) @ base)
-                ft = float(cost(xt))
-                if ft < best[1]:
-                    best[:] = [xt, ft]
-                stopped[0] = bool(r.monitor.report(state.number, 0.0, xt, ft, best[0], best[1], 0, space))
-                return ft
-
-            self.along(at)
-            x, f = best
-            if stopped[0]:
+            walk = _Walk(state, cost, space.motion(x), np.asarray(view.geometry.direction, dtype=np.float64), x, f)
+            self.along(walk)
+            x, f = walk.best_x, walk.best_f
+            if walk.stopped:
                 break
         return replace(state, x=x, f=f)
 
