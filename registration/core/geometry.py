@@ -81,10 +81,13 @@ def invert_rigid(transform: ArrayLike) -> Array:
 
 
 def rotation_angle_deg(transform_or_rotation: ArrayLike) -> float:
-    """The rotation angle (degrees, 0..180) of a 3x3 rotation or of a 4x4 transform's block."""
+    """The rotation angle (degrees, 0..180) of a 3x3 rotation or of a 4x4 transform's block.
+
+    ``atan2(2 sin, 2 cos)`` from the skew part and the trace: every digit at any angle (the
+    arccosine of the trace alone reads angles below 1.2e-6 degrees as 0)."""
     r = np.asarray(transform_or_rotation, dtype=np.float64)[:3, :3]
-    cos = (np.trace(r) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+    two_sin = math.hypot(r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1])
+    return math.degrees(math.atan2(two_sin, float(np.trace(r)) - 1.0))
 
 
 def _skew(a: Array) -> Array:
