@@ -388,6 +388,9 @@ class Example:
     truth_motion: NDArray[np.float64]
     offset: str
 
+    def __repr__(self) -> str:
+        return f"Example({self.offset}: {self.volume!r}, {self.image!r}, truth_motion 4x4)"
+
 
 #: The default example (seed 0, T4, 256 px) as :func:`simulate_example` makes it, shipped so a
 #: first run compiles only the engine's kernels, not the simulator's (``scripts/make_example.py``).

@@ -70,6 +70,38 @@ def test_volume_from_array_follows_conventions() -> None:
         registration.Volume.from_array(data_ijk, affine_ras, frame="RAI")
 
 
+def test_what_a_notebook_prints_is_one_line_of_facts() -> None:
+    """A volume, an image and a result print as one short line of their facts (not their arrays)."""
+    import registration
+    from registration.core.geometry import CArm
+    from registration.core.metrics import residuals
+    from registration.core.register.result import RegistrationResult
+
+    data = np.full((40, 30, 20), -1000.0, dtype=np.float32)
+    data[5, 6, 7] = 2500.0
+    volume = registration.Volume(data=data, index_to_world=np.diag([0.5, 0.5, 2.5, 1.0]), label="a CT")
+    assert repr(volume) == ("Volume(20x30x40 voxels (i, j, k), spacing (0.5, 0.5, 2.5) mm, values -1000 to 2500, "
+                            "label='a CT')")  # fmt: skip
+    carm = CArm(primary_deg=30.0, secondary_deg=-5.0, rows=64, cols=48)
+    mask = np.zeros((64, 48), dtype=bool)
+    mask[:32] = True  # half the pixels
+    image = registration.XRayImage(np.zeros((64, 48), np.float32), mask, carm, meta={"source": "xa.dcm"})
+    text = repr(image)
+    assert text.startswith("XRayImage(fluoro, 48x64 px, field 50 % of the pixels, primary +30.0 deg, secondary -5.0")
+    assert text.endswith("source 'xa.dcm')") and "array" not in text
+    truth = np.eye(4)
+    truth[:3, 3] = (0.3, 0.4, 0.0)  # 0.5 mm across plane A's beam (primary 30: not along x alone)
+    result = RegistrationResult(
+        patient_motion=np.eye(4), similarity=1.23456, similarity_trace=[0.0] * 500, drr_count=1214, seconds=0.6123,
+        stopped=False, offsets=np.array([1.0, -2.0, 0.5, 0.25, -3.0]), geometry=carm, volume_label="a CT",
+        residual=residuals(np.eye(4), truth, carm), depth_tz_mm=-0.75,
+    )  # fmt: skip
+    text = repr(result)
+    assert text.startswith("RegistrationResult(tx +1.00 mm, ty -2.00 mm, tz -0.75 mm, rx +0.50 deg, ry +0.25 deg, "
+                           "rz -3.00 deg; similarity 1.235, 1,214 DRRs in 0.61 s; residual ")  # fmt: skip
+    assert f"{result.residual.translation_mm:.2f} mm total" in text and len(text) < 250
+
+
 def test_files_through_the_api(tmp_path: Path) -> None:
     import registration
 

@@ -74,6 +74,16 @@ class XRayImage:
     def shape(self) -> tuple[int, int]:
         return (int(self.image.shape[0]), int(self.image.shape[1]))
 
+    def __repr__(self) -> str:
+        """A line a notebook shows: the kind, the size, the field and the C-arm (not the pixels)."""
+        rows, cols = self.shape
+        g = self.geometry
+        source = self.meta.get("source")
+        field = 100 * float(self.mask.mean())
+        return (f"{type(self).__name__}({self.kind}, {cols}x{rows} px, field {field:.0f} % of the pixels, "
+                f"primary {g.primary_deg:+.1f} deg, secondary {g.secondary_deg:+.1f} deg, SID {g.sid_mm:.0f} mm, "
+                f"SOD {g.sod_mm:.0f} mm" + (f", source {str(source)!r}" if source else "") + ")")  # fmt: skip
+
     def downsample(self, factor: int) -> XRayImage:
         """Average ``factor`` x ``factor`` pixel blocks; the mask keeps blocks wholly inside.
 

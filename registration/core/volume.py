@@ -88,6 +88,14 @@ class Volume:
         affine[:3, 3] = np.asarray(center_mm, dtype=np.float64) - half
         return cls(data=arr, index_to_world=affine, label=label)
 
+    def __repr__(self) -> str:
+        """A line a notebook shows: the grid, the spacing, the values and the label (not the voxels)."""
+        nk, nj, ni = self.shape
+        spacing = ", ".join(f"{s:.3g}" for s in self.spacing_mm)
+        label = f", label={self.label!r}" if self.label else ""
+        return (f"{type(self).__name__}({ni}x{nj}x{nk} voxels (i, j, k), spacing ({spacing}) mm, "
+                f"values {float(self.data.min()):.6g} to {float(self.data.max()):.6g}{label})")  # fmt: skip
+
     # ----- properties --------------------------------------------------------------
     @property
     def shape(self) -> tuple[int, int, int]:

@@ -149,6 +149,24 @@ class RegistrationResult:
     def success(self) -> bool | None:
         return None if self.residual is None else self.residual.success
 
+    def __repr__(self) -> str:
+        """A line a notebook shows: the offsets, the similarity, the cost and, with a truth, the
+        residual (:meth:`to_dict` holds everything)."""
+        units = {"tx": " mm", "ty": " mm", "tz": " mm", "rx": " deg", "ry": " deg", "rz": " deg"}
+        values = np.asarray(self.offsets, dtype=np.float64)
+        offsets = [f"{n} {v:+.2f}{units.get(n, '')}" for n, v in zip(self.parameters, values, strict=True)]
+        if self.depth_tz_mm is not None and "tz" not in self.parameters:
+            offsets.insert(2, f"tz {self.depth_tz_mm:+.2f} mm")
+        views = f"{len(self.views)} views, " if len(self.views) > 1 else ""
+        stopped = ", stopped" if self.stopped else ""
+        residual = ""
+        if self.residual is not None:
+            r = self.residual
+            residual = (f"; residual {r.inplane_mm:.2f} mm in-plane, {r.translation_mm:.2f} mm total, "
+                        f"{r.rotation_deg:.2f} deg: {'success' if r.success else 'failure'}")  # fmt: skip
+        return (f"{type(self).__name__}({views}{', '.join(offsets)}; similarity {self.similarity:.4g}, "
+                f"{self.drr_count:,} DRRs in {self.seconds:.2f} s{stopped}{residual})")  # fmt: skip
+
     def offsets_of(self, motion: Array) -> Array:
         """``motion``'s offsets (in :attr:`parameters`) from where this estimate's search started: a
         later stage that replaces the estimate keeps the offsets relative to that start."""
