@@ -102,6 +102,19 @@ def test_what_a_notebook_prints_is_one_line_of_facts() -> None:
     assert f"{result.residual.translation_mm:.2f} mm total" in text and len(text) < 250
 
 
+@pytest.mark.slow
+def test_a_preparation_prints_its_levels_not_its_voxels() -> None:
+    import registration
+    from registration.core.preparation import Preparation
+
+    example = registration.load_example()
+    preparation = Preparation.of(example.volume, example.image)
+    text = repr(preparation)
+    levels = ", ".join(f"{s:.3g}" for s in preparation.prepared.spacing_mm)
+    assert text.startswith(f"Preparation({example.volume!r}; levels at ({levels}) mm for 1 view, ")
+    assert len(text) < 400 and "array" not in text
+
+
 def test_files_through_the_api(tmp_path: Path) -> None:
     import registration
 

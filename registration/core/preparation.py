@@ -70,6 +70,12 @@ class Preparation:
         prepared = prepared_volume(volume, views, start, options or RegistrationOptions(), store=store)
         return cls(volume, prepared, len(views), time.perf_counter() - began)
 
+    def __repr__(self) -> str:
+        """A line a notebook shows: the volume, its levels' voxel sizes, the views, the cost."""
+        levels = ", ".join(f"{s:.3g}" for s in self.prepared.spacing_mm)
+        views = f"{self.planes} view" + ("s" if self.planes != 1 else "")
+        return f"Preparation({self.volume!r}; levels at ({levels}) mm for {views}, {self.seconds:.2f} s)"
+
     @property
     def renderer(self) -> DRRRenderer:
         """The registration's renderer (cropped, body only, isotropic levels in mm)."""
