@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from registration.core import drr
+from registration.core import drr, drr_kernels
 from registration.core.drr import DRRRenderer
 from registration.core.drr_kernels import _BLOCK
 from registration.core.geometry import CArm, offsets_to_matrix
@@ -158,6 +158,27 @@ def test_level_arrays_equal_their_definition(dtype):
     distance = ndimage.distance_transform_cdt(~blocks, metric="chessboard")
     assert level.use_empty
     assert np.array_equal(level.empty, np.minimum(distance, 255).astype(np.uint8).reshape(-1))
+
+
+def test_leaps_are_looked_up_only_where_a_ray_can_leap(islands, monkeypatch):
+    """A volume whose air lies within two blocks of attenuation everywhere (no ray can leap)
+    renders without the leaps' look-ups, to the values the look-ups give bit for bit; two
+    islands in air keep them."""
+    centre = np.eye(4)
+    centre[:3, 3] = -9.5  # the 20 mm cube about the iso-center
+    hu = np.full((20, 20, 20), 300.0, dtype=np.float32)
+    hu[8:14, 4:16, 4:16] = -1000.0  # a slab of air inside, three blocks thick: two from attenuation at most
+    volume = Volume(hu, centre)
+    renderer = DRRRenderer(volume, levels=1)
+    assert not renderer._level(0).use_empty
+    monkeypatch.setattr(drr_kernels, "_LEAP_MIN", 2)  # the distances kept down to 2 blocks: looked up
+    looking = DRRRenderer(volume, levels=1)
+    assert looking._level(0).use_empty
+    for name in ("frontal", "lateral", "steep-cranial"):
+        image = renderer.render(VIEWS[name])
+        assert (image > 0).sum() > 20, name  # the cube covers some 5 x 5 pixels at least
+        np.testing.assert_array_equal(looking.render(VIEWS[name]), image)
+    assert DRRRenderer(islands, levels=1)._level(0).use_empty
 
 
 def test_a_lazy_level_writes_only_what_its_rays_read(islands):
