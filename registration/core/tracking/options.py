@@ -163,6 +163,13 @@ class FrameEstimate:
     crop_margin_mm: float | None = None
     crop_margin_deg: float | None = None
 
+    def __repr__(self) -> str:
+        """A line a notebook shows: the frame, its time, what was decided and why."""
+        confidence = "" if self.confidence is None else f", confidence {self.confidence:.2f}"
+        reason = f", {self.reason}" if self.reason else ""
+        return (f"{type(self).__name__}(frame {self.frame} at {self.t_s:.3f} s: {self.status} ({self.path}"
+                f"{confidence}){reason}, {self.latency_ms:.0f} ms, {self.drr_count} DRRs)")  # fmt: skip
+
     def to_dict(self) -> dict:
         out = {
             "frame": self.frame,

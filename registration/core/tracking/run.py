@@ -28,6 +28,15 @@ class TrackingRun:
     volume_label: str
     planes: int
 
+    def __repr__(self) -> str:
+        """A line a notebook shows: what happened to the run's frames (``summary()`` has the rest)."""
+        status = {k: sum(f.status == k for f in self.frames) for k in ("applied", "withheld", "unchanged")}
+        latency = f", {np.median([f.latency_ms for f in self.frames]):.0f} ms per frame (median)" if self.frames else ""
+        planes = f", {self.planes} planes" if self.planes > 1 else ""
+        return (f"{type(self).__name__}({len(self.frames)} of {self.frame_count} frames processed, "
+                f"{len(self.skipped)} skipped; {status['applied']} applied, {status['withheld']} withheld, "
+                f"{status['unchanged']} unchanged{latency}{planes})")  # fmt: skip
+
     def summary(self) -> dict:
         lat = np.array([f.latency_ms for f in self.frames]) if self.frames else np.zeros(0)
         refine = np.array([f.latency_ms for f in self.frames if f.path in ("check", "refine")])

@@ -70,6 +70,13 @@ def test_sudden_move_detected_within_two_frames_and_corrected(setup):
     for f in applied:  # every applied estimate has its confidence and is no worse than 2 mm
         assert 0.5 <= f.confidence <= 1.0
         assert residuals(f.estimate, run.truth[f.frame], geometry).inplane_mm < 2.0
+    # what a notebook prints: the counts, not the frames' matrices
+    text = repr(result)
+    assert text.startswith(f"TrackingRun({len(result.frames)} of {len(run)} frames processed, ")
+    assert f"{len(applied)} applied" in text and "array" not in text and len(text) < 200
+    first = repr(applied[0])
+    assert first.startswith(f"FrameEstimate(frame {applied[0].frame} at ") and "applied" in first
+    assert f"confidence {applied[0].confidence:.2f}" in first and "array" not in first
 
 
 def test_unregistrable_frame_is_withheld(setup):
