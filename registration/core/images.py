@@ -69,6 +69,7 @@ class XRayImage:
             raise ValueError(f"kind must be one of {IMAGE_KINDS}, got {self.kind!r}")
         object.__setattr__(self, "image", image)
         object.__setattr__(self, "mask", np.ascontiguousarray(mask))
+        object.__setattr__(self, "_downsampled", {})
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -95,6 +96,13 @@ class XRayImage:
         factor = int(factor)
         if factor == 1:
             return self
+        # each level of a registration asks again for the same blocks: made once per image
+        made = self._downsampled.get(factor)
+        if made is None:
+            made = self._downsampled[factor] = self._block_averaged(factor)
+        return made
+
+    def _block_averaged(self, factor: int) -> XRayImage:
         rows, cols = self.shape
         if rows % factor or cols % factor:
             raise ValueError(f"image {rows}x{cols} is not a multiple of the factor {factor}")
@@ -108,7 +116,9 @@ class XRayImage:
                              f"{factor}x{factor} block wholly inside it: too small or thin to register")  # fmt: skip
         img = np.where(mask, img, 0.0).astype(np.float32)
         meta = {**self.meta, "downsampled_by": factor * int(self.meta.get("downsampled_by", 1))}
-        return XRayImage(img, mask, self.geometry.resized(r, c), self.kind, meta)
+        made = XRayImage(img, mask, self.geometry.resized(r, c), self.kind, meta)
+        made.image.flags.writeable = made.mask.flags.writeable = False  # shared by every caller
+        return made
 
 
 def line_integrals(
