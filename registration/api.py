@@ -283,6 +283,15 @@ class Assessment:
     reason: str
     evidence: dict
 
+    def __repr__(self) -> str:
+        """A line a notebook shows: the decision, its confidence, why, and the evidence that was
+        measured (the entries that are None were not)."""
+        decision = "applied" if self.applied else "withheld"
+        why = f": {self.reason}" if self.reason else ""
+        shown = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+                          for k, v in self.evidence.items() if v is not None)  # fmt: skip
+        return f"Assessment({decision}, confidence {self.confidence:.2f}{why}; evidence: {shown or 'none'})"
+
 
 def assess(
     result: RegistrationResult,

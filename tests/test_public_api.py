@@ -100,6 +100,9 @@ def test_what_a_notebook_prints_is_one_line_of_facts() -> None:
     assert text.startswith("RegistrationResult(tx +1.00 mm, ty -2.00 mm, tz -0.75 mm, rx +0.50 deg, ry +0.25 deg, "
                            "rz -3.00 deg; similarity 1.235, 1,214 DRRs in 0.61 s; residual ")  # fmt: skip
     assert f"{result.residual.translation_mm:.2f} mm total" in text and len(text) < 250
+    evidence = {"margin": 0.0263585, "edges": None}
+    decision = registration.Assessment(0.8807970779778823, False, "the planes disagree", evidence)
+    assert repr(decision) == "Assessment(withheld, confidence 0.88: the planes disagree; evidence: margin 0.0264)"
 
 
 @pytest.mark.slow
