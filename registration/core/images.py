@@ -7,6 +7,9 @@ carry no signal and never drive the similarity.
 from __future__ import annotations
 
 import math
+import threading
+import weakref
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,6 +19,12 @@ from registration.core.geometry import CArm
 
 #: Kinds of image an :class:`XRayImage` may carry.
 IMAGE_KINDS = ("fluoro", "exposure", "drr", "dicom")
+
+#: Block averages kept for reuse (the most recent, any image): a registration's levels ask for
+#: the same few again; the bound keeps a long run's frames from each holding theirs.
+KEPT_AVERAGES = 16
+_averages: OrderedDict[tuple[int, int], tuple[weakref.ref, XRayImage]] = OrderedDict()
+_averages_lock = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -69,7 +78,6 @@ class XRayImage:
             raise ValueError(f"kind must be one of {IMAGE_KINDS}, got {self.kind!r}")
         object.__setattr__(self, "image", image)
         object.__setattr__(self, "mask", np.ascontiguousarray(mask))
-        object.__setattr__(self, "_downsampled", {})
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -96,10 +104,18 @@ class XRayImage:
         factor = int(factor)
         if factor == 1:
             return self
-        # each level of a registration asks again for the same blocks: made once per image
-        made = self._downsampled.get(factor)
-        if made is None:
-            made = self._downsampled[factor] = self._block_averaged(factor)
+        # each level of a registration asks again for the same blocks: the recent ones are kept
+        key = (id(self), factor)
+        with _averages_lock:
+            kept = _averages.get(key)
+            if kept is not None and kept[0]() is self:
+                _averages.move_to_end(key)
+                return kept[1]
+        made = self._block_averaged(factor)
+        with _averages_lock:
+            _averages[key] = (weakref.ref(self), made)
+            while len(_averages) > KEPT_AVERAGES:
+                _averages.popitem(last=False)
         return made
 
     def _block_averaged(self, factor: int) -> XRayImage:

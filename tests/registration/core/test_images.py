@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from registration.core import images
 from registration.core.geometry import CArm
 from registration.core.images import XRayImage
 
@@ -31,7 +32,8 @@ def test_block_average_and_mask_by_definition():
 
 def test_each_factor_is_made_once_and_shared_read_only():
     """Every level of a registration asks for the same blocks again: the second call returns
-    the first one's image, whose arrays no caller can change under the others."""
+    the first one's image, whose arrays no caller can change under the others; only the most
+    recent averages are kept (a long run's frames do not each hold theirs)."""
     view = _image()
     first = view.downsample(2)
     assert view.downsample(2) is first and view.downsample(4) is not first
@@ -44,3 +46,9 @@ def test_each_factor_is_made_once_and_shared_read_only():
     other = XRayImage(view.image.copy(), view.mask.copy(), view.geometry)
     assert other.downsample(2) is not first
     np.testing.assert_array_equal(other.downsample(2).image, first.image)
+    frames = [_image() for _ in range(images.KEPT_AVERAGES)]  # as many newer averages as are kept
+    for frame in frames:
+        frame.downsample(2)
+    again = view.downsample(2)
+    assert again is not first  # made anew: it was the oldest
+    np.testing.assert_array_equal(again.image, first.image)
