@@ -5,12 +5,15 @@ cases at its larger offsets: translation 40-80 mm, rotation 20-40 degrees, and b
 four landmarks per plane picked with noise: each volume point 3 mm off (isotropic normal, per
 axis 3 mm / sqrt(3)) and each image point off by the same 3 mm seen at the iso-center. The
 volume points are the skull's outermost voxels in eight spread directions (orbit rims, vertex,
-occiput, temples: where a user picks). Biplane: four per plane; single plane: plane A's four.
+occiput, temples: where a user picks), on each plane the first four its field shows (``--picks
+all``: the first four wherever they project). Biplane: each plane's picks; single plane: plane
+A's. A view set where no plane shows four is counted as having no landmark start.
 Each start registers as ``roadmap3d register --landmarks --confidence`` does (the volume prepared
 from the start, the estimate assessed with the landmarks' check); success is the capture study's
 criterion, and each line says whether the estimate was applied and how far it moved the landmarks.
 
 python scripts/landmark_start_study.py --seed 0 [--pairs 4] [--noise-mm 3] [--only translation/80mm] [--without-wall]
+    [--picks in-field|all]
 Prints one JSON line per registration and a summary.
 """
 
@@ -25,12 +28,12 @@ import numpy as np
 
 from registration.core.assess import assess
 from registration.core.geometry import apply
-from registration.core.landmarks import landmark_start
+from registration.core.landmarks import MIN_PAIRS, landmark_start
 from registration.core.register import RegistrationOptions, StartOptions
 from registration.studies.biplane import _offset_motion, case_views, study_volume
 from registration.studies.capture import CaptureConfig, capture_tasks
 from registration.studies.cases import register_prepared
-from registration.studies.landmark_starts import picked_landmarks
+from registration.studies.landmark_starts import picked_landmarks, picks_per_plane
 
 FROM_LANDMARKS = RegistrationOptions(start=StartOptions(from_landmarks=True))
 #: The same without the landmarks' wall (two views' search not held near the poses they allow).
@@ -49,6 +52,8 @@ def main() -> int:
     ap.add_argument("--beam-line-mm", type=float, default=None, help="two views' last line search (0: off)")
     ap.add_argument("--fine-polish-evaluations", type=int, default=None, help="two views' fine polish budget")
     ap.add_argument("--depth-bound-mm", type=float, default=None, help="one view's depth correction bound")
+    ap.add_argument("--picks", choices=("in-field", "all"), default="in-field",
+                    help="pick where each plane's field shows the point, or wherever it projects")  # fmt: skip
     args = ap.parse_args()
     options = WITHOUT_WALL if args.without_wall else FROM_LANDMARKS
     if args.fine_polish_evaluations is not None:
@@ -61,12 +66,14 @@ def main() -> int:
     config = replace(CaptureConfig.quick_config(seed=args.seed), aimed=args.aimed)
     tasks = [t for t in capture_tasks(config) if t.extra["level"] >= 2]
     rows: dict[str, list[tuple[bool, bool]]] = {"biplane": [], "single_plane": []}
+    no_start: dict[str, int] = {"biplane": 0, "single_plane": 0}
     for task in tasks:
         case = task.case
         volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
         truth = _offset_motion(case)
         views, _ = case_views(case, volume, truth)
-        landmarks = picked_landmarks(volume, views, truth, pairs=args.pairs, noise_mm=args.noise_mm, rng=rng)
+        landmarks = picked_landmarks(volume, views, truth, pairs=args.pairs, noise_mm=args.noise_mm, rng=rng,
+                                     visible=args.picks == "in-field")  # fmt: skip
         if not any(part in task.case_id for part in args.only.split(",")):
             continue
         for name, vs, lms in (
@@ -74,6 +81,12 @@ def main() -> int:
             ("single_plane", [views[0]], [lm for lm in landmarks if lm.plane == 0]),
         ):
             if args.planes not in ("both", name):
+                continue
+            counts = picks_per_plane(lms, len(vs))
+            if max(counts) < MIN_PAIRS:  # too little of the skull in view: no landmark start to make
+                no_start[name] += 1
+                case_name = task.case_id.split("/a")[0]
+                print(json.dumps({"case": case_name, "planes": name, "landmark_start": False, "picks": counts}))
                 continue
             start = landmark_start([v.geometry for v in vs], lms)
             images = vs if len(vs) > 1 else vs[0]
@@ -110,6 +123,8 @@ def main() -> int:
                         "beam_line_mm": options.start.beam_line_mm,
                         "depth_bound_mm": options.depth.bound_mm,
                         "aimed": args.aimed,
+                        "picks": counts,
+                        "pick_rule": args.picks,
                     }
                 ),
                 flush=True,
@@ -118,7 +133,8 @@ def main() -> int:
         right = sum(ok for ok, _ in got)
         applied = sum(a for _, a in got)
         wrong = sum(a and not ok for ok, a in got)
-        summary = {"planes": name, "success": f"{right}/{len(got)}", "applied": applied, "wrong_applied": wrong}
+        summary = {"planes": name, "success": f"{right}/{len(got)}", "applied": applied, "wrong_applied": wrong,
+                   "without_landmark_start": no_start[name]}  # fmt: skip
         print(json.dumps(summary))
     return 0
 

@@ -143,7 +143,7 @@ def capture_tasks(config: CaptureConfig, options: RegistrationOptions | None = N
                 if config.landmark_pairs is not None:
                     from registration.studies.landmark_starts import LandmarkCase
 
-                    case_id += f"/landmarks-{config.landmark_pairs}x{config.landmark_noise_mm:g}mm"
+                    case_id += f"/landmarks-{config.landmark_pairs}x{config.landmark_noise_mm:g}mm-in-field"
                     pick_seed = _stable_seed(config.seed, case_id)
                     case = LandmarkCase(case, config.landmark_pairs, config.landmark_noise_mm, pick_seed)
                 tasks.append(StudyTask(case_id, case, extra, options))
@@ -201,6 +201,16 @@ def _plane_summary(records: list[dict], plane: str) -> dict:
         }
     taken = [r for r in records if r.get(applied)]
     right = [r for r in taken if r[success]]
+    start_key = "landmark_start" if plane == "biplane" else "single_landmark_start"
+    from_landmarks = [r for r in records if r.get(start_key)]
+    landmarks = {}
+    if any(start_key in r for r in records):  # a landmark run: the moments whose fields showed the picks
+        landmarks = {
+            "landmark_starts": len(from_landmarks),
+            "landmark_start_success_rate": (
+                sum(bool(r[success]) for r in from_landmarks) / len(from_landmarks) if from_landmarks else None
+            ),
+        }
     return {
         "capture_radius_mm_95": radius("translation", "translation_mm"),
         "capture_radius_deg_95": radius("rotation", "rotation_deg"),
@@ -211,6 +221,7 @@ def _plane_summary(records: list[dict], plane: str) -> dict:
         "success_rate": sum(bool(r[success]) for r in records) / len(records) if records else None,
         "runs": len(records),
         "sweeps": sweeps,
+        **landmarks,
     }
 
 
@@ -288,8 +299,9 @@ def capture_report_md(summary: dict, image: str) -> str:
     cfg = summary["config"]
     start = "the machine-based pose"
     if cfg.get("landmark_pairs"):
-        start = (f"the pose {cfg['landmark_pairs']} landmarks per plane give, picked on the skull's outline with "
-                 f"{cfg['landmark_noise_mm']:g} mm error (volume and image)")  # fmt: skip
+        start = (f"the pose {cfg['landmark_pairs']} landmarks per plane give, picked on the skull's outline "
+                 f"where the plane's field shows it, with {cfg['landmark_noise_mm']:g} mm error (volume and "
+                 "image)")  # fmt: skip
     lines = [
         "# Capture range" + (" from landmarks" if cfg.get("landmark_pairs") else ""),
         "",
@@ -329,6 +341,15 @@ def capture_report_md(summary: dict, image: str) -> str:
         f"| applied precision | {pct(bi['applied_precision'])} ({bi['applied']} applied) | "
         f"{pct(sp['applied_precision'])} ({sp['applied']} applied) |",
         f"| registrations | {bi['runs']} | {sp['runs']} |",
+    ]
+    if "landmark_starts" in bi:
+        lines.append(
+            f"| from landmarks (the others: too little of the skull in the fields to pick four on one plane; "
+            f"registered from the machine-based pose) | {bi['landmark_starts']}, "
+            f"{pct(bi['landmark_start_success_rate'])} right | {sp['landmark_starts']}, "
+            f"{pct(sp['landmark_start_success_rate'])} right |"
+        )
+    lines += [
         "",
         f"![capture curves]({image})",
         "",

@@ -137,7 +137,7 @@ def test_from_landmarks_the_same_moments_start_from_picks() -> None:
     for a, b in zip(plain, picked, strict=True):
         # the same moment, its own case id (a results file may hold both) and its own picks
         assert isinstance(b.case, LandmarkCase) and b.case.case == a.case and b.extra == a.extra
-        assert b.case_id == a.case_id + "/landmarks-4x3mm"
+        assert b.case_id == a.case_id + "/landmarks-4x3mm-in-field"
     assert len({t.case.pick_seed for t in picked}) == len(picked)
     with pytest.raises(ValueError, match="four fix a pose"):
         replace(config, landmark_pairs=3)
@@ -161,6 +161,86 @@ def test_the_picks_lie_on_the_skulls_outline() -> None:
     assert np.all(np.abs(np.linalg.norm(points - centre, axis=1) - 60.0) < 1.0)
     with pytest.raises(ValueError, match="no bone"):
         outer_bone_points(Volume.from_grid(np.zeros((8, 8, 8), np.float32), (1.0, 1.0, 1.0), label="air"), 4)
+
+
+def test_each_plane_picks_only_what_its_field_shows() -> None:
+    from registration.core.geometry import CArm, apply
+    from registration.core.images import XRayImage
+    from registration.core.volume import Volume
+    from registration.studies.landmark_starts import in_field, outer_bone_points, picked_landmarks, picks_per_plane
+
+    z, y, x = np.mgrid[-70:71:2, -70:71:2, -70:71:2].astype(np.float64)
+    r = np.sqrt(x**2 + y**2 + z**2)
+    hu = np.where((r > 52) & (r <= 60), 1000.0, 0.0).astype(np.float32)
+    volume = Volume.from_grid(hu, (2.0, 2.0, 2.0), label="shell")
+    truth = np.eye(4)
+    truth[:3, 3] = (10.0, -5.0, 4.0)
+    geometry = CArm.for_format(27.0, pixels=96, primary_deg=0.0, secondary_deg=0.0)
+    whole = np.ones((96, 96), dtype=bool)
+    right_half = whole.copy()
+    right_half[:, :48] = False  # a blade over the image's left half
+    hidden = np.zeros((96, 96), dtype=bool)
+    hidden[:2, :2] = True  # a field in the corner, off the skull
+    views = [XRayImage(np.zeros((96, 96), np.float32), m, geometry) for m in (whole, right_half, hidden)]
+    anatomy = outer_bone_points(volume, 8)
+    seen = [[in_field(v, geometry.project(apply(truth, p))) for p in anatomy] for v in views]
+    assert sum(seen[0]) == 8 and 0 < sum(seen[1]) < 8 and sum(seen[2]) == 0  # the setup holds what it says
+    picks = picked_landmarks(volume, views, truth, pairs=4, noise_mm=0.0, rng=np.random.default_rng(1))
+    # each plane its first four shown points (no error: exactly the outline's points and pixels)
+    assert picks_per_plane(picks, 3) == [4, min(4, sum(seen[1])), 0]
+    for plane, view in enumerate(views[:2]):
+        expected = [p for p, ok in zip(anatomy, seen[plane], strict=True) if ok][:4]
+        got = [lm for lm in picks if lm.plane == plane]
+        np.testing.assert_allclose([lm.volume_mm for lm in got], expected, atol=1e-9)
+        for lm in got:
+            assert in_field(view, np.asarray(lm.image_px))
+            np.testing.assert_allclose(lm.image_px, geometry.project(apply(truth, np.asarray(lm.volume_mm))),
+                                       atol=1e-9)  # fmt: skip
+    # wherever they project: the first four on every plane, whether the field shows them or not
+    everywhere = picked_landmarks(volume, views, truth, pairs=4, noise_mm=0.0, rng=np.random.default_rng(1),
+                                  visible=False)  # fmt: skip
+    assert picks_per_plane(everywhere, 3) == [4, 4, 4]
+    np.testing.assert_allclose([lm.volume_mm for lm in everywhere if lm.plane == 2], anatomy[:4], atol=1e-9)
+
+
+def test_a_moment_without_four_picks_registers_from_the_machine_pose() -> None:
+    """The summary counts the landmark starts and their success apart from the fallbacks."""
+    base = {"case_id": "c", "sweep": "translation", "level": 0, "level_translation_mm": 80.0,
+            "level_rotation_deg": 0.0, "image_source": "test", "volume_label": "test"}  # fmt: skip
+    records = [
+        {**base, "success": True, "applied": True, "landmark_start": True, "single_success_inplane": False,
+         "single_applied": False, "single_landmark_start": True},
+        {**base, "success": False, "applied": False, "landmark_start": True, "single_success_inplane": True,
+         "single_applied": False, "single_landmark_start": False},
+        {**base, "success": False, "applied": False, "landmark_start": False, "single_success_inplane": False,
+         "single_applied": False, "single_landmark_start": False},
+    ]  # fmt: skip
+    summary = capture_summary(records, config={"landmark_pairs": 4, "landmark_noise_mm": 3.0}, wall_seconds=1.0)
+    assert summary["biplane"]["landmark_starts"] == 2 and summary["biplane"]["landmark_start_success_rate"] == 0.5
+    assert summary["single_plane"]["landmark_starts"] == 1
+    assert summary["single_plane"]["landmark_start_success_rate"] == 0.0
+    assert summary["biplane"]["success_rate"] == pytest.approx(1 / 3)  # every moment, the fallback's too
+    report = capture_report_md(summary, "x.png")
+    assert "| from landmarks" in report and "| 2, 50.0 % right | 1, 0.0 % right |" in report
+    # a run from the machine-based pose has no such row
+    plain = capture_summary([{k: v for k, v in r.items() if "landmark" not in k} for r in records], config={},
+                            wall_seconds=1.0)  # fmt: skip
+    assert "landmark_starts" not in plain["biplane"] and "| from landmarks" not in capture_report_md(plain, "x.png")
+
+
+def test_a_moment_with_nothing_to_pick_registers_from_the_machine_pose(monkeypatch: pytest.MonkeyPatch) -> None:
+    from registration.studies import landmark_starts
+
+    config = replace(CaptureConfig.quick_config(seed=0), registrations_per_level=1, sweeps=("translation",),
+                     landmark_pairs=4)  # fmt: skip
+    task = next(t for t in capture_tasks(config) if t.extra["level_translation_mm"] == 0.0)
+    monkeypatch.setattr(landmark_starts, "picked_landmarks", lambda *a, **k: [])  # no skull in either field
+    record = landmark_starts.run_landmark_case(task.case)
+    assert record["landmark_start"] is False and record["landmark_picks"] == [0, 0]
+    assert record["single_landmark_start"] is False and record["single_landmark_picks"] == [0]
+    assert "start_off_mm" not in record  # no landmark start to measure
+    # the machine-based pose is the truth here (no offset): both register right from it
+    assert record["success"] and record["single_success_inplane"], record
 
 
 def test_a_moment_from_landmarks_registers_and_is_checked_against_them() -> None:
