@@ -5,7 +5,10 @@ anatomy's position in the volume's world frame, mm, §1-2) give the patient moti
 under which the volume's points project onto the picked pixels: a perspective-n-point problem,
 solved per view by OpenCV (``solvePnP``; ``solvePnPRansac`` from six pairs on, so a mistaken
 pick is left out), then refined over every view's pairs together by least squares on the
-reprojection error (biplane: both planes' points constrain all six parameters).
+reprojection error (biplane: both planes' points constrain all six parameters). Points picked on
+a skull's outline lie near a plane, where one view's solution can be a mirror of the right pose
+that fits its own picks as well; so the refinement also starts from every three-point solution
+(``solveP3P``) of each view's picks and keeps the pose that fits all views' picks best.
 
 The result is a start for the image-based registration, not a registration: its reprojection
 error says how well the picks agree with one rigid motion.
@@ -34,6 +37,9 @@ MIN_PAIRS = 4
 RANSAC_PAIRS = 6
 #: A pair whose reprojection error exceeds this (pixels) is an outlier for RANSAC.
 RANSAC_THRESHOLD_PX = 12.0
+#: The refinement's further starts: the three-point solutions of at most this many triples of a
+#: view's picks (the first ones; four picks have four triples).
+P3P_TRIPLES = 20
 #: A registration from a landmark start that moves the kept landmarks' projections more than
 #: this (mm at the iso-center, root mean square) from where the start put them is not applied
 #: automatically: two or more views, and one view, whose start is looser
@@ -249,6 +255,34 @@ def _pnp(geometry: CArm, landmarks: Sequence[Landmark]) -> tuple[Array, NDArray[
     return np.linalg.inv(camera_from_world) @ camera_from_volume, inliers
 
 
+def _p3p_starts(geometries: Sequence[CArm], landmarks: Sequence[Landmark]) -> list[Array]:
+    """The patient motions of the three-point solutions (OpenCV's ``solveP3P``, AP3P) of the
+    first :data:`P3P_TRIPLES` triples of each view's ``landmarks``."""
+    import itertools
+
+    import cv2
+
+    starts = []
+    for plane, geometry in enumerate(geometries):
+        mine = [lm for lm in landmarks if lm.plane == plane]
+        if len(mine) < 3:
+            continue
+        k, camera_from_world = camera_of(geometry)
+        k = np.diag([1.0, -1.0, 1.0]) @ k  # OpenCV's camera wants positive focal lengths: rows mirrored
+        world_from_camera = np.linalg.inv(camera_from_world)
+        for triple in itertools.islice(itertools.combinations(mine, 3), P3P_TRIPLES):
+            objects = np.asarray([lm.volume_mm for lm in triple], dtype=np.float64)
+            pixels = np.asarray([lm.image_px for lm in triple], dtype=np.float64) * np.array([1.0, -1.0])
+            try:
+                _, rvecs, tvecs = cv2.solveP3P(objects, pixels, k, None, flags=cv2.SOLVEPNP_AP3P)
+            except cv2.error:  # a degenerate triple (collinear or repeated points)
+                continue
+            for rvec, tvec in zip(rvecs, tvecs, strict=True):
+                camera_from_volume = rigid(rotation_matrix(np.ravel(rvec)), np.ravel(tvec))
+                starts.append(world_from_camera @ camera_from_volume)
+    return starts
+
+
 def landmark_start(geometries: CArm | Sequence[CArm], landmarks: Sequence[Landmark]) -> LandmarkStart:
     """The patient motion under which the landmarks' volume points project onto their pixels.
 
@@ -279,9 +313,14 @@ def landmark_start(geometries: CArm | Sequence[CArm], landmarks: Sequence[Landma
             out.extend(geometries[lm.plane].project(moved) - np.asarray(lm.image_px))
         return np.asarray(out)
 
-    x0 = np.concatenate([rotation_vector(motion[:3, :3]), motion[:3, 3]])
-    fit = least_squares(residual, x0, method="lm" if 2 * len(used) >= 6 else "trf")
-    motion = rigid(rotation_matrix(fit.x[:3]), fit.x[3:])
+    best_fit = None
+    for start in [motion, *_p3p_starts(geometries, used)]:
+        x0 = np.concatenate([rotation_vector(start[:3, :3]), start[:3, 3]])
+        fit = least_squares(residual, x0, method="lm" if 2 * len(used) >= 6 else "trf")
+        # a further start's pose only where it fits clearly better (the first one's otherwise)
+        if best_fit is None or fit.cost < best_fit.cost * (1.0 - 1e-6):
+            best_fit = fit
+    motion = rigid(rotation_matrix(best_fit.x[:3]), best_fit.x[3:])
     errors = _reprojection(motion, geometries, landmarks)
     rms = float(np.sqrt(np.mean(errors[inliers] ** 2)))
     return LandmarkStart(motion, errors, rms, inliers, tuple(landmarks), geometries)
