@@ -14,6 +14,7 @@ precision says whether it does.
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -278,7 +279,8 @@ def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
     picks = summary.get("config", {}).get("landmark_pairs")
     start = f", from {picks} landmarks per plane" if picks else ""
     start += ", C-arms aimed at the head" if summary.get("config", {}).get("aimed") else ""
-    fig.suptitle(f"Capture range{start}: success against the initial offset (dotted: 95 %)", fontsize=10)
+    title = f"Capture range{start}: success against the initial offset (dotted: 95 %)"
+    fig.suptitle(textwrap.fill(title, width=60 * len(sweeps)), fontsize=10)  # one panel: two lines
     fig.tight_layout()
     stamp(fig, records)
     fig.savefig(path, dpi=120)
