@@ -112,13 +112,23 @@ class Inputs:
     region_fields: list = field(default_factory=list)
 
 
-#: How ``register`` reads a volume (a worker reads through its memory of recent volumes).
-_volume_reader: list[Any] = [dicom.read_volume]
+#: How ``register`` reads a volume (a worker reads through its memory of recent volumes); None:
+#: :func:`registration.io.volume_cache.read_volume_cached` (a DICOM folder decoded once, kept on disk).
+_volume_reader: list[Any] = [None]
 
 
 def use_volume_reader(read: Any) -> None:
     """Have ``register`` read volumes with ``read`` (a path -> a volume, as :func:`dicom.read_volume`)."""
     _volume_reader[:] = [read]
+
+
+def _read_volume(options: Register) -> Any:
+    read = _volume_reader[0]
+    if read is not None:
+        return read(options.volume)
+    from registration.io.volume_cache import read_volume_cached
+
+    return read_volume_cached(options.volume, cache=not options.no_cache)
 
 
 def _region_of_interest(vol: Any, roi: str, roi_mask: Path | None, *, cache: bool) -> Any:
@@ -168,7 +178,7 @@ def read_inputs(options: Register, clock: _Stopwatch) -> Inputs:
     """Read the volume, the region it follows, the views, the start and the truth."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        vol = _volume_reader[0](options.volume)
+        vol = _read_volume(options)
         clock.lap("reading the volume")
         region = _region_of_interest(vol, options.roi, options.roi_mask, cache=not options.no_cache)
         iso, iso_from = resolve_isocenter(options.isocenter, vol)

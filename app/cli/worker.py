@@ -64,17 +64,14 @@ class VolumeMemory:
         self._read, self.keep = read, max(1, int(keep))
         self._volumes: OrderedDict[tuple, Any] = OrderedDict()
 
-    @staticmethod
-    def _state(path: Path) -> tuple:
-        files = sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
-        return tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files)
-
     def read(self, path: Any, *args: Any, **kwargs: Any) -> Any:
         if args or kwargs:
             return self._read(path, *args, **kwargs)
+        from registration.io.volume_cache import files_state
+
         where = Path(path).resolve()
         try:
-            key = (str(where), self._state(where))
+            key = (str(where), files_state(where))
         except OSError:
             return self._read(path)  # the reader names the file and the problem
         if key in self._volumes:

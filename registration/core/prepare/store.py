@@ -78,6 +78,13 @@ def volume_digest(volume: Volume) -> str:
     return digest
 
 
+def remember_digest(volume: Volume, digest: str) -> None:
+    """Take ``digest`` as ``volume``'s (:func:`volume_digest`): its voxels were hashed before,
+    when they were kept on disk with it (:mod:`registration.io.volume_cache`)."""
+    with _DIGESTS_LOCK:
+        _DIGESTS[volume] = digest
+
+
 def _sha256(volume: Volume) -> str:
     h = hashlib.sha256()
     h.update(json.dumps([list(volume.shape), str(volume.data.dtype)]).encode())
