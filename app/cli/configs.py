@@ -82,9 +82,9 @@ class Register:
     and why (the studies' rule, on the registration's prepared levels; a few seconds more on a CT; written to --out
     too)."""
     no_cache: bool = False
-    """Prepare the volume from scratch and keep nothing on disk (default: the view-independent part of the
-    preparation is kept in the cache folder, ROADMAP3D_CACHE, by the volume's content; ROADMAP3D_NO_CACHE=1 does the
-    same as this flag)."""
+    """Decode and prepare the volume from scratch and keep nothing on disk (default: a DICOM series' decoded volume,
+    by the state of its files, and the view-independent part of the preparation, by the volume's content, are kept
+    in the cache folder, ROADMAP3D_CACHE; ROADMAP3D_NO_CACHE=1 does the same as this flag)."""
     explain: bool = False
     """Print the plan of stages the registration runs (annealing levels, polishes, depth correction, rotation
     check, with their budgets) before running it."""
