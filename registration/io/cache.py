@@ -17,6 +17,7 @@ import threading
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import platformdirs
@@ -67,18 +68,62 @@ def is_cached(kind: str, params: dict) -> bool:
     return (cache_dir() / f"{cache_key(kind, params)}.npz").exists()
 
 
-def _write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=".tmp.npz")
-    os.close(fd)
+def write_atomic(path: Path, write: Callable[[Any], object]) -> None:
+    """``write(file)`` into a temporary file beside ``path``, then renamed onto it: readers see the
+    old file or the whole new one, and a killed process leaves no half-written ``path``."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=".tmp")
     try:
-        np.savez(tmp, **arrays)
+        with os.fdopen(fd, "wb") as f:
+            write(f)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
-class PreparationCache:
+def _write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    write_atomic(path, lambda f: np.savez(f, **arrays))
+
+
+def prune_least_recent(entries: list[Path], max_bytes: int, *, keep: Path | None = None,
+                       remove: Callable[[Path], None] = lambda p: p.unlink(missing_ok=True)) -> None:  # fmt: skip
+    """``remove`` the least recently modified of ``entries`` until the rest fit ``max_bytes``
+    together (never ``keep``; an entry that cannot be looked at is left alone)."""
+    sized = []
+    for p in entries:
+        try:
+            st = p.stat()
+        except OSError:
+            continue
+        sized.append((st.st_mtime, st.st_size, p))
+    total = sum(size for _, size, _ in sized)
+    for _, size, p in sorted(sized, key=lambda e: e[0]):
+        if total <= max_bytes:
+            break
+        if keep is not None and p == keep:
+            continue
+        remove(p)
+        total -= size
+
+
+class CacheFolder:
+    """A kind of entry in :func:`cache_dir` (or ``root``), kept under ``max_bytes`` together;
+    ``ROADMAP3D_NO_CACHE=1`` turns it off (``enabled``)."""
+
+    def __init__(self, root: Path | None = None, *, max_bytes: int) -> None:
+        self._root = None if root is None else Path(root)
+        self.max_bytes = int(max_bytes)
+        self.enabled = os.environ.get("ROADMAP3D_NO_CACHE") != "1"
+
+    @property
+    def root(self) -> Path:
+        if self._root is None:
+            return cache_dir()
+        self._root.mkdir(parents=True, exist_ok=True)
+        return self._root
+
+
+class PreparationCache(CacheFolder):
     """Prepared volumes on disk (:class:`registration.core.prepare.PreparationStore`).
 
     Entries are ``.npz`` files in :func:`cache_dir` (or ``root``) named by a hash of their key
@@ -95,19 +140,10 @@ class PreparationCache:
 
     def __init__(self, root: Path | None = None, *, max_bytes: int = PREPARED_MAX_BYTES,
                  background: bool = False) -> None:  # fmt: skip
-        self._root = None if root is None else Path(root)
-        self.max_bytes = int(max_bytes)
-        self.enabled = os.environ.get("ROADMAP3D_NO_CACHE") != "1"
+        super().__init__(root, max_bytes=max_bytes)
         self.background = bool(background)
         self._writers: list[threading.Thread] = []
         self._lock = threading.Lock()
-
-    @property
-    def root(self) -> Path:
-        if self._root is None:
-            return cache_dir()
-        self._root.mkdir(parents=True, exist_ok=True)
-        return self._root
 
     def path(self, kind: str, key: dict) -> Path:
         if kind not in PREPARED_KINDS:
@@ -188,18 +224,4 @@ class PreparationCache:
             self._prune(keep)
 
     def _prune(self, keep: Path | None) -> None:
-        sized = []
-        for p in self.entries():
-            try:
-                st = p.stat()
-            except OSError:
-                continue
-            sized.append((st.st_mtime, st.st_size, p))
-        total = sum(size for _, size, _ in sized)
-        for _, size, p in sorted(sized, key=lambda e: e[0]):
-            if total <= self.max_bytes:
-                break
-            if keep is not None and p == keep:
-                continue
-            p.unlink(missing_ok=True)
-            total -= size
+        prune_least_recent(self.entries(), self.max_bytes, keep=keep)

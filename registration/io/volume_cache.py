@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from registration.core.volume import Volume
-from registration.io.cache import cache_dir, cache_key
+from registration.io.cache import CacheFolder, cache_key, prune_least_recent, write_atomic
 
 #: Bump when what a decoded entry means changes (the reader's output for the same files).
 DECODED_VERSION = 1
@@ -52,20 +51,11 @@ def files_state(path: Path, *, identity: bool = False) -> tuple:
     return tuple(state)
 
 
-class DecodedVolumes:
+class DecodedVolumes(CacheFolder):
     """The decoded-volume entries of a cache folder (see the module)."""
 
     def __init__(self, root: Path | None = None, *, max_bytes: int = DECODED_MAX_BYTES) -> None:
-        self._root = None if root is None else Path(root)
-        self.max_bytes = int(max_bytes)
-        self.enabled = os.environ.get("ROADMAP3D_NO_CACHE") != "1"
-
-    @property
-    def root(self) -> Path:
-        if self._root is None:
-            return cache_dir()
-        self._root.mkdir(parents=True, exist_ok=True)
-        return self._root
+        super().__init__(root, max_bytes=max_bytes)
 
     def read(self, path: str | os.PathLike[str], reader: Callable[[Path], Volume]) -> Volume:
         """The volume of the folder ``path``: from its entry when the files are as they were,
@@ -136,8 +126,8 @@ class DecodedVolumes:
                 "warnings": said,
                 "digest": volume_digest(volume),
             }
-            _write_atomic(root / f"{name}.npy", lambda f: np.save(f, np.ascontiguousarray(volume.data)))
-            _write_atomic(root / f"{name}.json", lambda f: f.write(json.dumps(doc).encode()))
+            write_atomic(root / f"{name}.npy", lambda f: np.save(f, np.ascontiguousarray(volume.data)))
+            write_atomic(root / f"{name}.json", lambda f: f.write(json.dumps(doc).encode()))
             self.prune(keep=name)
         except (OSError, TypeError, ValueError) as exc:  # a full or read-only disk: decoded again next time
             log.warning("decoded-volume cache not written: %s", exc)
@@ -147,33 +137,13 @@ class DecodedVolumes:
 
     def prune(self, *, keep: str | None = None) -> None:
         """Remove the least recently used entries until they fit ``max_bytes`` (never ``keep``)."""
-        sized = []
-        for p in self.entries():
-            try:
-                st = p.stat()
-            except OSError:
-                continue
-            sized.append((st.st_mtime, st.st_size, p))
-        total = sum(size for _, size, _ in sized)
-        for _, size, p in sorted(sized, key=lambda e: e[0]):
-            if total <= self.max_bytes:
-                break
-            if p.stem == keep:
-                continue
-            p.with_suffix(".json").unlink(missing_ok=True)  # the JSON first: no entry without its voxels
-            p.unlink(missing_ok=True)
-            total -= size
 
+        def remove(voxels: Path) -> None:
+            voxels.with_suffix(".json").unlink(missing_ok=True)  # the JSON first: no entry without its voxels
+            voxels.unlink(missing_ok=True)
 
-def _write_atomic(path: Path, write: Callable) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        kept = None if keep is None else self.root / f"{keep}.npy"
+        prune_least_recent(self.entries(), self.max_bytes, keep=kept, remove=remove)
 
 
 def read_volume_cached(path: str | os.PathLike[str], *, cache: bool = True) -> Volume:
