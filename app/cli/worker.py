@@ -67,12 +67,13 @@ class VolumeMemory:
     def read(self, path: Any, *args: Any, **kwargs: Any) -> Any:
         if args or kwargs:
             return self._read(path, *args, **kwargs)
+        from registration.io.dicom import DicomError
         from registration.io.volume_cache import files_state
 
         where = Path(path).resolve()
         try:
             key = (str(where), files_state(where))
-        except OSError:
+        except (OSError, DicomError):
             return self._read(path)  # the reader names the file and the problem
         if key in self._volumes:
             self._volumes.move_to_end(key)

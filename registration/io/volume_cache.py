@@ -28,6 +28,7 @@ import numpy as np
 
 from registration.core.volume import Volume
 from registration.io.cache import CacheFolder, cache_key, prune_least_recent, write_atomic
+from registration.io.dicom._common import DicomError, _candidate_files
 
 #: Bump when what a decoded entry means changes (the reader's output for the same files).
 DECODED_VERSION = 1
@@ -40,14 +41,17 @@ log = logging.getLogger(__name__)
 
 
 def files_state(path: Path, *, identity: bool = False) -> tuple:
-    """The state of ``path``'s files (a folder: every file in it, by name): name, size and
-    modification time (ns); with ``identity`` also the change time (ns) and inode. Raises
-    ``OSError`` when a file cannot be looked at."""
-    files = sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+    """The state of the files a volume at ``path`` is read from (a folder: every file the DICOM
+    reader reads in it and in its subfolders): each one's path within it, size and modification
+    time (ns); with ``identity`` also the change time (ns) and inode. Raises ``OSError`` when a
+    file cannot be looked at, :class:`~registration.io.dicom.DicomError` when the folder holds
+    too many."""
+    files = _candidate_files(path) if path.is_dir() else [path]
     state = []
     for p in files:
         st = p.stat()
-        state.append((p.name, st.st_size, st.st_mtime_ns) + ((st.st_ctime_ns, st.st_ino) if identity else ()))
+        name = str(p.relative_to(path)) if path.is_dir() else p.name
+        state.append((name, st.st_size, st.st_mtime_ns) + ((st.st_ctime_ns, st.st_ino) if identity else ()))
     return tuple(state)
 
 
@@ -69,7 +73,7 @@ class DecodedVolumes(CacheFolder):
                    "version": DECODED_VERSION}  # fmt: skip
             name = cache_key(DECODED_KIND, key)
             root = self.root
-        except OSError:
+        except (OSError, DicomError):
             return reader(folder)  # the reader names the file and the problem
         key = json.loads(json.dumps(key))  # as the JSON holds it (tuples as lists)
         found = self._load(root, name, key)

@@ -88,6 +88,21 @@ def test_any_change_to_the_files_decodes_again(series: Path, tmp_path: Path) -> 
     assert read.calls == 3
 
 
+def test_a_change_in_a_subfolder_decodes_again(series: Path, tmp_path: Path) -> None:
+    # the reader reads the folder's subfolders too: their files are part of the key
+    outer = tmp_path / "outer"
+    outer.mkdir()
+    series.rename(outer / "series")
+    store, read = DecodedVolumes(tmp_path / "cache"), CountingReader()
+    store.read(outer, read)
+    store.read(outer, read)
+    assert read.calls == 1
+    nested = sorted((outer / "series").iterdir())[-1]
+    nested.write_bytes(nested.read_bytes())
+    store.read(outer, read)
+    assert read.calls == 2
+
+
 def test_a_damaged_entry_is_decoded_again_without_an_error(series: Path, tmp_path: Path) -> None:
     store, read = DecodedVolumes(tmp_path / "cache"), CountingReader()
     plain = store.read(series, read)
