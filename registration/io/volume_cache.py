@@ -76,7 +76,7 @@ class DecodedVolumes(CacheFolder):
         except (OSError, DicomError):
             return reader(folder)  # the reader names the file and the problem
         key = json.loads(json.dumps(key))  # as the JSON holds it (tuples as lists)
-        found = self._load(root, name, key)
+        found = self._load(root, name, key, folder)
         if found is not None:
             return found
         with warnings.catch_warnings(record=True) as caught:
@@ -87,7 +87,7 @@ class DecodedVolumes(CacheFolder):
         self._save(root, name, key, volume, [str(w.message) for w in caught])
         return volume
 
-    def _load(self, root: Path, name: str, key: dict) -> Volume | None:
+    def _load(self, root: Path, name: str, key: dict, folder: Path) -> Volume | None:
         from registration.core.prepare.store import remember_digest
 
         doc_path, voxels_path = root / f"{name}.json", root / f"{name}.npy"
@@ -100,8 +100,9 @@ class DecodedVolumes(CacheFolder):
             data = np.load(voxels_path, mmap_mode="c", allow_pickle=False)
             if list(data.shape) != doc["shape"] or data.dtype != np.float32:
                 raise ValueError("the voxels do not match the entry")
+            meta = doc["meta"] | ({"source": str(folder)} if "source" in doc["meta"] else {})  # as given this time
             volume = Volume(data, np.asarray(doc["index_to_world"], dtype=np.float64), label=doc["label"],
-                            meta=doc["meta"])  # fmt: skip
+                            meta=meta)  # fmt: skip
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("decoded-volume cache entry %s unusable (%s): decoded again", name, exc)
             for p in (doc_path, voxels_path):

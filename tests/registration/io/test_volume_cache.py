@@ -59,6 +59,9 @@ def test_a_series_decoded_once_loads_the_same_volume(series: Path, tmp_path: Pat
     np.asarray(again.data)[0, 0, 0] = 12345.0
     _same(store.read(series, read), plain)
     assert read.calls == 1
+    # reached by another path to the same folder: the volume says the path it was given
+    other = Path(os.path.relpath(series))
+    assert store.read(other, read).meta["source"] == str(other) and read.calls == 1
     # the same through the command line's reader (the cache folder from ROADMAP3D_CACHE)
     os.environ["ROADMAP3D_CACHE"] = str(tmp_path / "cache")
     try:
