@@ -18,6 +18,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from registration.core.blas import with_one_blas_thread
 from registration.core.confidence import DEFAULT_RULE, Assessment, ConfidenceRule, Evidence
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, apply
@@ -101,6 +102,7 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
     return why
 
 
+@with_one_blas_thread
 def assess(
     result: RegistrationResult,
     views: XRayImage | Sequence[XRayImage],

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 
+from registration.core.blas import with_one_blas_thread
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, check_rigid
 from registration.core.images import XRayImage
@@ -217,6 +218,7 @@ FINE_REACH = (2.0, 2.0, 0.03)
 FINE_EVALUATIONS = 600
 
 
+@with_one_blas_thread
 def estimate_geometry(
     volume: Volume,
     renderer: DRRRenderer,

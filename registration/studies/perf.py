@@ -20,6 +20,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
+from registration.core.blas import one_blas_thread
 from registration.core.drr import DRRRenderer, render_reference
 from registration.core.geometry import CArm
 from registration.core.similarity import GradientDifference
@@ -178,8 +179,13 @@ def bench_drr(
     ``ns_per_sample`` (``ms_median`` over them); ``reference_ms_median`` and ``reference_ms_min``;
     ``rounds``; the speed-ups of :func:`round_ratios`; ``max_rel_error`` (max |fast - reference|
     over the reference's maximum, whole image).
+
+    Both run with BLAS on one thread, as the engine registers
+    (:func:`registration.core.blas.one_blas_thread`): the reference's matrix products would
+    otherwise leave BLAS threads spinning on the cores the fast renderer's next calls need.
     """
-    return [_bench_one(int(image_px), int(volume_px), repeats, rounds, masked) for image_px, volume_px in sizes]
+    with one_blas_thread():
+        return [_bench_one(int(image_px), int(volume_px), repeats, rounds, masked) for image_px, volume_px in sizes]
 
 
 def bench_gradient_difference(image_px: int = 128, repeats: int = 200) -> float:

@@ -27,6 +27,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from registration.core.blas import with_one_blas_thread
 from registration.core.checks import check_in_field, check_information, parameters_at_bounds
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import invert_rigid, matrix_to_offsets
@@ -118,6 +119,7 @@ __all__ = [
 ]
 
 
+@with_one_blas_thread
 def register(
     volume: Volume,
     views: XRayImage | Sequence[XRayImage],

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.core.blas import with_one_blas_thread
 from registration.core.drr import DRRRenderer
 from registration.core.images import XRayImage
 from registration.core.tracking.options import FrameEstimate, TrackingOptions
@@ -80,6 +81,7 @@ class TrackingRun:
         }
 
 
+@with_one_blas_thread
 def track_run(
     volume: Volume,
     runs: Sequence[Sequence[XRayImage]],
