@@ -246,3 +246,20 @@ def test_the_confidence_probes_and_scans_only_an_estimate_not_corrected_along_th
     assert uncorrected.evidence.depth_scan_tz_mm == pytest.approx(uncorrected.depth_scan.tz_mm)
     # everything else is measured the same way
     assert uncorrected.evidence.margin == corrected.evidence.margin
+
+
+@pytest.mark.parametrize("shape", [(128, 128), (48, 96), (9, 13)])
+@pytest.mark.parametrize("sigma", [0.7, 2.5, 6.0])
+def test_smooth_is_scipys_gaussian(shape, sigma):
+    """The depth scans' smoothing is scipy's ``gaussian_filter`` (4-sigma kernel, reflected
+    edges), also where the kernel is wider than the image; float64 rounding is the only
+    difference allowed."""
+    from scipy import ndimage
+
+    from registration.core.depth import smooth
+
+    image = np.random.default_rng(3).normal(size=shape)
+    np.testing.assert_allclose(smooth(image, sigma), ndimage.gaussian_filter(image, sigma), rtol=0, atol=1e-12)
+    mask = np.zeros(shape)
+    mask[1:-1, 2:] = 1.0
+    np.testing.assert_allclose(smooth(mask, sigma), ndimage.gaussian_filter(mask, sigma), rtol=0, atol=1e-12)
