@@ -262,15 +262,13 @@ def depth_scan(
         pixel_at_iso_mm=pixel_at_iso_mm,
     )
     view = problem.views[0]
-    factor = xray.shape[0] // view.geometry.rows
-    image = xray.downsample(factor) if factor > 1 else xray
     if sigma_px is None:
         voxel_mm = float(renderer.level_volume(problem.volume_level).spacing_mm.max())
         sigma_px = voxel_mm * view.geometry.magnification / max(view.geometry.pixel_mm)
     if not sigma_px > 0:
         raise ValueError("sigma_px must be positive")
     weight = smooth(view.mask.astype(np.float64), sigma_px)
-    measure = GradientDifference(high_pass(image.image, view.mask, sigma_px, weight), view.mask)
+    measure = GradientDifference(high_pass(view.image, view.mask, sigma_px, weight), view.mask)
     out = np.empty((view.geometry.rows, view.geometry.cols), np.float32)
     d = np.asarray(g.direction, dtype=np.float64)
 

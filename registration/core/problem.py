@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -149,11 +150,16 @@ def matched_factor(geometry: CArm, image_px: int, voxel_mm: float, pixel_at_iso_
 
 @dataclass(frozen=True)
 class PreparedView:
-    """One view at one level: its geometry, the compared pixels and the prepared measure."""
+    """One view at one level: its geometry, its image, the compared pixels and the prepared
+    measure (set up when first used: the depth scans compare the image high-passed instead)."""
 
     geometry: CArm
     mask: NDArray[np.bool_]
-    measure: GradientDifference
+    image: NDArray[np.floating]
+
+    @cached_property
+    def measure(self) -> GradientDifference:
+        return GradientDifference(self.image, self.mask)
 
     @property
     def pixel_at_iso_mm(self) -> float:
@@ -210,7 +216,7 @@ class LevelProblem:
                 # Keep the whole field when the support would leave too little to compare.
                 if inside.sum() >= MIN_SUPPORT_SHARE * mask.sum():
                     mask = inside
-            prepared.append(PreparedView(image.geometry, mask, GradientDifference(image.image, mask)))
+            prepared.append(PreparedView(image.geometry, mask, image.image))
             shares.append(float(mask.sum()) / max(1.0, float(image.mask.sum())))
         weights = tuple(shares) if field_share_weights and len(prepared) > 1 else None
         return cls(renderer, level, tuple(prepared), weights)
