@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from registration import __version__
+from registration.core.blas import with_one_blas_thread
 from registration.core.register import RegistrationOptions
 from registration.studies.cases import case_volume, run_case
 from registration.studies.runs import ClinicalCase, StudyTask, patient_of, patient_params, run_clinical_case
@@ -23,8 +24,10 @@ if TYPE_CHECKING:
     pass
 
 
+@with_one_blas_thread
 def execute(task: StudyTask, threads: int | None = None) -> dict:
-    """Run one task (in a worker) and return its record (JSON-ready)."""
+    """Run one task (in a worker) and return its record (JSON-ready); BLAS on one thread
+    throughout, the images' simulation included (:mod:`registration.core.blas`)."""
     if threads:
         import numba
 

@@ -29,6 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from registration import __version__
+from registration.core.blas import with_one_blas_thread
 from registration.core.geometry import CArm, rigid
 from registration.core.images import XRayImage
 from registration.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION_MM
@@ -305,6 +306,7 @@ def _assessed(result: object, images: list[XRayImage], preparation: Preparation)
     return {k: found[k] for k in keys}
 
 
+@with_one_blas_thread
 def run_volume_case(
     volume: Volume,
     imager: VolumeImager,
