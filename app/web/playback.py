@@ -42,6 +42,7 @@ from app.web.panels import BasePanel, PanelContext
 from app.web.presenter import FollowedPose
 from app.web.run_chart import ChartSeries, motion_chart
 from app.web.status import corrected_text, correction
+from registration.core.blas import one_blas_thread
 from registration.core.geometry import CArm
 
 if TYPE_CHECKING:
@@ -397,7 +398,8 @@ class PlaybackPanel(BasePanel):
         self._followed = None
         self.planes = len(runs)
         chart = ChartSeries(self.chart)
-        with Tracker(volume, renderer=renderer) as tracker:
+        # BLAS on one thread while frames are tracked (registration.core.blas)
+        with Tracker(volume, renderer=renderer) as tracker, one_blas_thread():
             tracker.warm_up(views_of(0))
             shown = tracker.shown_pose
             paused_s = 0.0
