@@ -3,9 +3,9 @@
 The engine's parallel DRR kernels run on numba's OpenMP threads, which spin for a while after
 each render waiting for the next. A multi-threaded BLAS call made meanwhile (a phase correlation's
 matrix products, small matrix products from several Python threads at once) then shares the
-cores with spinning threads and waits for its own: on two cores a 6 x 128 complex product took
-8 ms after a render against 0.02 ms alone. The engine's matrices are small, so it loses nothing by
-keeping BLAS to one thread while it registers; the process's own setting comes back afterwards.
+cores with spinning threads and waits for its own, for milliseconds. The engine's matrices are
+small, so it keeps BLAS to one thread while it works; the process's own setting comes back
+afterwards (docs/decisions/2026-12-07-blas-one-thread.md).
 """
 
 from __future__ import annotations

@@ -237,9 +237,8 @@ class Evaluator:
     buffer and scores it with its own copy of the measure's scratch space.
 
     ``parallel``: None or True when this evaluator has the cores to itself (one annealing
-    run, the polish): the views render one after the other, each on every core (two views' 64 and
-    128 px DRRs in a row on two cores beat the two rendered at once, one per core, by 25 % and 8 %:
-    no thread hand-over per evaluation, no core waiting for the slower view). False when capture
+    run, the polish): the views render one after the other, each on every core (no thread
+    hand-over per evaluation, no core idle while the other view finishes). False when capture
     runs already fill the cores: each view renders serially in the caller's thread.
     """
 
