@@ -10,7 +10,6 @@ afterwards (docs/decisions/2026-12-07-blas-one-thread.md).
 
 from __future__ import annotations
 
-import functools
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -60,11 +59,5 @@ def _release_control() -> None:
 
 
 def with_one_blas_thread(fn: Callable[_P, _R]) -> Callable[_P, _R]:
-    """``fn`` run within :func:`one_blas_thread`."""
-
-    @functools.wraps(fn)
-    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
-        with one_blas_thread():
-            return fn(*args, **kwargs)
-
-    return wrapper
+    """``fn`` run within :func:`one_blas_thread` (a fresh block per call)."""
+    return one_blas_thread()(fn)
