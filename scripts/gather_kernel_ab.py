@@ -29,7 +29,7 @@ from numba.extending import intrinsic
 
 from registration.core import drr as drr_module
 from registration.core.blas import one_blas_thread
-from registration.core.drr_kernels import _KERNEL_FASTMATH, _PAD, _ends, _march_two, _ray_start
+from registration.core.drr_kernels import _KERNEL_FASTMATH, _ends, _march_two, _set_up_row
 from registration.studies.perf import bench_geometry, bench_volume
 
 LANES = 8
@@ -139,10 +139,6 @@ def _lanes_kernel(march_lanes, parallel: bool):  # noqa: ANN001, ANN202
     def joseph_lanes(mu, mu_t, shape_ijk, lo, hi, source, a_mat, i2w, mask, use_mask, empty, empty_strides,
                      use_empty, out, work):  # noqa: ANN001, ANN202  # fmt: skip
         rows, cols = out.shape
-        ni, nj, nk = shape_ijk[0], shape_ijk[1], shape_ijk[2]
-        ni_p, nj_p = ni + 2 * _PAD, nj + 2 * _PAD
-        s0, s1, s2 = source[0], source[1], source[2]
-        ebi, ebj, ebk = empty_strides[0], empty_strides[1], empty_strides[2]
         for r in numba.prange(rows):
             ints = np.empty((cols, 9), dtype=np.int64)
             reals = np.empty((cols, 3), dtype=np.float64)
@@ -150,23 +146,8 @@ def _lanes_kernel(march_lanes, parallel: bool):  # noqa: ANN001, ANN202
             order = np.empty(cols, dtype=np.int64)
             st = np.empty((6, LANES), dtype=np.int64)
             lane_out = np.empty((5, LANES), dtype=np.float32)
-            n_rays = 0
-            for c in range(cols):
-                out[r, c] = 0.0
-                if use_mask and mask[r, c] == 0:
-                    continue
-                ray = _ray_start(c, r, a_mat, s0, s1, s2, lo, hi, ni, nj, nk, ni_p, nj_p, ebi, ebj, ebk, empty,
-                                 use_empty, i2w)  # fmt: skip
-                if not ray[0]:
-                    continue
-                ints[n_rays, 0] = 1 if ray[1] else 0
-                for k, v in enumerate((ray[2], ray[3], ray[4], ray[5], ray[6], ray[7], ray[10], ray[11])):
-                    ints[n_rays, k + 1] = v
-                reals[n_rays, 0] = ray[8]
-                reals[n_rays, 1] = ray[9]
-                reals[n_rays, 2] = ray[12]
-                where[n_rays] = c
-                n_rays += 1
+            n_rays = _set_up_row(r, a_mat, source, lo, hi, shape_ijk, i2w, mask, use_mask, empty, empty_strides,
+                                 use_empty, out, ints, reals, where)  # fmt: skip
             n_mu = 0  # the rays reading mu first, then those reading mu_t
             for n in range(n_rays):
                 if ints[n, 0] == 0:

@@ -372,6 +372,40 @@ def _stored_ray(ints, reals, n):  # noqa: ANN001, ANN202
             reals[n, 0], reals[n, 1], ints[n, 7], ints[n, 8], reals[n, 2])  # fmt: skip
 
 
+@numba.njit(cache=True, inline="always")
+def _set_up_row(r, a_mat, source, lo, hi, shape_ijk, i2w, mask, use_mask, empty, empty_strides, use_empty, out, ints,
+                reals, where):  # noqa: ANN001, ANN202  # fmt: skip
+    """Zero row ``r`` of ``out`` and set up its rays that hit (:func:`_ray_start`) into ``ints``,
+    ``reals`` (:func:`_stored_ray`'s rows) and ``where`` (their columns); returns their count."""
+    cols = out.shape[1]
+    ni, nj, nk = shape_ijk[0], shape_ijk[1], shape_ijk[2]
+    ni_p, nj_p = ni + 2 * _PAD, nj + 2 * _PAD
+    n_rays = 0
+    for c in range(cols):
+        out[r, c] = 0.0
+        if use_mask and mask[r, c] == 0:
+            continue
+        ray = _ray_start(c, r, a_mat, source[0], source[1], source[2], lo, hi, ni, nj, nk, ni_p, nj_p,
+                         empty_strides[0], empty_strides[1], empty_strides[2], empty, use_empty, i2w)  # fmt: skip
+        if not ray[0]:
+            continue
+        ints[n_rays, 0] = 1 if ray[1] else 0
+        ints[n_rays, 1] = ray[2]
+        ints[n_rays, 2] = ray[3]
+        ints[n_rays, 3] = ray[4]
+        ints[n_rays, 4] = ray[5]
+        ints[n_rays, 5] = ray[6]
+        ints[n_rays, 6] = ray[7]
+        ints[n_rays, 7] = ray[10]
+        ints[n_rays, 8] = ray[11]
+        reals[n_rays, 0] = ray[8]
+        reals[n_rays, 1] = ray[9]
+        reals[n_rays, 2] = ray[12]
+        where[n_rays] = c
+        n_rays += 1
+    return n_rays
+
+
 def _joseph(
     mu: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, nj + 2 PAD, ni + 2 PAD) volume
     mu_t: np.ndarray,  # float32, flat, C order of the padded (nk + 2 PAD, ni + 2 PAD, nj + 2 PAD) volume
@@ -415,39 +449,14 @@ def _joseph(
     reassociation, so the sample loop stays scalar and each ray's sum keeps its order.
     """
     rows, cols = out.shape
-    ni, nj, nk = shape_ijk[0], shape_ijk[1], shape_ijk[2]
-    ni_p, nj_p = ni + 2 * _PAD, nj + 2 * _PAD
-    s0, s1, s2 = source[0], source[1], source[2]
-    ebi, ebj, ebk = empty_strides[0], empty_strides[1], empty_strides[2]
     for r in numba.prange(rows):
         # the row's rays are all set up first, then marched in pairs: a march starts with
         # loads of its state, not behind another ray's clip and leaps
         ints = np.empty((cols, 9), dtype=np.int64)
         reals = np.empty((cols, 3), dtype=np.float64)
         where = np.empty(cols, dtype=np.int64)
-        n_rays = 0
-        for c in range(cols):
-            out[r, c] = 0.0
-            if use_mask and mask[r, c] == 0:
-                continue
-            ray = _ray_start(c, r, a_mat, s0, s1, s2, lo, hi, ni, nj, nk, ni_p, nj_p, ebi, ebj, ebk, empty, use_empty,
-                             i2w)  # fmt: skip
-            if not ray[0]:
-                continue
-            ints[n_rays, 0] = 1 if ray[1] else 0
-            ints[n_rays, 1] = ray[2]
-            ints[n_rays, 2] = ray[3]
-            ints[n_rays, 3] = ray[4]
-            ints[n_rays, 4] = ray[5]
-            ints[n_rays, 5] = ray[6]
-            ints[n_rays, 6] = ray[7]
-            ints[n_rays, 7] = ray[10]
-            ints[n_rays, 8] = ray[11]
-            reals[n_rays, 0] = ray[8]
-            reals[n_rays, 1] = ray[9]
-            reals[n_rays, 2] = ray[12]
-            where[n_rays] = c
-            n_rays += 1
+        n_rays = _set_up_row(r, a_mat, source, lo, hi, shape_ijk, i2w, mask, use_mask, empty, empty_strides, use_empty,
+                             out, ints, reals, where)  # fmt: skip
         samples = 0
         for n in range(0, n_rays - 1, 2):
             ray_a = _stored_ray(ints, reals, n)
