@@ -9,6 +9,12 @@ evaluated at each. Printed per moment: the residuals, where the scan peaks, and
 does not tell the estimate's depth from one 24-84 mm away).
 
     PYTHONPATH=. python scripts/one_view_depth_flatness.py 50 /80mm-0deg/r2/,/20mm-0deg/r1/
+
+``clinical SEED N`` instead: the first N registrations of each patient of the quick clinical
+study (frames of a rotational run registered to its own FDK reconstruction, the study's
+offsets), the same measure at each estimate.
+
+    PYTHONPATH=. python scripts/one_view_depth_flatness.py clinical 3 10
 """
 
 from __future__ import annotations
@@ -29,10 +35,53 @@ OFFSETS_MM = tuple(float(v) for v in np.arange(-84.0, 84.1, 4.0))
 NEAR_MM = 24.0
 
 
+def _flatness(renderer, xray, motion) -> dict:  # noqa: ANN001
+    """Where the depth scan peaks and its ``far_minus_near`` at ``motion``."""
+    level = scan_level(renderer)
+    scan = depth_scan(renderer, xray, motion, offsets_mm=OFFSETS_MM, image_px=128, volume_level=level)
+    values, near = np.asarray(scan.similarity), np.abs(np.asarray(OFFSETS_MM)) <= NEAR_MM
+    return {
+        "volume_level": level,
+        "peak_tz_mm": round(float(scan.tz_mm), 2),
+        "far_minus_near": round(float(values[~near].max() - values[near].max()), 5),
+    }
+
+
+def clinical(seed: int, per_patient: int) -> None:
+    from registration.core.assess import assess
+    from registration.core.images import XRayImage
+    from registration.studies.cases import _translation, register_prepared
+    from registration.studies.runs import ClinicalConfig, axis_angle_matrix, clinical_tasks, patient_of
+
+    config = dataclasses.replace(ClinicalConfig.quick_config(seed), registrations_per_patient=per_patient)
+    with one_blas_thread():
+        for task in clinical_tasks(config):
+            case = task.case
+            data = patient_of(case)
+            geometry = data.calibrated_geometries[case.frame]
+            xray = XRayImage(data.images[case.frame], data.masks[case.frame], geometry, "exposure", {})
+            offset = _translation(case.translation_mm) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg)
+            result, preparation = register_prepared(data.volume, xray, initial_motion=offset, truth=np.eye(4),
+                                                    seed=case.seed)  # fmt: skip
+            applied = assess(result, xray, preparation).applied
+            record = {
+                "case_id": task.case_id,
+                "inplane_residual_mm": round(float(result.residual.inplane_mm), 3),
+                "outofplane_residual_mm": round(float(result.residual.outofplane_mm), 2),
+                "rotation_residual_deg": round(float(result.residual.rotation_deg), 2),
+                "success": bool(result.residual.success),
+                "applied": bool(applied),
+                **_flatness(preparation.renderer, xray, result.patient_motion),
+            }
+            print(json.dumps(record), flush=True)
+
+
 def main() -> None:
+    if sys.argv[1] == "clinical":
+        clinical(int(sys.argv[2]), int(sys.argv[3]))
+        return
     seed, wanted = int(sys.argv[1]), sys.argv[2].split(",")
     config = dataclasses.replace(CaptureConfig(seed=seed), sweeps=("translation",))
-    offsets = np.asarray(OFFSETS_MM)
     with one_blas_thread():
         for task in capture_tasks(config):
             if not any(w in task.case_id for w in wanted):
@@ -43,18 +92,11 @@ def main() -> None:
             views, _ = case_views(case, volume, motion)
             _, alone = case_preparations(case, volume, views, RegistrationOptions())
             single = register(volume, views[0], truth=motion, seed=case.seed, renderer=alone.renderer)
-            level = scan_level(alone.renderer)
-            scan = depth_scan(alone.renderer, views[0], single.patient_motion, offsets_mm=OFFSETS_MM, image_px=128,
-                              volume_level=level)  # fmt: skip
-            values = np.asarray(scan.similarity)
-            near = np.abs(offsets) <= NEAR_MM
             record = {
                 "case_id": task.case_id,
-                "volume_level": level,
                 "inplane_residual_mm": round(float(single.residual.inplane_mm), 3),
                 "outofplane_residual_mm": round(float(single.residual.outofplane_mm), 2),
-                "peak_tz_mm": round(float(scan.tz_mm), 2),
-                "far_minus_near": round(float(values[~near].max() - values[near].max()), 5),
+                **_flatness(alone.renderer, views[0], single.patient_motion),
             }
             print(json.dumps(record), flush=True)
 
