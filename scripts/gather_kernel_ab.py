@@ -256,37 +256,40 @@ def main() -> None:
         arms[mode] = {"parallel": _lanes_kernel(march, True), "serial": _lanes_kernel(march, False),
                       "busy": _busy_lanes(march)}  # fmt: skip
 
-    def call(kernels: dict, parallel: bool) -> np.ndarray:
+    def use(kernels: dict) -> None:
         drr_module._render_joseph, drr_module._render_joseph_serial = kernels["parallel"], kernels["serial"]
+
+    def call(kernels: dict, parallel: bool) -> np.ndarray:
+        use(kernels)
         return renderer.render(geometry, mask=mask, parallel=parallel)
 
-    with one_blas_thread():
-        reference = {p: call(shipped, p) for p in (True, False)}
-        for arm in ("floats", "pairs"):
-            same = all(np.array_equal(call(arms[arm], p), reference[p]) for p in (True, False))
-            print(json.dumps({"arm": arm, "identical_to_shipped": same}), flush=True)
-        for rnd in range(args.rounds):
-            for arm, kernels in arms.items():
-                record = {"round": rnd, "arm": arm}
-                for parallel in (False, True):
-                    out = np.empty((geometry.rows, geometry.cols), np.float32)
-                    times = []
-                    for _ in range(args.calls + 2):
-                        drr_module._render_joseph, drr_module._render_joseph_serial = (kernels["parallel"],
-                                                                                       kernels["serial"])  # fmt: skip
-                        t0 = time.perf_counter()
-                        renderer.render(geometry, mask=mask, out=out, parallel=parallel)
-                        times.append((time.perf_counter() - t0) * 1e6)
-                    times = times[2:]
-                    key = "parallel" if parallel else "serial"
-                    record[f"{key}_us_min"] = round(min(times), 1)
-                    record[f"{key}_us_median"] = round(float(np.median(times)), 1)
-                if "busy" in kernels:
-                    lanes_ns, scalar_ns = kernels["busy"]()
-                    record["busy_lanes_ns_per_sample"] = round(lanes_ns, 3)
-                    record["shipped_pairs_ns_per_sample"] = round(scalar_ns, 3)
-                print(json.dumps(record), flush=True)
-    drr_module._render_joseph, drr_module._render_joseph_serial = shipped["parallel"], shipped["serial"]
+    try:
+        with one_blas_thread():
+            reference = {p: call(shipped, p) for p in (True, False)}
+            for arm in ("floats", "pairs"):
+                same = all(np.array_equal(call(arms[arm], p), reference[p]) for p in (True, False))
+                print(json.dumps({"arm": arm, "identical_to_shipped": same}), flush=True)
+            out = np.empty((geometry.rows, geometry.cols), np.float32)
+            for rnd in range(args.rounds):
+                for arm, kernels in arms.items():
+                    use(kernels)
+                    record = {"round": rnd, "arm": arm}
+                    for parallel, key in ((False, "serial"), (True, "parallel")):
+                        times = []
+                        for _ in range(args.calls + 2):
+                            t0 = time.perf_counter()
+                            renderer.render(geometry, mask=mask, out=out, parallel=parallel)
+                            times.append((time.perf_counter() - t0) * 1e6)
+                        times = times[2:]
+                        record[f"{key}_us_min"] = round(min(times), 1)
+                        record[f"{key}_us_median"] = round(float(np.median(times)), 1)
+                    if "busy" in kernels:
+                        lanes_ns, scalar_ns = kernels["busy"]()
+                        record["busy_lanes_ns_per_sample"] = round(lanes_ns, 3)
+                        record["shipped_pairs_ns_per_sample"] = round(scalar_ns, 3)
+                    print(json.dumps(record), flush=True)
+    finally:
+        use(shipped)
 
 
 if __name__ == "__main__":

@@ -49,18 +49,14 @@ def _flatness(renderer, xray, motion) -> dict:  # noqa: ANN001
 
 def clinical(seed: int, per_patient: int) -> None:
     from registration.core.assess import assess
-    from registration.core.images import XRayImage
-    from registration.studies.cases import _translation, register_prepared
-    from registration.studies.runs import ClinicalConfig, axis_angle_matrix, clinical_tasks, patient_of
+    from registration.studies.cases import register_prepared
+    from registration.studies.runs import ClinicalConfig, clinical_inputs, clinical_tasks
 
     config = dataclasses.replace(ClinicalConfig.quick_config(seed), registrations_per_patient=per_patient)
     with one_blas_thread():
         for task in clinical_tasks(config):
             case = task.case
-            data = patient_of(case)
-            geometry = data.calibrated_geometries[case.frame]
-            xray = XRayImage(data.images[case.frame], data.masks[case.frame], geometry, "exposure", {})
-            offset = _translation(case.translation_mm) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg)
+            data, xray, offset = clinical_inputs(case)
             result, preparation = register_prepared(data.volume, xray, initial_motion=offset, truth=np.eye(4),
                                                     seed=case.seed)  # fmt: skip
             applied = assess(result, xray, preparation).applied

@@ -38,6 +38,7 @@ from registration.core.register import RegistrationOptions
 from registration.studies.cases import Case, _translation, depth_correction_fields
 
 if TYPE_CHECKING:
+    from registration.core.images import XRayImage
     from registration.core.volume import Volume
 
 #: Image and volume formats of Table II (cm): the system's eight.
@@ -418,22 +419,29 @@ def offset_record(
     }
 
 
-def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None = None) -> dict:
-    """Register one projection of the patient's run to the run's reconstruction, from a pose
-    offset by the case's translation and rotation. Truth: the identity in the calibrated
-    geometry of that frame (the projection itself was formed with the true, bent geometry)."""
+def clinical_inputs(case: ClinicalCase) -> tuple[PatientData, XRayImage, NDArray[np.float64]]:
+    """The case's patient data, its frame as an exposure in the frame's calibrated geometry, and
+    the initial offset (the case's translation after its rotation)."""
     from registration.core.images import XRayImage
 
     data = patient_of(case)
-    geometry = data.calibrated_geometries[case.frame]
     xray = XRayImage(
         data.images[case.frame],
         data.masks[case.frame],
-        geometry,
+        data.calibrated_geometries[case.frame],
         "exposure",
         {"frame": case.frame, "source": "rotational run"},
     )
     offset = _translation(case.translation_mm) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg)
+    return data, xray, offset
+
+
+def run_clinical_case(case: ClinicalCase, *, options: RegistrationOptions | None = None) -> dict:
+    """Register one projection of the patient's run to the run's reconstruction, from a pose
+    offset by the case's translation and rotation. Truth: the identity in the calibrated
+    geometry of that frame (the projection itself was formed with the true, bent geometry)."""
+    data, xray, offset = clinical_inputs(case)
+    geometry = xray.geometry
     from registration.core.assess import assess
     from registration.studies.cases import assessment_fields, register_prepared
 
