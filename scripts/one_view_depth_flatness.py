@@ -15,6 +15,14 @@ study (frames of a rotational run registered to its own FDK reconstruction, the 
 offsets), the same measure at each estimate.
 
     PYTHONPATH=. python scripts/one_view_depth_flatness.py clinical 3 10
+
+``beam SEED N`` instead: moments whose offset lies mostly along plane A's beam (N per distance of
+40-100 mm, either way, with up to 10 mm across the beam and 10 degrees about a random axis; plane A
+drawn as the capture study draws it), registered and assessed on plane A alone as the capture
+study does, then the same measure at each estimate: the offsets where one view is most likely to
+end at a wrong depth.
+
+    PYTHONPATH=. python scripts/one_view_depth_flatness.py beam 51 4
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ import numpy as np
 from registration.core.blas import one_blas_thread
 from registration.core.depth import depth_scan, scan_level
 from registration.core.register import RegistrationOptions, register
-from registration.studies.biplane import _offset_motion, case_preparations, case_views, study_volume
+from registration.studies.biplane import BiplaneCase, _offset_motion, case_preparations, case_views, study_volume
 from registration.studies.capture import CaptureConfig, capture_tasks
 
 OFFSETS_MM = tuple(float(v) for v in np.arange(-84.0, 84.1, 4.0))
@@ -44,6 +52,7 @@ def _flatness(renderer, xray, motion) -> dict:  # noqa: ANN001
         "volume_level": level,
         "peak_tz_mm": round(float(scan.tz_mm), 2),
         "far_minus_near": round(float(values[~near].max() - values[near].max()), 5),
+        "values": [round(float(v), 6) for v in values],
     }
 
 
@@ -72,9 +81,85 @@ def clinical(seed: int, per_patient: int) -> None:
             print(json.dumps(record), flush=True)
 
 
+BEAM_DISTANCES_MM = (40.0, 50.0, 60.0, 70.0, 80.0, 90.0, 100.0)
+ACROSS_MM = 10.0
+TURN_DEG = 10.0
+
+
+def beam_cases(seed: int, per_distance: int) -> list[tuple[str, BiplaneCase]]:
+    """The moments of ``beam SEED N``: each depends only on the seed, distance and number."""
+    from registration.sim.biplane import plane_a_spec
+    from registration.studies.capture import PLANE_A_PRIMARY_DEG, PLANE_B_PRIMARY_DEG, SECONDARY_DEG
+    from registration.studies.runs import random_unit_vector
+
+    out = []
+    for distance in BEAM_DISTANCES_MM:
+        for number in range(per_distance):
+            rng = np.random.default_rng([seed, 0xBE, int(distance), number])
+            angles = (
+                (float(rng.uniform(*PLANE_A_PRIMARY_DEG)), float(rng.uniform(*SECONDARY_DEG))),
+                (float(rng.uniform(*PLANE_B_PRIMARY_DEG)), float(rng.uniform(*SECONDARY_DEG))),
+            )
+            beam = np.asarray(plane_a_spec().nominal(*angles[0]).direction, dtype=np.float64)
+            across = random_unit_vector(rng)
+            across -= (across @ beam) * beam
+            across *= rng.uniform(0.0, ACROSS_MM) / np.linalg.norm(across)
+            translation = (distance if rng.uniform() < 0.5 else -distance) * beam + across
+            axis = random_unit_vector(rng)
+            case = BiplaneCase(
+                phantom_seed=0, volume_format_cm=27.0, volume_voxels=256, angles_deg=angles,
+                translation_mm=tuple(float(v) for v in translation), rotation_axis=tuple(float(v) for v in axis),
+                rotation_deg=float(rng.uniform(0.0, TURN_DEG)), pixels=(512, 384), kind="fluoro",
+                seed=int(rng.integers(2**31)),
+            )  # fmt: skip
+            out.append((f"beam/{distance:g}mm/r{number}/s{seed}", case))
+    return out
+
+
+def beam(seed: int, per_distance: int) -> None:
+    from registration.core.assess import assess
+    from registration.core.confidence import DEFAULT_RULE
+    from registration.studies.cases import assessment_fields
+
+    with one_blas_thread():
+        for case_id, case in beam_cases(seed, per_distance):
+            volume = study_volume(case.ct_path, case.phantom_seed, case.volume_format_cm, case.volume_voxels)
+            motion = _offset_motion(case)
+            views, _ = case_views(case, volume, motion)
+            _, alone = case_preparations(case, volume, views, RegistrationOptions())
+            single = register(volume, views[0], truth=motion, seed=case.seed, renderer=alone.renderer)
+            assessment = assess(single, views[0], alone)
+            judged = assessment_fields(assessment)
+            # the same evidence without the far look's term: the decision before it
+            before = dataclasses.replace(DEFAULT_RULE, far_weight=0.0).assess(assessment.evidence)
+            t, d = np.asarray(case.translation_mm), np.asarray(views[0].geometry.direction)
+            record = {
+                "case_id": case_id,
+                "offset_along_beam_mm": round(float(t @ d), 2),
+                "offset_across_mm": round(float(np.linalg.norm(t - (t @ d) * d)), 2),
+                "offset_rotation_deg": round(case.rotation_deg, 2),
+                "inplane_residual_mm": round(float(single.residual.inplane_mm), 3),
+                "outofplane_residual_mm": round(float(single.residual.outofplane_mm), 2),
+                "rotation_residual_deg": round(float(single.residual.rotation_deg), 2),
+                "success": bool(single.residual.success),
+                "applied": bool(judged["applied"]),
+                "confidence": round(float(judged["confidence"]), 4),
+                "withheld_reason": judged["withheld_reason"],
+                "applied_without_far": bool(before.applied),
+                "confidence_without_far": round(float(before.confidence), 4),
+                "evidence": {k: v for k, v in judged["confidence_evidence"].items() if v is not None},
+                "depth_tz_mm": single.depth_tz_mm,
+                **_flatness(alone.renderer, views[0], single.patient_motion),
+            }
+            print(json.dumps(record), flush=True)
+
+
 def main() -> None:
     if sys.argv[1] == "clinical":
         clinical(int(sys.argv[2]), int(sys.argv[3]))
+        return
+    if sys.argv[1] == "beam":
+        beam(int(sys.argv[2]), int(sys.argv[3]))
         return
     seed, wanted = int(sys.argv[1]), sys.argv[2].split(",")
     config = dataclasses.replace(CaptureConfig(seed=seed), sweeps=("translation",))

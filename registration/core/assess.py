@@ -38,6 +38,11 @@ SINGLE_PLANE_MAX_SHIFT_MM = 25.0
 #: (:func:`registration.core.skull_spine.spine_pull`) when fewer than this fraction of its capture
 #: runs agreed (docs/decisions/2026-12-05-spine-pull.md).
 SPINE_PROBE_BELOW_AGREEMENT = 0.5
+#: One view's applied estimate looks far along its beam (:func:`registration.core.depth.depth_far`)
+#: when fewer than this fraction of its capture runs agreed and its measure's margin lies below
+#: ``FAR_PROBE_BELOW_MARGIN`` (a flat peak; docs/decisions/2026-12-07-depth-far.md).
+FAR_PROBE_BELOW_AGREEMENT = 0.5
+FAR_PROBE_BELOW_MARGIN = 0.0025
 
 
 def shifted_start_withheld(result: RegistrationResult) -> bool:
@@ -117,19 +122,47 @@ def assess(
     why_not = veto(result, landmarks)
     if why_not is not None:
         return Assessment(0.0, False, why_not, Evidence(veto=why_not))
-    start = time.perf_counter()
     renderer = preparation.probe_renderer()
     if renderer.has_level(0):  # the probes' level 0 written for these views before the probes run
         for view in (views,) if isinstance(views, XRayImage) else views:
             renderer.ready(view.geometry, result.patient_motion, level=0)
     decided = assess_on(result, views, preparation.volume, renderer, single_plane_motion=single_plane_motion,
                         rule=rule, landmarks=landmarks)  # fmt: skip
+    probed, on_seconds = time.perf_counter(), decided.seconds
     pull = _spine_pull(result, views, preparation, decided.evidence, rule)
-    if pull is None:
-        return decided
-    again = rule.assess(replace(decided.evidence, spine_pull_mm=pull.shift_mm))
-    return replace(again, depth_probe=decided.depth_probe, depth_scan=decided.depth_scan, spine_pull=pull,
-                   seconds=time.perf_counter() - start)  # fmt: skip
+    if pull is not None:
+        again = rule.assess(replace(decided.evidence, spine_pull_mm=pull.shift_mm))
+        decided = replace(again, depth_probe=decided.depth_probe, depth_scan=decided.depth_scan, spine_pull=pull)
+    far = _depth_far(result, views, preparation, decided, rule)
+    if far is not None:
+        again = rule.assess(replace(decided.evidence, depth_far_gain=far.gain))
+        decided = replace(again, depth_probe=decided.depth_probe, depth_scan=decided.depth_scan,
+                          spine_pull=decided.spine_pull, depth_far=far)  # fmt: skip
+    return replace(decided, seconds=on_seconds + time.perf_counter() - probed)
+
+
+def _depth_far(
+    result: RegistrationResult,
+    views: XRayImage | Sequence[XRayImage],
+    preparation: Preparation,
+    decided: Assessment,
+    rule: ConfidenceRule,
+) -> object | None:
+    """One view's look far along its beam (:func:`registration.core.depth.depth_far`, at the depth
+    correction's level of the registration's own volume) for an estimate otherwise applied whose
+    capture runs disagreed and whose peak is flat; None otherwise (it could not change the
+    decision, or is not read)."""
+    views = (views,) if isinstance(views, XRayImage) else tuple(views)
+    one_view = len(views) == 1 and "tz" not in tuple(result.parameters)
+    e = decided.evidence
+    flat = e.margin is not None and e.margin < FAR_PROBE_BELOW_MARGIN
+    disagreed = e.agreement is not None and e.agreement < FAR_PROBE_BELOW_AGREEMENT
+    if not (one_view and rule.far_weight and decided.applied and flat and disagreed):
+        return None
+    from registration.core.depth import depth_far, scan_level
+
+    renderer = preparation.renderer
+    return depth_far(renderer, views[0], result.patient_motion, volume_level=scan_level(renderer))
 
 
 def _spine_pull(

@@ -83,6 +83,15 @@ The confidence is a logistic function of what the engine knows about the estimat
     clinical images' tuning draws every applied near miss at the typical strengths had
     agreement 0. Two searches, the smaller move; the second is skipped when the first moved no
     more than ``spine_free_mm`` (the term is 0 either way).
+``depth_far_gain``
+    Single plane, an estimate otherwise applied whose capture runs disagreed and whose peak is
+    flat (``agreement`` and ``margin`` below :data:`registration.core.assess.FAR_PROBE_BELOW_AGREEMENT`
+    and :data:`~registration.core.assess.FAR_PROBE_BELOW_MARGIN`): the depth scan's measure
+    at 28-76 mm along the beam from the estimate against within 24 mm of it, the best of each,
+    relative (:func:`registration.core.depth.depth_far`), read by the term ``depth_far``. A
+    right estimate's peak stands out (-0.011 and below); a patient 50-100 mm off along the beam
+    whose magnification the in-plane fit absorbed (4-10 mm in the plane) leaves it flat or
+    higher far away (-0.0023 to +0.005), while every other term saw a right-looking estimate.
 ``rival_gain``
     Single plane: the rotation check's (:func:`registration.core.register.rotation_check`)
     best other optimum against the estimate, relative (<= 0; 0 a tie; > 0: the last check
@@ -130,6 +139,7 @@ class Evidence:
     depth_shift_mm: float | None = None
     depth_tz_mm: float | None = None
     depth_scan_tz_mm: float | None = None
+    depth_far_gain: float | None = None
     rival_gain: float | None = None
     spine_pull_mm: float | None = None
     beam_margin: float | None = None
@@ -265,6 +275,12 @@ class ConfidenceRule:
     #: (docs/decisions/2026-12-06-planes-apart.md).
     apart_weight: float = 1500.0
     apart_margin_good: float = 0.005
+    #: per unit of ``depth_far_gain`` beyond ``far_free`` (one view): a gain of -0.003 costs 3,
+    #: as much as the bias. Tuned on the far-along-the-beam draws of seeds 51-52 (5 applied
+    #: misses at -0.0023 to +0.005, right estimates -0.011 and below), counted on fresh seeds
+    #: (docs/decisions/2026-12-07-depth-far.md).
+    far_weight: float = 1000.0
+    far_free: float = -0.006
     threshold: float = 0.5
 
     def terms(self, e: Evidence) -> dict[str, float]:
@@ -292,6 +308,8 @@ class ConfidenceRule:
             out["rival"] = -self.rival_weight * max(0.0, e.rival_gain - self.rival_free)
         if e.spine_pull_mm is not None and self.spine_weight:
             out["spine"] = -self.spine_weight * max(0.0, e.spine_pull_mm - self.spine_free_mm)
+        if e.depth_far_gain is not None and self.far_weight:
+            out["depth_far"] = -self.far_weight * max(0.0, e.depth_far_gain - self.far_free)
         if e.beam_margin is not None and self.beam_weight:
             out["beam"] = -self.beam_weight * max(0.0, self.beam_good - e.beam_margin)
         if e.planes_apart and e.margin is not None and self.apart_weight:
@@ -323,6 +341,8 @@ _REASONS = {
     "depth": "the in-plane estimate moves when the volume may move along the beam (magnification)",
     "depth_pull": "the measure pulls the volume away from the source (a large out-of-plane offset)",
     "depth_scan": "the measure peaks far along the beam from the estimate (a large out-of-plane offset)",
+    "depth_far": "the measure is as high far along the beam as at the estimate: the patient may lie further along "
+    "the beam than one view can tell",
     "rival": "another out-of-plane rotation fits the image about as well (a rotation optimum)",
     "spine": "the head alone fits elsewhere: the neck moved relative to the head (register the cranium)",
     "beam": "one view's depth along its beam is not confirmed by the other view (little anatomy in its field)",
@@ -347,6 +367,9 @@ class Assessment:
     #: One view's head-alone probe (:class:`registration.core.skull_spine.SpinePull`; None when
     #: it did not run).
     spine_pull: Any = None
+    #: One view's look far along the beam (:class:`registration.core.depth.DepthFar`; None when
+    #: it did not run).
+    depth_far: Any = None
 
     def to_dict(self) -> dict:
         return {

@@ -67,6 +67,12 @@ SCAN_VOLUME_LEVEL = 0
 #: to the peak (:func:`depth_scan`'s ``stride``): the same peak as the full scan where the
 #: measure has one (docs/decisions/2026-12-05-scan-stride.md).
 SCAN_STRIDE = 6
+#: The far look (:func:`depth_far`): offsets within ``FAR_NEAR_MM`` of the estimate, 8 mm apart,
+#: and beyond it, 12 mm apart out to 76 mm either way (mm, + toward the source), at 128 px.
+FAR_NEAR_MM = 24.0
+_FAR_SIDE_MM = (28.0, 40.0, 52.0, 64.0, 76.0)
+FAR_OFFSETS_MM = tuple(sorted((-24.0, -16.0, -8.0, 0.0, 8.0, 16.0, 24.0, *_FAR_SIDE_MM, *(-v for v in _FAR_SIDE_MM))))
+FAR_IMAGE_PX = 128
 #: The depth-corrected registration's scan (:func:`scan_level`): the prepared level whose voxel
 #: is nearest this size (mm, in ratio), compared at about the polish's image size.
 CORRECTION_VOXEL_MM = 1.0
@@ -287,6 +293,49 @@ def depth_scan(
         drr_count=renderer.count - count0,
         stopped=stopped,
     )
+
+
+@dataclass(frozen=True)
+class DepthFar:
+    """The outcome of :func:`depth_far` (at the frame view's iso-center)."""
+
+    #: The best measure beyond ``near_mm`` of the estimate less the best within it (near 0 or
+    #: above: the measure does not tell the estimate's depth from one far along the beam).
+    gain: float
+    #: Where the far best lies (mm from the estimate, + toward the source).
+    far_tz_mm: float
+    near_mm: float
+    scan: DepthScan
+
+    def to_dict(self) -> dict:
+        return {"gain": self.gain, "far_tz_mm": self.far_tz_mm, "near_mm": self.near_mm, **self.scan.to_dict()}
+
+
+def depth_far(
+    renderer: DRRRenderer,
+    xray: XRayImage,
+    motion: Array,
+    *,
+    volume_level: int,
+    offsets_mm: tuple[float, ...] = FAR_OFFSETS_MM,
+    near_mm: float = FAR_NEAR_MM,
+    image_px: int = FAR_IMAGE_PX,
+) -> DepthFar:
+    """Whether one view's measure tells the estimate ``motion`` from poses far along its beam:
+    :func:`depth_scan`'s high-passed measure at every offset of ``offsets_mm`` (nothing else
+    moves), the best beyond ``near_mm`` less the best within. A right estimate's peak stands
+    out (-0.01 and below); where the in-plane fit absorbed a depth 50-90 mm off, the measure is
+    as high far along the beam, often toward the truth (docs/decisions/2026-12-07-depth-far.md)."""
+    offsets = tuple(sorted(float(o) for o in offsets_mm))
+    o = np.asarray(offsets)
+    near = np.abs(o) <= near_mm
+    if near.all() or not near.any():
+        raise ValueError(f"offsets_mm must lie both within and beyond +-{near_mm:g} mm")
+    scan = depth_scan(renderer, xray, motion, offsets_mm=offsets, image_px=image_px, volume_level=volume_level)
+    values = np.asarray(scan.similarity)
+    far = int(np.flatnonzero(~near)[np.argmax(values[~near])])
+    gain = float(values[far] - values[near].max())
+    return DepthFar(gain=gain, far_tz_mm=float(o[far]), near_mm=float(near_mm), scan=scan)
 
 
 def scan_peak_mm(offsets_mm: tuple[float, ...], values: list[float], stopped: bool = False) -> float:

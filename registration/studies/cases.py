@@ -120,8 +120,8 @@ def case_volume(case: Case) -> Volume:
 def assessment_fields(assessment: Assessment) -> dict:
     """A record's fields of an assessment (:func:`registration.core.assess.assess`):
     ``confidence``, ``applied`` (CONVENTIONS §7), ``withheld_reason``, the evidence, the seconds
-    it took and, for one plane, the probes along the beam (``depth_probe``, ``depth_scan``) and
-    on the head alone (``spine_pull``)."""
+    it took and, for one plane, the probes along the beam (``depth_probe``, ``depth_scan``,
+    ``depth_far``) and on the head alone (``spine_pull``)."""
     probe, scan = assessment.depth_probe, assessment.depth_scan
     return {
         "confidence": assessment.confidence,
@@ -132,6 +132,7 @@ def assessment_fields(assessment: Assessment) -> dict:
         **({"depth_probe": probe.to_dict()} if probe is not None else {}),
         **({"depth_scan": scan.to_dict()} if scan is not None else {}),
         **({"spine_pull": pull.to_dict()} if (pull := assessment.spine_pull) is not None else {}),
+        **({"depth_far": far.to_dict()} if (far := assessment.depth_far) is not None else {}),
     }
 
 

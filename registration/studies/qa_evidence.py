@@ -70,6 +70,8 @@ TERM_PICTURES = {
     "beam": "the evidence's beam_margin (how much the other plane's measure falls when the estimate moves "
     "along one plane's beam)",
     "planes_apart": "the parameter profiles (their margins at +-1), the planes' own captures having disagreed",
+    "depth_far": "the evidence's depth_far_gain (the measure 28-76 mm along the beam against within 24 mm of the "
+    "estimate)",
     "spine": "the evidence's spine_pull_mm (how far the head alone, without the spine below the skull base, "
     "moves the estimate)",
 }

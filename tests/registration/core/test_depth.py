@@ -263,3 +263,61 @@ def test_smooth_is_scipys_gaussian(shape, sigma):
     mask = np.zeros(shape)
     mask[1:-1, 2:] = 1.0
     np.testing.assert_allclose(smooth(mask, sigma), ndimage.gaussian_filter(mask, sigma), rtol=0, atol=1e-12)
+
+
+def test_the_far_look_sees_a_patient_far_along_the_beam_and_not_a_right_estimate(scene):
+    from registration.core.depth import FAR_OFFSETS_MM, depth_far, scan_level
+
+    _, xray, renderer = scene
+    level = scan_level(renderer)
+    right = depth_far(renderer, xray, np.eye(4), volume_level=level)
+    assert right.scan.drr_count == len(FAR_OFFSETS_MM) == 17
+    # measured -0.25 at the truth; the rule starts to weigh it at -0.006 (right estimates of the
+    # far draws -0.011 and below): twice that still leaves room for a fourfold flatter peak
+    assert right.gain < 2.0 * DEFAULT_RULE.far_free, right
+    assert DEFAULT_RULE.terms(Evidence(margin=0.01, depth_far_gain=right.gain))["depth_far"] == 0.0
+    # an estimate 60 mm toward the source: the truth lies in the far window, and the measure
+    # there beats every pose within 24 mm (measured +0.27, best at -64 mm, and +0.20 from 60 mm
+    # the other way, best at +52 mm: the far samples are 12 mm apart, so within 8 mm of the truth)
+    far = depth_far(renderer, xray, offsets_to_matrix([0.0, 0.0, 60.0, 0.0, 0.0, 0.0], xray.geometry),
+                    volume_level=level)  # fmt: skip
+    assert far.gain > 0.0 and abs(far.far_tz_mm + 60.0) <= 8.0, far
+    away = depth_far(renderer, xray, offsets_to_matrix([0.0, 0.0, -60.0, 0.0, 0.0, 0.0], xray.geometry),
+                     volume_level=level)  # fmt: skip
+    assert away.gain > 0.0 and abs(away.far_tz_mm - 60.0) <= 8.0, away
+    withheld = DEFAULT_RULE.assess(Evidence(margin=0.01, edges=0.5, depth_far_gain=far.gain))
+    assert not withheld.applied and "far along the beam" in withheld.reason
+    with pytest.raises(ValueError, match="within and beyond"):
+        depth_far(renderer, xray, np.eye(4), volume_level=level, offsets_mm=(-8.0, 0.0, 8.0))
+
+
+def test_the_far_look_runs_only_for_an_applied_flat_estimate_whose_captures_disagree(scene):
+    from dataclasses import replace
+
+    from registration.core.assess import FAR_PROBE_BELOW_AGREEMENT, FAR_PROBE_BELOW_MARGIN, _depth_far, assess
+    from registration.core.confidence import Assessment
+    from registration.core.preparation import Preparation
+    from registration.core.register import register
+
+    volume, xray, _ = scene
+    preparation = Preparation.of(volume, xray)
+    result = register(volume, xray, seed=0, renderer=preparation.renderer)
+    # the whole assessment: captures that agree, no look; a right estimate stays applied
+    agreeing = assess(replace(result, capture_motions=[np.asarray(result.patient_motion)] * 4), xray, preparation)
+    assert agreeing.applied and agreeing.evidence.agreement == 1.0 and agreeing.depth_far is None
+
+    def decided(applied: bool = True, margin: float = 0.5 * FAR_PROBE_BELOW_MARGIN, agreement: float = 0.0):
+        return Assessment(0.9 if applied else 0.1, applied, "", Evidence(margin=margin, agreement=agreement))
+
+    looked = _depth_far(result, xray, preparation, decided(), DEFAULT_RULE)
+    assert looked is not None and looked.scan.drr_count == 17
+    assert _depth_far(result, xray, preparation, decided(margin=FAR_PROBE_BELOW_MARGIN), DEFAULT_RULE) is None
+    assert _depth_far(result, xray, preparation, decided(agreement=FAR_PROBE_BELOW_AGREEMENT), DEFAULT_RULE) is None
+    assert _depth_far(result, xray, preparation, decided(applied=False), DEFAULT_RULE) is None  # cannot change it
+    unread = replace(DEFAULT_RULE, far_weight=0.0)
+    assert _depth_far(result, xray, preparation, decided(), unread) is None
+    # two views (six parameters) never look: the other view sees the depth
+    assert _depth_far(replace(result, parameters=(*result.parameters, "tz")), xray, preparation, decided(),
+                      DEFAULT_RULE) is None  # fmt: skip
+    # the look at the right estimate leaves it to the other terms (its peak stands out)
+    assert looked.gain < DEFAULT_RULE.far_free, looked
