@@ -112,7 +112,7 @@ def _progress(message: str, *, after_s: float | None = None, every_s: float | No
 
 
 def parse_isocenter(text: str | None, volume: Volume | None = None) -> tuple[float, float, float]:
-    """``"x,y,z"`` in mm, ``"volume-center"`` (needs ``volume``), or the default of
+    """``"x,y,z"`` in mm, ``"head"`` or ``"volume-center"`` (both need ``volume``), or the default of
     :func:`resolve_isocenter` (the volume's IsocenterPosition, else the world origin, CONVENTIONS §1)."""
     return resolve_isocenter(text, volume)[0]
 

@@ -56,7 +56,8 @@ class Register:
     """The geometry side file (JSON) of a TIFF/PNG --image, one per image in order (default: the image's name with
     .json). Keys: docs/formats.md."""
     isocenter: str | None = None
-    """Iso-center "x,y,z" mm or "volume-center" (default: IsocenterPosition of the volume, else the origin)."""
+    """Iso-center "x,y,z" mm, "head" (the middle of the head) or "volume-center" (default: IsocenterPosition of
+    the volume, else the origin)."""
     seed: int = 0
     """Seed of the annealing."""
     sid_mm: float | None = None
@@ -284,7 +285,7 @@ class App(Serving):
     sod_mm: float | None = None
     """Source-iso-center distance for an --image without DistanceSourceToPatient (0018,1111)."""
     isocenter: str | None = None
-    """Iso-center of --volume/--image, "x,y,z" mm or "volume-center" (default: IsocenterPosition of the volume,
+    """Iso-center of --volume/--image, "x,y,z" mm, "head" or "volume-center" (default: IsocenterPosition of the volume,
     else the origin), as for register."""
 
 
@@ -315,7 +316,8 @@ class Track:
     truth: Path | None = None
     """run_truth.json with each frame's true patient_motion (adds errors, precision, recall)."""
     isocenter: str | None = None
-    """Iso-center "x,y,z" mm or "volume-center" (default: IsocenterPosition of the volume, else the origin)."""
+    """Iso-center "x,y,z" mm, "head" (the middle of the head) or "volume-center" (default: IsocenterPosition of
+    the volume, else the origin)."""
     seed: int = 0
     """Seed of the full captures."""
     every_frame: bool = False

@@ -199,7 +199,8 @@ class VolumeStudy:
     ca_bundle: Path | None = None
     """CA certificates (PEM) to verify an https:// PACS against."""
     isocenter: str | None = None
-    """Iso-center "x,y,z" in mm or "volume-center" (default: IsocenterPosition from the files, else the origin)."""
+    """Iso-center "x,y,z" in mm, "head" (the middle of the head) or "volume-center" (default: IsocenterPosition
+    from the files, else the origin)."""
     cases: int = 20
     """Number of random registrations."""
     max_mm: float = 25.0

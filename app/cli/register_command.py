@@ -33,7 +33,7 @@ from app.cli.commands import (
 from app.cli.configs import Register
 from app.cli.errors import UserError
 from registration.io import dicom
-from registration.io.isocenter import VOLUME_CENTER, resolve_isocenter
+from registration.io.isocenter import from_volume, resolve_isocenter
 from registration.io.pacs_settings import ENV_URL
 from registration.io.transforms import ITK_SUFFIXES, write_itk_transform
 
@@ -70,7 +70,7 @@ def check_options(options: Register) -> None:
             "--estimate-geometry needs two planes: one view cannot tell its source-image distance from the depth "
             "(give --sid-mm when it is known)"
         )
-    if options.isocenter is not None and options.isocenter.strip().lower() != VOLUME_CENTER:
+    if options.isocenter is not None and not from_volume(options.isocenter):
         parse_isocenter(options.isocenter)  # a bad value is refused before any file is read
     if options.geometry and len(options.geometry) != n:
         raise ValueError(f"--geometry: one side file per --image ({n}), got {len(options.geometry)}")

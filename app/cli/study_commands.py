@@ -367,7 +367,7 @@ def run_volume_validation(args: VolumeStudy) -> int:
     if np.any(np.asarray(iso) < corners.min(axis=0)) or np.any(np.asarray(iso) > corners.max(axis=0)):
         raise ValueError(
             f"the iso-center ({', '.join(f'{c:.1f}' for c in iso)}) mm ({iso_from}) lies outside the volume "
-            f"{args.volume}; give --isocenter x,y,z inside the anatomy or --isocenter volume-center"
+            f"{args.volume}; give --isocenter x,y,z inside the anatomy or --isocenter head (the middle of the head)"
         )
     _stderr(f"iso-center ({', '.join(f'{c:.1f}' for c in iso)}) mm: {iso_from}")
     _stderr("Best case: the X-ray images are formed from the same volume (not real X-rays).")

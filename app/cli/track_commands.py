@@ -21,6 +21,7 @@ import numpy as np
 from app.cli.configs import PhantomRun, Track
 from app.cli.errors import UserError
 from registration.io import dicom
+from registration.io.isocenter import from_volume
 
 #: Files written by ``roadmap3d phantom-run``.
 RUN_FILE = "fluoro_run.dcm"
@@ -212,7 +213,7 @@ def track_files(options: Track) -> int:
     if out is not None and Path(out).is_dir():
         raise ValueError(f"{out}: is a folder; --out takes a JSON file name")
     check_report_folder(report)
-    if isocenter is not None and isocenter.strip().lower() != "volume-center":
+    if isocenter is not None and not from_volume(isocenter):
         parse_isocenter(isocenter)  # a bad value is refused before any file is read
     vol, runs, run, run_b = _read_runs(options)
     times = runs[0].times_s

@@ -118,6 +118,7 @@ class Controller:
         ui.phantom_button.on_click(on(lambda _e: self.use_data(self.phantom)))
         ui.isocenter_button.on_click(on(lambda _e: self.set_isocenter(str(ui.isocenter_field.value))))
         ui.volume_center_button.on_click(on(lambda _e: self.set_isocenter("volume center")))
+        ui.head_center_button.on_click(on(lambda _e: self.set_isocenter("head")))
         self.show_source()
 
         def refused(_client_id: Any, text: str) -> None:
@@ -399,7 +400,7 @@ class Controller:
             control.disabled = running or fixed
 
     def set_isocenter(self, text: str) -> None:
-        """The iso-center typed into the Data tab (or "volume center"): checked against the volume
+        """The iso-center typed into the Data tab (or "head", "volume center"): checked against the volume
         (:func:`app.web.upload.isocenter_field`), then the user's image is placed about it, the scene's
         marker moves there and the next Register uses it. A bad value changes nothing: it is said
         in the page (the guard turns the ValueError into a red status line and a notification)."""

@@ -348,7 +348,7 @@ class FileData:
         """Read with the engine's DICOM readers (their errors name the file and the tag);
         ``sid_mm`` / ``sod_mm`` for an image that lacks the distances; ``isocenter`` as
         ``register --isocenter`` (:func:`registration.io.isocenter.resolve_isocenter`: "x,y,z" mm,
-        "volume-center", default the volume's IsocenterPosition, else the world origin)."""
+        "head", "volume-center", default the volume's IsocenterPosition, else the world origin)."""
         from registration.io.dicom import read_volume, read_xray
         from registration.io.isocenter import resolve_isocenter
 

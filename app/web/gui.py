@@ -45,7 +45,7 @@ _LAYOUT_HANDLES = frozenset(
     volume_format kind contrast catheter source upload phantom_button show_ghost show_skull show_gradients show_field
     field_mask_upload region_upload
     carm_controls motion_controls view_tabs control_tabs upload_sid upload_sod biplane primary_b secondary_b
-    plane_b_folder isocenter_info isocenter_field isocenter_button volume_center_button""".split()
+    plane_b_folder isocenter_info isocenter_field isocenter_button head_center_button volume_center_button""".split()
 )
 
 

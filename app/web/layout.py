@@ -132,7 +132,12 @@ class Layout:
             self.kind, self.contrast, self.catheter, self.biplane, self.primary_b, self.secondary_b,
         ]  # fmt: skip
         #: Disabled during a run, and for the phantom (imaged about the world origin).
-        self.isocenter_controls: list[Any] = [self.isocenter_field, self.isocenter_button, self.volume_center_button]
+        self.isocenter_controls: list[Any] = [
+            self.isocenter_field,
+            self.isocenter_button,
+            self.head_center_button,
+            self.volume_center_button,
+        ]
         #: Disabled during a run.
         self.motion_controls: list[Any] = [
             *self.offset_sliders,
@@ -250,11 +255,16 @@ class Layout:
         self.isocenter_field = gui.add_text(
             "Iso-center (mm)",
             "",
-            hint="x, y, z in mm, the volume's patient coordinates (LPS), or 'volume center'; the image is "
+            hint="x, y, z in mm, the volume's patient coordinates (LPS), 'head' or 'volume center'; the image is "
             "placed about it and the next Register uses it",
         )
         self.isocenter_button = gui.add_button(
             "Set iso-center", icon=viser.Icon.CROSSHAIR, hint="Use the iso-center typed above"
+        )
+        self.head_center_button = gui.add_button(
+            "Iso-center at the middle of the head",
+            hint="The middle of the largest tissue within 180 mm of the volume's top (the head; a couch apart from "
+            "it left out): where a neuro C-arm is aimed",
         )
         self.volume_center_button = gui.add_button(
             "Iso-center at the volume center", hint="The center of the volume's voxel grid"

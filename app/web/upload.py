@@ -297,24 +297,34 @@ def distance_mm(text: str, what: str) -> float | None:
 ISOCENTER_MARGIN_MM = 50.0
 #: The Data tab's keyword for the center of the volume's grid (as ``--isocenter volume-center``).
 VOLUME_CENTER_WORDS = ("volume center", "volume-center", "volume centre", "volume-centre")
+#: The Data tab's keyword for the middle of the head (as ``--isocenter head``).
+HEAD_WORDS = ("head", "head center", "head centre", "middle of the head")
 
 
 def isocenter_field(text: str, volume: Any) -> tuple[tuple[float, float, float], str]:
     """The iso-center typed into the Data tab: ``"x, y, z"`` in mm (the volume's patient
-    coordinates, LPS; commas or spaces, an optional "mm") or "volume center", and where it came
+    coordinates, LPS; commas or spaces, an optional "mm"), "head" (the middle of the head,
+    :func:`registration.io.isocenter.head_isocenter_mm`) or "volume center", and where it came
     from. ValueError (a message for the page) unless three finite numbers within
     :data:`ISOCENTER_MARGIN_MM` of the volume's grid."""
     raw = text.strip()
     if raw.lower() in VOLUME_CENTER_WORDS:
         center = [float(v) for v in volume.center_mm]
         return (center[0], center[1], center[2]), "the center of the volume's grid (Data tab)"
+    if raw.lower() in HEAD_WORDS:
+        from registration.io.isocenter import head_isocenter_mm
+
+        try:
+            return head_isocenter_mm(volume), "the middle of the head (Data tab)"
+        except ValueError as e:
+            raise ValueError(f"Iso-center: {e}") from None
     parts = raw.removesuffix("mm").replace(",", " ").split()
     try:
         values = [float(p) for p in parts]
     except ValueError:
         values = []
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"Iso-center: expected three numbers 'x, y, z' in mm or 'volume center', got {text!r}")
+        raise ValueError(f"Iso-center: expected three numbers 'x, y, z' in mm, 'head' or 'volume center', got {text!r}")
     corners = np.asarray(volume.world_corners_mm())
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     iso = np.asarray(values)

@@ -6,10 +6,44 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+from scipy import ndimage
+
 from registration.core.volume import Volume
 
 #: ``--isocenter`` keyword: the center of the volume's voxel grid.
 VOLUME_CENTER = "volume-center"
+#: ``--isocenter`` keyword: the middle of the head (:func:`head_isocenter_mm`).
+HEAD = "head"
+
+
+def from_volume(text: str | None) -> bool:
+    """Whether ``--isocenter`` names a point found in the volume (``head``, ``volume-center``):
+    it can be resolved only once the volume is read."""
+    return text is not None and text.strip().lower() in (HEAD, VOLUME_CENTER)
+
+
+def head_isocenter_mm(
+    volume: Volume, *, top_mm: float = 180.0, tissue_hu: float = -300.0
+) -> tuple[float, float, float]:
+    """A point inside the skull: the middle of the bounding box of the largest connected tissue
+    in the volume's top ``top_mm`` (by world z, the patient's head end; CONVENTIONS §1): on a
+    head-and-neck CT the middle of the head, where a neuro C-arm is aimed (a couch or head rest
+    apart from the patient is left out; the grid's centre may lie in the neck)."""
+    nk, nj, ni = volume.shape
+    k = np.arange(nk)
+    a = volume.index_to_world
+    z = a[2, 0] * (ni - 1) / 2 + a[2, 1] * (nj - 1) / 2 + a[2, 2] * k + a[2, 3]  # slice centers
+    top = np.flatnonzero(z >= z.max() - top_mm)
+    tissue = volume.data[top[0] : top[-1] + 1] > tissue_hu
+    labels, n = ndimage.label(tissue)
+    if n == 0:
+        raise ValueError(f"no tissue above {tissue_hu:g} HU in the top {top_mm:g} mm of the volume")
+    largest = 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+    kk, jj, ii = np.nonzero(labels == largest)
+    mid = np.array([(ii.min() + ii.max()) / 2, (jj.min() + jj.max()) / 2, (kk.min() + kk.max()) / 2 + top[0]])
+    p = volume.index_to_world[:3, :3] @ mid + volume.index_to_world[:3, 3]
+    return (float(p[0]), float(p[1]), float(p[2]))
 
 
 def resolve_isocenter(text: str | None, volume: Volume | None = None) -> tuple[tuple[float, float, float], str]:
@@ -17,6 +51,7 @@ def resolve_isocenter(text: str | None, volume: Volume | None = None) -> tuple[t
 
     * ``"x,y,z"``: as given;
     * ``"volume-center"``: the center of the volume's voxel grid (``Volume.center_mm``);
+    * ``"head"``: the middle of the head (:func:`head_isocenter_mm`);
     * absent: IsocenterPosition (300A,012C) when the volume's files carry it (read into
       ``volume.meta["isocenter_mm"]``), else the world origin (CONVENTIONS §1).
     """
@@ -30,13 +65,20 @@ def resolve_isocenter(text: str | None, volume: Volume | None = None) -> tuple[t
             raise ValueError(f"--isocenter {VOLUME_CENTER} needs the volume (--volume)")
         center = [float(v) for v in volume.center_mm]
         return (center[0], center[1], center[2]), "the center of the volume's grid (--isocenter volume-center)"
+    if text.strip().lower() == HEAD:
+        if volume is None:
+            raise ValueError(f"--isocenter {HEAD} needs the volume (--volume)")
+        where = "the middle of the head: the largest tissue within 180 mm of the volume's top (--isocenter head)"
+        return head_isocenter_mm(volume), where
     parts = text.replace(" ", "").split(",")
     try:
         values = [float(p) for p in parts]
     except ValueError:
         raise ValueError(
-            f"--isocenter must be three numbers 'x,y,z' in mm or '{VOLUME_CENTER}', got {text!r}"
+            f"--isocenter must be three numbers 'x,y,z' in mm, '{HEAD}' or '{VOLUME_CENTER}', got {text!r}"
         ) from None
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"--isocenter must be three finite numbers 'x,y,z' in mm or '{VOLUME_CENTER}', got {text!r}")
+        raise ValueError(
+            f"--isocenter must be three finite numbers 'x,y,z' in mm, '{HEAD}' or '{VOLUME_CENTER}', got {text!r}"
+        )
     return (values[0], values[1], values[2]), "--isocenter"

@@ -26,7 +26,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from registration import __version__
 from registration.core.blas import with_one_blas_thread
@@ -37,6 +36,7 @@ from registration.core.preparation import Preparation
 from registration.core.register import RegistrationOptions, register
 from registration.core.roi import RegionOfInterest
 from registration.core.volume import Volume
+from registration.io.isocenter import head_isocenter_mm as head_isocenter_mm  # where the studies aim
 from registration.sim.volume_xray import IMAGES_FROM_VOLUME, VolumeAttenuator, catheter_devices, default_catheter_path
 from registration.sim.xray import simulate_xray
 from registration.studies.runs import axis_angle_matrix, random_unit_vector
@@ -149,27 +149,6 @@ def case_motion(case: VolumeCase, isocenter_mm: tuple[float, float, float]) -> n
     c = np.asarray(isocenter_mm, dtype=np.float64)
     about_iso = rigid(None, c) @ axis_angle_matrix(case.rotation_axis, case.rotation_deg) @ rigid(None, -c)
     return rigid(None, np.asarray(case.translation_mm)) @ about_iso
-
-
-def head_isocenter_mm(
-    volume: Volume, *, top_mm: float = 180.0, tissue_hu: float = -300.0
-) -> tuple[float, float, float]:
-    """A point inside the skull: the middle of the bounding box of the largest connected tissue
-    in the volume's top ``top_mm`` (by world z, the patient's head end; CONVENTIONS §1)."""
-    nk, nj, ni = volume.shape
-    k = np.arange(nk)
-    a = volume.index_to_world
-    z = a[2, 0] * (ni - 1) / 2 + a[2, 1] * (nj - 1) / 2 + a[2, 2] * k + a[2, 3]  # slice centers
-    top = np.flatnonzero(z >= z.max() - top_mm)
-    tissue = volume.data[top[0] : top[-1] + 1] > tissue_hu
-    labels, n = ndimage.label(tissue)
-    if n == 0:
-        raise ValueError(f"no tissue above {tissue_hu} HU in the top {top_mm} mm of the volume")
-    largest = 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
-    kk, jj, ii = np.nonzero(labels == largest)
-    mid = np.array([(ii.min() + ii.max()) / 2, (jj.min() + jj.max()) / 2, (kk.min() + kk.max()) / 2 + top[0]])
-    p = volume.index_to_world[:3, :3] @ mid + volume.index_to_world[:3, 3]
-    return (float(p[0]), float(p[1]), float(p[2]))
 
 
 class VolumeImager:

@@ -414,7 +414,7 @@ def test_isocenter_explicit_volume_center_or_from_the_files(tmp_path: Path) -> N
     assert cli_io.parse_isocenter(" 1,2,3 ", read) == (1.0, 2.0, 3.0)
     with pytest.raises(ValueError, match="volume-center needs the volume"):
         cli_io.parse_isocenter("volume-center")
-    with pytest.raises(ValueError, match="'x,y,z' in mm or 'volume-center'"):
+    with pytest.raises(ValueError, match="'x,y,z' in mm, 'head' or 'volume-center'"):
         cli_io.parse_isocenter("volume-centre", read)
     # IsocenterPosition (300A,012C) in the files (as radiotherapy exports carry it) is the default.
     for path in folder.iterdir():

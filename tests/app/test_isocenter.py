@@ -140,3 +140,13 @@ def test_a_good_isocenter_moves_the_marker_and_the_next_registration_uses_it(
     assert "from the center of the volume's grid (Data tab)" in app.layout.isocenter_info.content
     assert wait_until(lambda: app._shown_version == app.session.version, 30)  # noqa: SLF001
     np.testing.assert_allclose(_marker_mm(app), center, rtol=0, atol=1e-9)
+
+    # "the middle of the head", exactly as --isocenter head
+    from registration.io.isocenter import head_isocenter_mm
+
+    app.head_center_button.value = True
+    head = head_isocenter_mm(user_data.volume())
+    assert user_data.isocenter_mm == head
+    assert "from the middle of the head (Data tab)" in app.layout.isocenter_info.content
+    assert wait_until(lambda: app._shown_version == app.session.version, 30)  # noqa: SLF001
+    np.testing.assert_allclose(_marker_mm(app), head, rtol=0, atol=1e-9)

@@ -54,6 +54,7 @@ def test_validate_volume_refuses_an_isocenter_outside_the_volume(
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and "outside the volume" in err and "Traceback" not in err
+    assert "--isocenter head" in err  # the way to aim at the head of a CT without the tag
 
 
 def test_head_isocenter_is_the_middle_of_the_head() -> None:
