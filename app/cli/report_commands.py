@@ -73,7 +73,8 @@ def write_register_report(
     return write_registration_report(
         folder, document=document, volume=volume, views=views, renderer=renderer, initial_motion=initial_motion,
         anatomy=vessel_anatomy(volume), depth_probe=(assessed or {}).get("depth_probe"),
-        depth_scan=(assessed or {}).get("depth_scan"), identify=identify, command=command_line(identify),
+        depth_scan=(assessed or {}).get("depth_scan"), depth_far=(assessed or {}).get("depth_far"), identify=identify,
+        command=command_line(identify),
     )  # fmt: skip
 
 

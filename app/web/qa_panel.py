@@ -214,8 +214,8 @@ class ComparePanel(BasePanel):
         scan, weighed = qa_evidence.pictured_scan(assessment.get("depth_scan"), views, result.patient_motion,
                                                   renderer, one_view="tz" not in tuple(result.parameters))  # fmt: skip
         with matplotlib.rc_context(DARK_PLOTS):
-            depth = qa_evidence.depth_figure(scan, assessment.get("depth_probe"), reason=reason, term=term,
-                                             weighed=weighed)  # fmt: skip
+            depth = qa_evidence.depth_figure(scan, assessment.get("depth_probe"), far=assessment.get("depth_far"),
+                                             reason=reason, term=term, weighed=weighed)  # fmt: skip
         self.profiles_image.image = _png_to_rgb(png)
         if len(views) > 1:  # biplane: plane B's measure around the same estimate
             profiles_b = qa_evidence.parameter_profiles(volume, views[1], result.patient_motion, renderer=renderer)
@@ -277,7 +277,8 @@ class ComparePanel(BasePanel):
                 out, document=document, volume=s.data.volume(volume_format), views=views,
                 renderer=s.data.evidence_renderer(volume_format, views, initial), initial_motion=initial,
                 anatomy=anatomy, depth_probe=(assessment or {}).get("depth_probe"),
-                depth_scan=(assessment or {}).get("depth_scan"), command="roadmap3d demo: Write report",
+                depth_scan=(assessment or {}).get("depth_scan"), depth_far=(assessment or {}).get("depth_far"),
+                command="roadmap3d demo: Write report",
             )  # fmt: skip
         except Exception as exc:  # noqa: BLE001 - said in the page
             log.exception("report failed")

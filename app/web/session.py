@@ -469,12 +469,15 @@ class Session:
         assess it (:func:`registration.core.assess.assess_on`); None (the estimate is
         applied, as before the rule) when the assessment itself fails, which is logged."""
         from registration.core.assess import assess_on
+        from registration.core.depth import scan_level
         from registration.studies.cases import assessment_fields
 
         try:
             renderer = self.data.evidence_renderer(volume_format, views, initial)
+            # one view's far look at the depth correction's level of the registration's own renderer
+            far_level = scan_level(self.data.renderer(volume_format, views, initial))
             return assessment_fields(assess_on(result, views, self.data.volume(volume_format), renderer,
-                                               landmarks=landmarks))  # fmt: skip
+                                               landmarks=landmarks, far_level=far_level))  # fmt: skip
         except Exception:  # noqa: BLE001 - the registration stands; the page says it was not assessed
             log.exception("confidence assessment failed")
             return None

@@ -126,43 +126,40 @@ def assess(
     if renderer.has_level(0):  # the probes' level 0 written for these views before the probes run
         for view in (views,) if isinstance(views, XRayImage) else views:
             renderer.ready(view.geometry, result.patient_motion, level=0)
+    from registration.core.depth import scan_level
+
     decided = assess_on(result, views, preparation.volume, renderer, single_plane_motion=single_plane_motion,
-                        rule=rule, landmarks=landmarks)  # fmt: skip
+                        rule=rule, landmarks=landmarks, far_level=scan_level(preparation.renderer))  # fmt: skip
     probed, on_seconds = time.perf_counter(), decided.seconds
     pull = _spine_pull(result, views, preparation, decided.evidence, rule)
-    if pull is not None:
-        again = rule.assess(replace(decided.evidence, spine_pull_mm=pull.shift_mm))
-        decided = replace(again, depth_probe=decided.depth_probe, depth_scan=decided.depth_scan, spine_pull=pull)
-    far = _depth_far(result, views, preparation, decided, rule)
-    if far is not None:
-        again = rule.assess(replace(decided.evidence, depth_far_gain=far.gain))
-        decided = replace(again, depth_probe=decided.depth_probe, depth_scan=decided.depth_scan,
-                          spine_pull=decided.spine_pull, depth_far=far)  # fmt: skip
-    return replace(decided, seconds=on_seconds + time.perf_counter() - probed)
+    if pull is None:
+        return decided
+    again = rule.assess(replace(decided.evidence, spine_pull_mm=pull.shift_mm))
+    return replace(again, depth_probe=decided.depth_probe, depth_scan=decided.depth_scan, depth_far=decided.depth_far,
+                   spine_pull=pull, seconds=on_seconds + time.perf_counter() - probed)  # fmt: skip
 
 
 def _depth_far(
     result: RegistrationResult,
-    views: XRayImage | Sequence[XRayImage],
-    preparation: Preparation,
+    views: tuple[XRayImage, ...],
+    renderer: DRRRenderer,
+    volume_level: int,
     decided: Assessment,
     rule: ConfidenceRule,
 ) -> object | None:
-    """One view's look far along its beam (:func:`registration.core.depth.depth_far`, at the depth
-    correction's level of the registration's own volume) for an estimate otherwise applied whose
-    capture runs disagreed and whose peak is flat; None otherwise (it could not change the
-    decision, or is not read)."""
-    views = (views,) if isinstance(views, XRayImage) else tuple(views)
+    """One view's look far along its beam (:func:`registration.core.depth.depth_far` at
+    ``volume_level``: the depth correction's level of the registration's own volume) for an
+    estimate otherwise applied whose capture runs disagreed and whose peak is flat; None
+    otherwise (it could not change the decision, or is not read)."""
     one_view = len(views) == 1 and "tz" not in tuple(result.parameters)
     e = decided.evidence
     flat = e.margin is not None and e.margin < FAR_PROBE_BELOW_MARGIN
     disagreed = e.agreement is not None and e.agreement < FAR_PROBE_BELOW_AGREEMENT
     if not (one_view and rule.far_weight and decided.applied and flat and disagreed):
         return None
-    from registration.core.depth import depth_far, scan_level
+    from registration.core.depth import depth_far
 
-    renderer = preparation.renderer
-    return depth_far(renderer, views[0], result.patient_motion, volume_level=scan_level(renderer))
+    return depth_far(renderer, views[0], result.patient_motion, volume_level=volume_level)
 
 
 def _spine_pull(
@@ -196,6 +193,7 @@ def assess_on(
     single_plane_motion: ArrayLike | None = None,
     rule: ConfidenceRule = DEFAULT_RULE,
     landmarks: LandmarkStart | None = None,
+    far_level: int | None = None,
 ) -> Assessment:
     """:func:`assess` with the probes rendered by ``renderer`` (of ``volume``).
 
@@ -205,7 +203,9 @@ def assess_on(
     (five-parameter) result that the registration did not correct along the beam
     (:func:`depth_corrected`) is also scanned (:func:`registration.core.depth.depth_scan`) and probed
     (:func:`~registration.core.depth.depth_probe`) there; both kept in the assessment, the probe's
-    pose is not applied."""
+    pose is not applied. ``far_level``: the level of ``renderer`` one view's far look renders at
+    (the depth correction's level of the registration's volume,
+    :func:`registration.core.depth.scan_level` of its renderer; None: no far look)."""
     start = time.perf_counter()
     views = (views,) if isinstance(views, XRayImage) else tuple(views)
     why_not = veto(result, landmarks)
@@ -216,7 +216,10 @@ def assess_on(
         disagreement = plane_a_disagreement_mm(result.patient_motion, single_plane_motion, views[0].geometry)
         evidence = replace(evidence, plane_disagreement_mm=disagreement)
     decided = rule.assess(evidence)
-    return replace(decided, depth_probe=probe, depth_scan=scan, seconds=time.perf_counter() - start)
+    far = None if far_level is None else _depth_far(result, views, renderer, far_level, decided, rule)
+    if far is not None:
+        decided = rule.assess(replace(evidence, depth_far_gain=far.gain))
+    return replace(decided, depth_probe=probe, depth_scan=scan, depth_far=far, seconds=time.perf_counter() - start)
 
 
 def plane_a_disagreement_mm(motion: ArrayLike, single_plane_motion: ArrayLike, geometry: CArm) -> float:

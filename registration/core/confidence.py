@@ -87,8 +87,9 @@ The confidence is a logistic function of what the engine knows about the estimat
     Single plane, an estimate otherwise applied whose capture runs disagreed and whose peak is
     flat (``agreement`` and ``margin`` below :data:`registration.core.assess.FAR_PROBE_BELOW_AGREEMENT`
     and :data:`~registration.core.assess.FAR_PROBE_BELOW_MARGIN`): the depth scan's measure
-    at 28-76 mm along the beam from the estimate against within 24 mm of it, the best of each,
-    relative (:func:`registration.core.depth.depth_far`), read by the term ``depth_far``. A
+    at 28-76 mm along the beam from the estimate against within 24 mm of it: the best of the
+    first less the best of the second (:func:`registration.core.depth.depth_far`), read by the
+    term ``depth_far``. A
     right estimate's peak stands out (-0.011 and below); a patient 50-100 mm off along the beam
     whose magnification the in-plane fit absorbed (4-10 mm in the plane) leaves it flat or
     higher far away (-0.0023 to +0.005), while every other term saw a right-looking estimate.

@@ -70,13 +70,12 @@ TERM_PICTURES = {
     "beam": "the evidence's beam_margin (how much the other plane's measure falls when the estimate moves "
     "along one plane's beam)",
     "planes_apart": "the parameter profiles (their margins at +-1), the planes' own captures having disagreed",
-    "depth_far": "the evidence's depth_far_gain (the measure 28-76 mm along the beam against within 24 mm of the "
-    "estimate)",
+    "depth_far": "the far look (the measure 28-76 mm along the beam against within 24 mm of the estimate)",
     "spine": "the evidence's spine_pull_mm (how far the head alone, without the spine below the skull base, "
     "moves the estimate)",
 }
 #: The terms whose picture the report frames in red when they withheld an estimate.
-FRAMED_TERMS = frozenset({"margin", "rotation_margin", "rival", "depth", "depth_pull", "depth_scan"})
+FRAMED_TERMS = frozenset({"margin", "rotation_margin", "rival", "depth", "depth_pull", "depth_scan", "depth_far"})
 
 
 @dataclass(frozen=True)
@@ -270,6 +269,7 @@ def depth_figure(
     scan: Mapping[str, object] | None,
     probe: Mapping[str, object] | None,
     *,
+    far: Mapping[str, object] | None = None,
     reason: str = "",
     term: str | None = None,
     rule: ConfidenceRule = DEFAULT_RULE,
@@ -277,16 +277,28 @@ def depth_figure(
 ) -> bytes | None:
     """The depth scan's tz curve (the high-passed measure along the beam, the estimate at 0,
     + toward the source) with its peak, the region beyond ``scan_free_mm`` its term withholds,
-    and the depth probe's tz and in-plane shift. None without a scan (two views). ``weighed``
-    False: a scan the confidence did not read (:func:`pictured_scan`), drawn without the region."""
-    if not scan:
+    and the depth probe's tz and in-plane shift; below it one view's far look (``far``:
+    :class:`registration.core.depth.DepthFar`'s dict) when it ran. None without either (two
+    views). ``weighed`` False: a scan the confidence did not read (:func:`pictured_scan`),
+    drawn without the region."""
+    if not scan and not far:
         return None
     plt = pyplot()
-    x = np.asarray(scan["offsets_mm"], dtype=float)  # type: ignore[arg-type]
-    y = np.asarray(scan["similarity"], dtype=float)  # type: ignore[arg-type]
-    fig, ax = plt.subplots(figsize=(7.0, 3.0))
+    rows = int(bool(scan)) + int(bool(far))
+    fig, axes = plt.subplots(rows, 1, figsize=(7.0, 3.0 * rows), squeeze=False)
+    if scan:
+        _scan_panel(axes[0, 0], scan, probe, reason=reason, term=term, rule=rule, weighed=weighed)
+    if far:
+        _far_panel(axes[-1, 0], far, reason=reason, term=term, rule=rule)
+    fig.tight_layout()
+    return png_of(fig)
+
+
+def _scan_panel(ax, scan, probe, *, reason, term, rule, weighed) -> None:  # noqa: ANN001
+    x = np.asarray(scan["offsets_mm"], dtype=float)
+    y = np.asarray(scan["similarity"], dtype=float)
     ax.plot(x, y, color="#1c7ed6", lw=1.4, marker=".", ms=3)
-    peak = float(scan["tz_mm"])  # type: ignore[arg-type]
+    peak = float(scan["tz_mm"])
     # a scan that stopped once its peak could not lie in the withheld region shows its best offset
     label = f"scan best {peak:+.1f} mm (peak at or above it)" if scan.get("stopped") else f"scan peak {peak:+.1f} mm"
     ax.axvline(peak, color="#2f9e44", lw=1.0, label=label)
@@ -295,23 +307,44 @@ def depth_figure(
         ax.axvspan(x.min(), rule.scan_free_mm, color="#e03131", alpha=0.18, lw=0,  # light or dark paper
                    label=f"peak here withholds (< {rule.scan_free_mm:g} mm)")  # fmt: skip
     if probe:
-        ax.axvline(float(probe["tz_mm"]), color="#f08c00", lw=1.0, ls="--",  # type: ignore[arg-type]
-                   label=f"depth probe tz {float(probe['tz_mm']):+.1f} mm, shift {float(probe['shift_mm']):.2f} mm")  # type: ignore[arg-type]  # fmt: skip
+        tz, shift = float(probe["tz_mm"]), float(probe["shift_mm"])
+        ax.axvline(tz, color="#f08c00", lw=1.0, ls="--", label=f"depth probe tz {tz:+.1f} mm, shift {shift:.2f} mm")
     reach = float(np.abs(x).max())
     ax.set_xlim(-reach * 1.04, reach * 1.04)  # the scanned range either way, sampled or not
-    ax.set_xlabel("tz from the estimate (mm, + toward the source)", fontsize=8)
-    ax.set_ylabel("high-passed GD", fontsize=8)
-    ax.ticklabel_format(axis="y", useOffset=False)
-    ax.tick_params(labelsize=7)
-    ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    _depth_axes(ax)
     title = "Depth: the measure along the beam"
     if not weighed:
         title += "\n(the registration corrected its depth; the confidence does not weigh this scan)"
     ax.set_title(title, fontsize=9)
     if term in ("depth_scan", "depth", "depth_pull"):
         _mark_withheld(ax, reason)
-    fig.tight_layout()
-    return png_of(fig)
+
+
+def _far_panel(ax, far, *, reason, term, rule) -> None:  # noqa: ANN001
+    x = np.asarray(far["offsets_mm"], dtype=float)
+    y = np.asarray(far["similarity"], dtype=float)
+    near = float(far["near_mm"])
+    ax.axvspan(-near, near, color="#868e96", alpha=0.18, lw=0, label=f"within {near:g} mm of the estimate")
+    ax.plot(x, y, color="#1c7ed6", lw=1.4, marker=".", ms=4)
+    ax.axvline(float(far["far_tz_mm"]), color="#f08c00", lw=1.0, ls="--",
+               label=f"best beyond: {float(far['far_tz_mm']):+.0f} mm")  # fmt: skip
+    ax.axvline(0.0, color="#495057", lw=0.8, ls=":", label="estimate")
+    reach = float(np.abs(x).max())
+    ax.set_xlim(-reach * 1.04, reach * 1.04)
+    _depth_axes(ax)
+    gain = float(far["gain"])
+    ax.set_title(f"Far along the beam: best beyond less best within {gain:+.4f} (weighed above {rule.far_free:g})",
+                 fontsize=9)  # fmt: skip
+    if term == "depth_far":
+        _mark_withheld(ax, reason)
+
+
+def _depth_axes(ax) -> None:  # noqa: ANN001
+    ax.set_xlabel("tz from the estimate (mm, + toward the source)", fontsize=8)
+    ax.set_ylabel("high-passed GD", fontsize=8)
+    ax.ticklabel_format(axis="y", useOffset=False)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.02, 1.0))
 
 
 def convergence_figure(trace: list[float], *, title: str = "Convergence") -> bytes:

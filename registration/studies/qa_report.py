@@ -234,7 +234,7 @@ def _decision(doc: Mapping[str, Any]) -> str:
 
 
 def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, list]], probe, scan,  # noqa: ANN001
-              weighed: bool = True) -> str:  # fmt: skip
+              weighed: bool = True, far: Mapping[str, Any] | None = None) -> str:  # fmt: skip
     ev = dict(doc.get("confidence_evidence") or {})
     term = qa_evidence.withheld_term(ev) if ev else None
     reason = str(doc.get("withheld_reason") or "")
@@ -252,12 +252,14 @@ def _evidence(page: Page, doc: Mapping[str, Any], profiles: Sequence[tuple[str, 
         tag = plane.lower().replace(" ", "_") + "_" if plane else ""
         caption = f"{plane + ': ' if plane else ''}the measure along each parameter around the estimate"
         parts.append(page.image(f"{tag}evidence_profiles.png", png, caption, wide=True))
-    depth = qa_evidence.depth_figure(scan, probe, reason=reason, term=term, weighed=weighed)
+    depth = qa_evidence.depth_figure(scan, probe, far=far, reason=reason, term=term, weighed=weighed)
     parts.append(
         page.image(
             "evidence_depth.png",
             depth,
-            "the depth scan along the beam" + (" and the depth probe" if probe else ""),
+            "the depth scan along the beam"
+            + (" and the depth probe" if probe else "")
+            + ("; below, the far look" if far else ""),
             wide=True,
         )  # fmt: skip
     )
@@ -350,6 +352,7 @@ def write_registration_report(
     anatomy: Anatomy | None = None,
     depth_probe: Mapping[str, Any] | None = None,
     depth_scan: Mapping[str, Any] | None = None,
+    depth_far: Mapping[str, Any] | None = None,
     identify: bool = False,
     checker_px: int = qa_images.CHECKER_TILE_PX // 2,
     command: str | None = None,
@@ -358,7 +361,7 @@ def write_registration_report(
     through a temporary sibling folder). ``document``: the result's JSON (as ``register --out``
     writes it, with the confidence fields when assessed); ``renderer``: DRRs for the pictures
     (its finest level) and the evidence (the level nearest 128 voxels, as the confidence);
-    ``depth_probe`` / ``depth_scan``: the confidence's (one plane). Returns ``out``."""
+    ``depth_probe`` / ``depth_scan`` / ``depth_far``: the confidence's (one plane). Returns ``out``."""
     out = Path(out)
     doc = dict(document)
     views = list(views)
@@ -379,7 +382,7 @@ def write_registration_report(
     ]
     one_view = "tz" not in (doc.get("offsets") or {"tz": 0})
     scan, weighed = qa_evidence.pictured_scan(depth_scan, views, motion, renderer, one_view=one_view)
-    body.append(_evidence(page, doc, profiles, depth_probe, scan, weighed))
+    body.append(_evidence(page, doc, profiles, depth_probe, scan, weighed, far=depth_far))
     if doc.get("similarity_trace"):
         trace = qa_evidence.convergence_figure(list(doc["similarity_trace"]))
         caption = (

@@ -309,15 +309,20 @@ def test_the_far_look_runs_only_for_an_applied_flat_estimate_whose_captures_disa
     def decided(applied: bool = True, margin: float = 0.5 * FAR_PROBE_BELOW_MARGIN, agreement: float = 0.0):
         return Assessment(0.9 if applied else 0.1, applied, "", Evidence(margin=margin, agreement=agreement))
 
-    looked = _depth_far(result, xray, preparation, decided(), DEFAULT_RULE)
+    from registration.core.depth import scan_level
+
+    renderer, level = preparation.renderer, scan_level(preparation.renderer)
+
+    def look(outcome: Assessment, rule=DEFAULT_RULE, of=result):  # noqa: ANN001, ANN202
+        return _depth_far(of, (xray,), renderer, level, outcome, rule)
+
+    looked = look(decided())
     assert looked is not None and looked.scan.drr_count == 17
-    assert _depth_far(result, xray, preparation, decided(margin=FAR_PROBE_BELOW_MARGIN), DEFAULT_RULE) is None
-    assert _depth_far(result, xray, preparation, decided(agreement=FAR_PROBE_BELOW_AGREEMENT), DEFAULT_RULE) is None
-    assert _depth_far(result, xray, preparation, decided(applied=False), DEFAULT_RULE) is None  # cannot change it
-    unread = replace(DEFAULT_RULE, far_weight=0.0)
-    assert _depth_far(result, xray, preparation, decided(), unread) is None
+    assert look(decided(margin=FAR_PROBE_BELOW_MARGIN)) is None
+    assert look(decided(agreement=FAR_PROBE_BELOW_AGREEMENT)) is None
+    assert look(decided(applied=False)) is None  # it cannot change the decision
+    assert look(decided(), rule=replace(DEFAULT_RULE, far_weight=0.0)) is None
     # two views (six parameters) never look: the other view sees the depth
-    assert _depth_far(replace(result, parameters=(*result.parameters, "tz")), xray, preparation, decided(),
-                      DEFAULT_RULE) is None  # fmt: skip
+    assert look(decided(), of=replace(result, parameters=(*result.parameters, "tz"))) is None
     # the look at the right estimate leaves it to the other terms (its peak stands out)
     assert looked.gain < DEFAULT_RULE.far_free, looked

@@ -5,6 +5,7 @@ renderer that scores it) against its 64^3 3DRA stand-in (the same phantom, resam
 
 from __future__ import annotations
 
+import io
 import json
 
 import numpy as np
@@ -271,3 +272,29 @@ def test_a_depth_scan_the_confidence_did_not_make_is_scanned_for_the_picture_and
     assert abs(scan["tz_mm"]) < 4.0, scan["tz_mm"]
     png = qa_evidence.depth_figure(scan, None, weighed=False)
     assert png is not None and png[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_far_look_is_drawn_below_the_scan_and_framed_when_it_withheld(scene):
+    """One view's far look (17 offsets to 76 mm) drawn under the depth scan, alone when there is
+    no scan, and framed with the reason when its term withheld the estimate; the report says
+    where to read it."""
+    from PIL import Image
+
+    from registration.core.depth import depth_far, scan_level
+    from registration.core.geometry import offsets_to_matrix
+
+    _, xray, renderer = scene
+    # an estimate 60 mm toward the source: the measure is higher far along the beam (the truth)
+    far = depth_far(renderer, xray, offsets_to_matrix([0.0, 0.0, 60.0, 0.0, 0.0, 0.0], xray.geometry),
+                    volume_level=scan_level(renderer)).to_dict()  # fmt: skip
+    assert far["gain"] > 0.0 and len(far["offsets_mm"]) == 17
+    scan = {"tz_mm": 1.0, "offsets_mm": [-2.0, 0.0, 2.0], "similarity": [0.1, 0.2, 0.1], "stopped": False}
+    reason = "the measure is as high far along the beam as at the estimate"
+    both = qa_evidence.depth_figure(scan, None, far=far, reason=reason, term="depth_far")
+    alone = qa_evidence.depth_figure(None, None, far=far)
+    just_scan = qa_evidence.depth_figure(scan, None)
+    sizes = [Image.open(io.BytesIO(png)).size for png in (both, alone, just_scan)]
+    assert sizes[0][1] > 1.8 * sizes[2][1] and sizes[1][1] < 0.6 * sizes[0][1], sizes  # two panels, then one
+    assert qa_evidence.depth_figure(None, None) is None  # two views: no picture
+    assert qa_evidence.withheld_term({"depth_far_gain": far["gain"], "margin": 0.01}) == "depth_far"
+    assert "far look" in qa_evidence.TERM_PICTURES["depth_far"] and "depth_far" in qa_evidence.FRAMED_TERMS
