@@ -15,6 +15,8 @@ from registration.core.volume import Volume
 VOLUME_CENTER = "volume-center"
 #: ``--isocenter`` keyword: the middle of the head (:func:`head_isocenter_mm`).
 HEAD = "head"
+#: How far below the volume's top (mm) the head is looked for (:func:`head_isocenter_mm`).
+HEAD_TOP_MM = 180.0
 
 
 def from_volume(text: str | None) -> bool:
@@ -24,7 +26,7 @@ def from_volume(text: str | None) -> bool:
 
 
 def head_isocenter_mm(
-    volume: Volume, *, top_mm: float = 180.0, tissue_hu: float = -300.0
+    volume: Volume, *, top_mm: float = HEAD_TOP_MM, tissue_hu: float = -300.0
 ) -> tuple[float, float, float]:
     """A point inside the skull: the middle of the bounding box of the largest connected tissue
     in the volume's top ``top_mm`` (by world z, the patient's head end; CONVENTIONS §1): on a
@@ -68,8 +70,8 @@ def resolve_isocenter(text: str | None, volume: Volume | None = None) -> tuple[t
     if text.strip().lower() == HEAD:
         if volume is None:
             raise ValueError(f"--isocenter {HEAD} needs the volume (--volume)")
-        where = "the middle of the head: the largest tissue within 180 mm of the volume's top (--isocenter head)"
-        return head_isocenter_mm(volume), where
+        where = f"the middle of the head: the largest tissue within {HEAD_TOP_MM:g} mm of the volume's top"
+        return head_isocenter_mm(volume), f"{where} (--isocenter head)"
     parts = text.replace(" ", "").split(",")
     try:
         values = [float(p) for p in parts]
