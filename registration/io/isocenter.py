@@ -42,8 +42,10 @@ def head_isocenter_mm(
     if n == 0:
         raise ValueError(f"no tissue above {tissue_hu:g} HU in the top {top_mm:g} mm of the volume")
     largest = 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
-    kk, jj, ii = np.nonzero(labels == largest)
-    mid = np.array([(ii.min() + ii.max()) / 2, (jj.min() + jj.max()) / 2, (kk.min() + kk.max()) / 2 + top[0]])
+    # the largest component's bounding box in one pass (no index arrays of its voxels)
+    box = ndimage.find_objects(labels, max_label=largest)[largest - 1]
+    kk, jj, ii = ((s.start, s.stop - 1) for s in box)
+    mid = np.array([sum(ii) / 2, sum(jj) / 2, sum(kk) / 2 + top[0]])
     p = volume.index_to_world[:3, :3] @ mid + volume.index_to_world[:3, 3]
     return (float(p[0]), float(p[1]), float(p[2]))
 
