@@ -39,13 +39,30 @@ def capture_config(args: CaptureStudy) -> capture.CaptureConfig:
                    landmark_noise_mm=float(args.landmark_error_mm), aimed=bool(args.aimed))  # fmt: skip
 
 
+def _pooled(args: CaptureStudy) -> tuple[list[dict], dict]:
+    """``--pool``: the earlier runs' moments and the summary's configuration (ValueError on bad ones)."""
+    out = Path(args.out).resolve()
+    for given in args.pool:
+        folder = Path(given) if Path(given).is_dir() else Path(given).parent
+        if folder.resolve() == out:
+            raise ValueError(f"--out {args.out} is a pooled run's own folder: name another one for the pooled report")
+    records = capture.pooled_records(args.pool)
+    return records, capture.pooled_config(records, args.pool)
+
+
 def run_capture_study(args: CaptureStudy) -> int:
-    """``roadmap3d validate capture``: the capture range, written to ``args.out``."""
-    config = capture_config(args)
-    tasks = capture.capture_tasks(config)
-    log = None if args.json else _stderr
-    records, wall = execution.run_study(tasks, args.out, n_jobs=args.jobs, scheduler=args.scheduler, log=log)
-    summary = capture.capture_summary(records, config=asdict(config), wall_seconds=wall)
+    """``roadmap3d validate capture``: the capture range, written to ``args.out``; with ``--pool``
+    the summary of earlier runs' moments together."""
+    if args.pool:
+        records, config = _pooled(args)
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        summary = capture.capture_summary(records, config=config, wall_seconds=0.0)
+    else:
+        run = capture_config(args)
+        tasks = capture.capture_tasks(run)
+        log = None if args.json else _stderr
+        records, wall = execution.run_study(tasks, args.out, n_jobs=args.jobs, scheduler=args.scheduler, log=log)
+        summary = capture.capture_summary(records, config=asdict(run), wall_seconds=wall)
     capture.write_capture_report(records, summary, Path(args.out))
     if args.json:
         print(json.dumps(summary))
@@ -60,5 +77,6 @@ def run_capture_study(args: CaptureStudy) -> int:
             f"{name:<15} capture radius (95 %): translation {translation}, rotation {rotation}; applied "
             f"precision {precision} ({s['applied']} applied of {s['runs']})"
         )
-    print(f"\nwritten: {Path(args.out) / 'results.jsonl'}, {Path(args.out) / 'report.md'} and capture_curves.png")
+    written = "" if args.pool else f"{Path(args.out) / 'results.jsonl'}, "
+    print(f"\nwritten: {written}{Path(args.out) / 'report.md'} and capture_curves.png")
     return 0

@@ -125,6 +125,9 @@ class CaptureStudy:
     aimed: bool = False
     """Aim both C-arms at the moved head (the table panned back to the anatomy, centred within 15 mm): the
     head stays in both fields while the machine-based pose is off by the whole offset."""
+    pool: tuple[Path, ...] = ()
+    """Register nothing: report on the moments of earlier runs together (their results.jsonl files or
+    folders, e.g. several seeds of one design), levels pooled by offset, into --out."""
 
 
 @dataclass

@@ -14,7 +14,9 @@ precision says whether it does.
 
 from __future__ import annotations
 
+import re
 import textwrap
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -160,17 +162,25 @@ def _plane_keys(plane: str) -> tuple[str, str]:
 
 
 def level_rates(records: list[dict], sweep: str, plane: str) -> list[dict]:
-    """Per level of one sweep: offset, runs, success rate, applied and wrongly applied counts."""
+    """Per level of one sweep: offset, runs, successes, success rate with its 95 % interval
+    (Wilson's score interval: how well a level of this many runs pins the rate down), applied
+    and wrongly applied counts."""
+    from scipy.stats import binomtest
+
     success, applied = _plane_keys(plane)
     rows = []
     for level in sorted({r["level"] for r in records if r["sweep"] == sweep}):
         at = [r for r in records if r["sweep"] == sweep and r["level"] == level]
+        k = sum(bool(r[success]) for r in at)
+        interval = binomtest(k, len(at)).proportion_ci(confidence_level=0.95, method="wilson")
         rows.append(
             {
                 "translation_mm": at[0]["level_translation_mm"],
                 "rotation_deg": at[0]["level_rotation_deg"],
                 "runs": len(at),
-                "success_rate": sum(bool(r[success]) for r in at) / len(at),
+                "successes": k,
+                "success_rate": k / len(at),
+                "success_interval_95": [round(float(interval.low), 4), round(float(interval.high), 4)],
                 "applied": sum(bool(r.get(applied)) for r in at),
                 "applied_wrong": sum(bool(r.get(applied)) and not r[success] for r in at),
             }
@@ -226,6 +236,67 @@ def _plane_summary(records: list[dict], plane: str) -> dict:
     }
 
 
+#: What a moment's record must share with every other pooled one: the study's design.
+_POOL_DESIGN = ("pixels", "volume_format_cm", "volume_label", "image_source", "aimed")
+
+
+def _design(record: dict) -> dict:
+    picks = re.search(r"/landmarks-(\d+)x([0-9.]+)mm", str(record.get("case_id", "")))
+    return {k: record.get(k) for k in _POOL_DESIGN} | {"landmarks": picks.group(0)[1:] if picks else None}
+
+
+def pooled_config(records: list[dict], paths: Sequence[Path]) -> dict:
+    """The summary's configuration of pooled moments (:func:`pooled_records`): the runs, their
+    seeds and revisions, and the design's start (aimed C-arms, landmarks)."""
+    picks = re.search(r"/landmarks-(\d+)x([0-9.]+)mm", str(records[0].get("case_id", ""))) if records else None
+    return {
+        "pooled": [str(p) for p in paths],
+        "seeds": sorted({r["study_seed"] for r in records if r.get("study_seed") is not None}),
+        "revisions": sorted({r["revision"] for r in records if r.get("revision")}),
+        "aimed": bool(records and records[0].get("aimed")),
+        "landmark_pairs": int(picks.group(1)) if picks else None,
+        "landmark_noise_mm": float(picks.group(2)) if picks else None,
+    }
+
+
+def pooled_records(paths: Sequence[Path]) -> list[dict]:
+    """The moments of earlier runs (``results.jsonl`` files or the folders holding them), pooled
+    for one summary: every moment's own seed and draws, levels pooled by offset. ValueError,
+    naming the file, when one holds no capture moments, holds moments another already gave (the
+    same run pooled twice), or comes from another design (image size, volume, image source,
+    aimed C-arms, landmark starts) or another ladder of levels."""
+    from registration.studies.execution import ResultsLog
+
+    if not paths:
+        raise ValueError("--pool needs at least one results.jsonl (or its folder)")
+    records: list[dict] = []
+    seen: dict[str, Path] = {}
+    first: tuple[Path, dict] | None = None
+    levels: dict[tuple[str, int], tuple[float, float]] = {}
+    for given in paths:
+        path = Path(given) / "results.jsonl" if Path(given).is_dir() else Path(given)
+        if not path.is_file():
+            raise ValueError(f"{path}: no such results file")
+        found = [r for r in ResultsLog(path).read() if {"sweep", "level", "level_translation_mm"} <= r.keys()]
+        if not found:
+            raise ValueError(f"{path}: holds no moments of the capture study")
+        for r in found:
+            if r["case_id"] in seen:
+                raise ValueError(f"{path}: moment {r['case_id']} was already pooled from {seen[r['case_id']]}")
+            seen[r["case_id"]] = path
+            design = _design(r)
+            if first is None:
+                first = (path, design)
+            elif design != first[1]:
+                k = next(k for k in design if design[k] != first[1][k])
+                raise ValueError(f"{path}: cannot pool with {first[0]}: {k} {design[k]!r} against {first[1][k]!r}")
+            offset = (float(r["level_translation_mm"]), float(r["level_rotation_deg"]))
+            if levels.setdefault((r["sweep"], int(r["level"])), offset) != offset:
+                raise ValueError(f"{path}: its {r['sweep']} level {r['level']} lies at another offset than the others'")
+        records += found
+    return records
+
+
 def capture_summary(records: list[dict], *, config: dict, wall_seconds: float) -> dict:
     """The study's numbers (the ``--json`` object): one block per plane count."""
     return {
@@ -267,6 +338,10 @@ def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
             x = [r[key] for r in rows]
             ax.plot(x, [100 * r["success_rate"] for r in rows], "o-", color=colour, lw=width, ms=2 * width + 1,
                     label=f"{name}: success")  # fmt: skip
+            band = [r.get("success_interval_95") for r in rows]
+            if all(band):
+                ax.fill_between(x, [100 * b[0] for b in band], [100 * b[1] for b in band], color=colour, alpha=0.15,
+                                lw=0, label=f"{name}: 95 % interval")  # fmt: skip
             wrong = [100 * r["applied_wrong"] / r["runs"] for r in rows]
             ax.plot(x, wrong, "x--", color=colour, alpha=0.8, label=f"{name}: applied and wrong")
         ax.axhline(100 * CAPTURE_SHARE, color="#d9534f", ls=":", lw=1)
@@ -275,7 +350,7 @@ def capture_curves(records: list[dict], summary: dict, path: Path) -> Path:
         ax.set_ylabel("% of registrations", fontsize=8)
         ax.set_title(f"{sweep} sweep (n = {rows[0]['runs']} per level)", fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="center left")
+    axes[0][0].legend(fontsize=7, loc="lower left", bbox_to_anchor=(0.0, 0.06))
     picks = summary.get("config", {}).get("landmark_pairs")
     start = f", from {picks} landmarks per plane" if picks else ""
     start += ", C-arms aimed at the head" if summary.get("config", {}).get("aimed") else ""
@@ -294,6 +369,32 @@ def radius_words(x: float | None, unit: str, ran: bool = True) -> str:
     if not ran:
         return "not run"
     return "below the smallest level" if x is None else f"{x:g} {unit}"
+
+
+def _level_size_words(summary: dict) -> str:
+    """What a level of the run's size can tell: how many misses it allows and the least rate
+    that all of them right is consistent with."""
+    rows = [r for plane in ("biplane", "single_plane") for v in summary[plane]["sweeps"].values() for r in v]
+    sizes = sorted({r["runs"] for r in rows})
+    if len(sizes) != 1 or not rows:
+        return ""
+    n = sizes[0]
+    allowed = int(np.floor((1.0 - CAPTURE_SHARE) * n + 1e-9))
+    from scipy.stats import binomtest
+
+    low = binomtest(n, n).proportion_ci(confidence_level=0.95, method="wilson").low
+    misses = "none missed" if allowed == 0 else f"at most {allowed} missed"
+    return (
+        f": with {n} registrations a level passes with {misses}, and {n} of {n} right is consistent with a "
+        f"rate as low as {100 * low:.0f} % (the 95 % interval beside each level's success, Wilson's)"
+    )
+
+
+def interval_words(lo: float | None, hi: float | None) -> str:
+    """A success rate's 95 % interval as the report shows it ("72-100 %")."""
+    if lo is None or hi is None:
+        return "-"
+    return f"{100 * lo:.0f}-{100 * hi:.0f} %"
 
 
 def capture_report_md(summary: dict, image: str) -> str:
@@ -318,7 +419,9 @@ def capture_report_md(summary: dict, image: str) -> str:
             else ""
         )
         + ". The capture radius is the largest offset "
-        f"up to which every level succeeds in at least {100 * CAPTURE_SHARE:g} % of the registrations.",
+        f"up to which every level succeeds in at least {100 * CAPTURE_SHARE:g} % of the registrations"
+        + _level_size_words(summary)
+        + ".",
         "",
         f"Volumes: {', '.join(summary['volume_labels'])}. Images: {summary['image_source']}.",
         "",
@@ -358,16 +461,24 @@ def capture_report_md(summary: dict, image: str) -> str:
     ]
     for plane, name in (("biplane", "Biplane"), ("single_plane", "Single plane A")):
         lines += [f"## {name} per level", "", "| sweep | translation (mm) | rotation (deg) | runs | success | "
-                  "applied | applied and wrong |", "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+                  "95 % interval | applied | applied and wrong |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
         for sweep, rows in summary[plane]["sweeps"].items():
             for r in rows:
+                lo, hi = r.get("success_interval_95") or (None, None)
                 lines.append(
                     f"| {sweep} | {r['translation_mm']:g} | {r['rotation_deg']:g} | {r['runs']} | "
-                    f"{pct(r['success_rate'])} | {r['applied']} | {r['applied_wrong']} |"
+                    f"{pct(r['success_rate'])} | {interval_words(lo, hi)} | {r['applied']} | {r['applied_wrong']} |"
                 )
         wrong = summary[plane]["applied_wrong"]
         lines += ["", "Applied and wrong: " + (", ".join(wrong) if wrong else "none") + ".", ""]
-    lines.append(f"roadmap3d {summary['version']}, seed {cfg.get('seed')}, wall {summary['wall_seconds']:.0f} s.")
+    if cfg.get("pooled"):
+        lines.append(
+            f"Pooled from {len(cfg['pooled'])} runs: seeds {', '.join(str(x) for x in cfg['seeds'])}; revisions "
+            f"{', '.join(cfg['revisions']) or 'not recorded'}; roadmap3d {summary['version']}."
+        )
+    else:
+        lines.append(f"roadmap3d {summary['version']}, seed {cfg.get('seed')}, wall {summary['wall_seconds']:.0f} s.")
     return "\n".join(lines) + "\n"
 
 

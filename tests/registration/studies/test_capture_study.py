@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from registration.studies.capture import (
     capture_summary,
     capture_tasks,
     level_rates,
+    pooled_records,
 )
 
 
@@ -69,6 +71,94 @@ def test_capture_radius_is_the_last_level_before_the_first_miss() -> None:
     assert capture_radius(rows, "translation_mm") == 0.0
     rows[0]["success_rate"] = 0.5
     assert capture_radius(rows, "translation_mm") is None
+
+
+def test_each_level_carries_its_success_interval() -> None:
+    """Wilson's 95 % score interval, checked against its closed form: 10 of 10 right is
+    consistent with 72 %; 19 of 20 with 76-99 %."""
+    records = [_record("translation", 0, 0.0, 0.0, True, True, n) for n in range(10)]
+    records += [_record("translation", 1, 20.0, 0.0, n < 19, True, n) for n in range(20)]
+    rows = level_rates(records, "translation", "single_plane")
+    z = 1.959963984540054
+    for row, (k, n) in zip(rows, ((10, 10), (19, 20)), strict=True):
+        p = k / n
+        centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+        half = z / (1 + z * z / n) * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+        assert row["successes"] == k
+        assert row["success_interval_95"] == pytest.approx([centre - half, centre + half], abs=1e-4)  # rounded to 4
+    assert rows[0]["success_interval_95"][0] == pytest.approx(0.7225, abs=1e-4)
+    report = capture_report_md(
+        capture_summary(records, config={"seed": 0}, wall_seconds=1.0) | {"volume_labels": ["t"], "image_source": "t"},
+        "curves.png",
+    )
+    assert "| translation | 0 | 0 | 10 | 100.0 % | 72-100 % |" in report
+    assert "| translation | 20 | 0 | 20 | 95.0 % | 76-99 % |" in report
+
+
+def _write(path: Path, records: list[dict]) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(json.dumps(r) + "\n" for r in records))
+    return path
+
+
+def test_pooled_runs_count_every_moment_per_level(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two seeds' runs of 10 per level pooled: 20 per level, one miss in 20 passes the 95 % rule
+    that it failed in its own run of 10."""
+    base = {"pixels": [512, 384], "volume_format_cm": 27.0, "aimed": False}
+    runs = []
+    for seed in (1, 2):
+        records = []
+        for level, t in enumerate((0.0, 40.0)):
+            for n in range(10):
+                right = not (seed == 2 and level == 1 and n == 0)
+                rec = _record("translation", level, t, 0.0, right, right, n) | base
+                records.append(rec | {"case_id": f"{rec['case_id']}/s{seed}", "study_seed": seed, "revision": "abc"})
+        runs.append(_write(tmp_path / f"s{seed}" / "results.jsonl", records))
+    alone = capture_summary(pooled_records([runs[1]]), config={}, wall_seconds=0.0)
+    assert alone["biplane"]["capture_radius_mm_95"] == 0.0  # 9 of 10 at 40 mm
+    out = tmp_path / "pooled"
+    with pytest.raises(SystemExit) as exit_:
+        main(["validate", "capture", "--json", "--pool", str(runs[0].parent), str(runs[1]), "--out", str(out)])
+    assert exit_.value.code == 0
+    summary = json.loads(capsys.readouterr().out)
+    for plane in ("biplane", "single_plane"):
+        rows = summary[plane]["sweeps"]["translation"]
+        assert [r["runs"] for r in rows] == [20, 20] and rows[1]["successes"] == 19
+        assert summary[plane]["capture_radius_mm_95"] == 40.0
+    assert summary["config"]["seeds"] == [1, 2] and summary["config"]["revisions"] == ["abc"]
+    assert "Pooled from 2 runs: seeds 1, 2" in (out / "report.md").read_text()
+    assert (out / "capture_curves.png").stat().st_size > 10_000
+    assert not (out / "results.jsonl").exists()  # nothing registered, nothing copied
+
+
+def test_pooling_refuses_what_does_not_belong_together(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = {"pixels": [512, 384], "volume_format_cm": 27.0, "aimed": False}
+    one = _write(tmp_path / "a" / "results.jsonl", [_record("translation", 0, 0.0, 0.0, True, True, 0) | base])
+    quick = _write(tmp_path / "b" / "results.jsonl",
+                   [_record("translation", 0, 0.0, 0.0, True, True, 1) | base | {"pixels": [256, 192]}])  # fmt: skip
+    other_ladder = _write(tmp_path / "c" / "results.jsonl", [_record("translation", 0, 5.0, 0.0, True, True, 2) | base])
+    empty = _write(tmp_path / "d" / "results.jsonl", [{"case_id": "x"}])
+    cases = [
+        ([one, one], "was already pooled from"),
+        ([one, quick], "pixels [256, 192] against [512, 384]"),
+        ([one, other_ladder], "level 0 lies at another offset"),
+        ([one, empty], "holds no moments of the capture study"),
+        ([one, tmp_path / "missing"], "no such results file"),
+    ]
+    for paths, words in cases:
+        with pytest.raises(ValueError, match=re.escape(words)):
+            pooled_records(paths)
+    # through the command: one line naming the file, exit 2, and --out may not be a pooled run's folder
+    for argv, words in (
+        (["--pool", str(one), str(quick), "--out", str(tmp_path / "p")], str(quick)),
+        (["--pool", str(one), "--out", str(one.parent)], "is a pooled run's own folder"),
+    ):
+        with pytest.raises(SystemExit) as exit_:
+            main(["validate", "capture", *argv])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err
+    assert one.read_text().count("\n") == 1  # the pooled run's records untouched
 
 
 def test_summary_counts_applied_and_wrong_per_plane() -> None:
