@@ -430,6 +430,13 @@ def say_result(result: Any, planes: int) -> None:
         _say(
             "far from the machine-based pose, the estimate was polished on the full images and the finest volume level"
         )
+    restart = getattr(result, "beam_restart", None)
+    if restart is not None and restart.measure_again is not None:
+        kept = "it fit better and was kept; check it by eye" if restart.kept else "the first estimate fit as well"
+        _say(
+            f"far from the machine-based pose with disagreeing capture runs, the search ran again "
+            f"{abs(restart.tz_mm):.0f} mm along the beam: {kept}"
+        )
     if result.walk_hops:
         _say(
             f"the search walked {result.walk_hops} time{'s' if result.walk_hops > 1 else ''} beyond its box around the "

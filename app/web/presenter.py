@@ -421,6 +421,9 @@ class Presenter:
                 twice += " · the translation-first candidate kept"
             if getattr(result, "fine_polished", False):
                 twice += " · polished at full resolution"
+            restart = getattr(result, "beam_restart", None)
+            if restart is not None and restart.measure_again is not None:
+                twice += " · searched again along the beam" + (" (kept)" if restart.kept else "")
             lines.append(f"Time {result.seconds:.2f} s · {result.drr_count} DRRs · {how}{twice}")
             if assessment is not None and assessment["applied"]:
                 lines.append(f"Confidence {assessment['confidence']:.2f}: applied")

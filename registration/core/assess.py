@@ -65,7 +65,8 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
     the search bounds (inputs without information drift there), without a finite measure, one
     view's depth correction ending at its bound, started from the image shift where it cannot be
     confirmed (:func:`shifted_start_withheld`), reached by walking beyond the search box
-    (:mod:`registration.core.register.walk`), or one view's estimate turning the head more than
+    (:mod:`registration.core.register.walk`), one view's search run again from far along the beam and
+    kept (:mod:`registration.core.register.beam_restart`), or one view's estimate turning the head more than
     ``SINGLE_PLANE_MAX_TURN_DEG``, or, registered from ``landmarks`` (the start they gave), an
     estimate that moves them further than their picks allow (:meth:`LandmarkStart.veto`) or that a
     second search held near them (:mod:`registration.core.register.landmark_hold`) found."""
@@ -91,6 +92,13 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
         return (
             f"the estimate lies beyond the search box around the machine-based pose (the search walked "
             f"{hops} time{'s' if hops > 1 else ''} from the bounds): check it by eye before applying it"
+        )
+    restart = getattr(result, "beam_restart", None)
+    if restart is not None and restart.kept:
+        return (
+            f"one view's search ran again {abs(restart.tz_mm):.0f} mm along the beam and fit the image better there: "
+            "one view cannot confirm a depth this far from the machine-based pose; check the estimate by eye before "
+            "applying it"
         )
     turn = single_plane_turn_deg(result)
     if turn is not None and turn > SINGLE_PLANE_MAX_TURN_DEG:

@@ -215,6 +215,8 @@ class DepthScan:
     #: The scan stopped once its peak could no longer lie below the offset asked about: ``tz_mm``
     #: is then the best offset evaluated, and the peak lies no more than half a step below it.
     stopped: bool = False
+    #: DRR pixels (rays) the scan rendered.
+    rays: int = 0
 
     def to_dict(self) -> dict:
         return {
@@ -292,6 +294,7 @@ def depth_scan(
         similarity=tuple(values),
         drr_count=renderer.count - count0,
         stopped=stopped,
+        rays=(renderer.count - count0) * int(view.mask.sum()),
     )
 
 

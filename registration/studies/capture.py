@@ -473,8 +473,9 @@ def capture_report_md(summary: dict, image: str) -> str:
         wrong = summary[plane]["applied_wrong"]
         lines += ["", "Applied and wrong: " + (", ".join(wrong) if wrong else "none") + ".", ""]
     if cfg.get("pooled"):
+        runs = len(cfg["pooled"])
         lines.append(
-            f"Pooled from {len(cfg['pooled'])} runs: seeds {', '.join(str(x) for x in cfg['seeds'])}; revisions "
+            f"Pooled from {runs} run{'s' * (runs > 1)}: seeds {', '.join(str(x) for x in cfg['seeds'])}; revisions "
             f"{', '.join(cfg['revisions']) or 'not recorded'}; roadmap3d {summary['version']}."
         )
     else:

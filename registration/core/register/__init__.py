@@ -36,6 +36,7 @@ from registration.core.intensity import match_views
 from registration.core.landmarks import LandmarkStart
 from registration.core.metrics import residuals, vessel_points
 from registration.core.problem import support_mask
+from registration.core.register.beam_restart import beam_restart
 from registration.core.register.biplane import (
     CROSS_START_MM,
     PLANE_CAPTURE_ROUNDS,
@@ -188,6 +189,7 @@ def register(
             result = translation_first(inputs, result, options, callback=callback, start_s=start,
                                        vessel_points_mm=vessel_points_mm)  # fmt: skip
         result = look_again(lambda i: walk_from_bounds(once, i, options), machine, result, options)
+        result = beam_restart(lambda i: walk_from_bounds(once, i, options), machine, result, options)
         result = fine_polish(machine, result, options, callback=callback, start_s=start,
                              vessel_points_mm=vessel_points_mm)  # fmt: skip
         if wall is not None:  # from landmarks: searched again near them when the estimate left them
@@ -249,6 +251,14 @@ def around_the_plan(options: RegistrationOptions, n_views: int) -> str:
     far = options.depth.far_start_mm
     if n_views == 1 and far is not None and options.start.enabled and options.start.shift_mm is not None:
         lines += f"\none view from an image shift of {far:g} mm or more: a scan along the beam after the capture"
+    d = options.depth
+    if n_views == 1 and d.enabled and d.restart_beyond_mm is not None and options.start.enabled:
+        lines += (
+            f"\none view's estimate {d.restart_beyond_mm:g} mm or more from the machine-based pose, fewer than half of "
+            f"its capture runs agreeing: a look along the beam to 76 mm and, unless the estimate's depth stands out "
+            f"(gain {d.restart_far_gain:g} or less), the search again from the far side; its estimate kept when the "
+            f"high-passed measure is {d.restart_gain:g} higher (then withheld for a look)"
+        )
     return lines
 
 

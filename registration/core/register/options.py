@@ -233,6 +233,17 @@ class DepthOptions:
     #: capture level (default 25, the shift beyond which the confidence withholds one view's
     #: estimate anyway; None: never).
     far_start_mm: float | None = 25.0
+    #: One view's estimate this far or further from the machine-based pose (mm at the iso-center),
+    #: whose capture runs disagreed, is searched again from far along the beam
+    #: (:mod:`registration.core.register.beam_restart`; default 20; None: never).
+    restart_beyond_mm: float | None = 20.0
+    #: ... when the far look along the beam (``depth_far``) finds the measure this close to the
+    #: estimate's or closer (its gain above this; default -0.1: a peak standing out more is not in
+    #: doubt) ...
+    restart_far_gain: float = -0.1
+    #: ... and that search's estimate is kept when the depth scan's high-passed measure is higher
+    #: by at least this (default 0.01, >= 0).
+    restart_gain: float = 0.01
 
     def __post_init__(self) -> None:
         _at_least("DepthOptions", 1, rounds=self.rounds, polish_evaluations=self.polish_evaluations)
@@ -249,6 +260,12 @@ class DepthOptions:
             _positive("DepthOptions", reach_mm=self.reach_mm)
         if self.far_start_mm is not None:
             _positive("DepthOptions", far_start_mm=self.far_start_mm)
+        if self.restart_beyond_mm is not None:
+            _positive("DepthOptions", restart_beyond_mm=self.restart_beyond_mm)
+        if not math.isfinite(self.restart_far_gain):
+            raise ValueError(f"DepthOptions.restart_far_gain must be a finite number, got {self.restart_far_gain}")
+        if not (math.isfinite(self.restart_gain) and self.restart_gain >= 0):
+            raise ValueError(f"DepthOptions.restart_gain must be >= 0, got {self.restart_gain}")
 
     @property
     def walk_mm(self) -> float:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -144,6 +145,10 @@ class RegistrationResult:
     #: Two views: whether the planes' own captures still disagreed after their rounds in some
     #: search of this registration (its pair's capture then ran from several starts).
     planes_disagreed: bool = False
+    #: One view far from the machine-based pose: the search ran again from far along the beam
+    #: (:class:`~registration.core.register.beam_restart.BeamRestart`: from where, both measures,
+    #: whether its estimate was kept); None: it did not.
+    beam_restart: Any = None
 
     @property
     def success(self) -> bool | None:
@@ -221,6 +226,8 @@ class RegistrationResult:
             out["translation_first"] = True
         if self.planes_disagreed:
             out["planes_disagreed"] = True
+        if self.beam_restart is not None:
+            out["beam_restart"] = self.beam_restart.to_dict()
         if self.stages:
             out["stages"] = [c.to_dict() for c in self.stages]
         return out

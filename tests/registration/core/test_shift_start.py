@@ -8,7 +8,7 @@ import pytest
 from registration.core.assess import veto
 from registration.core.drr import DRRRenderer
 from registration.core.geometry import CArm, apply, offsets_to_matrix
-from registration.core.register import RegistrationOptions, StartOptions, register
+from registration.core.register import DepthOptions, RegistrationOptions, StartOptions, register
 from registration.core.register.shift_start import view_shift_mm
 
 
@@ -49,7 +49,9 @@ def test_a_patient_beyond_the_box_registers_from_the_shift_and_is_withheld(scene
     # without it and without the second search the search misses (measured 39.4 mm in-plane and
     # 21 deg off after one walk)
     never = StartOptions(shift_mm=None, recheck_mm=None)
-    off = register(volume, xray, truth=truth, seed=0, options=RegistrationOptions(start=never))
+    # (nor searched again along the beam: one search alone, whose DRRs the second search's exceed)
+    alone = RegistrationOptions(start=never, depth=DepthOptions(restart_beyond_mm=None))
+    off = register(volume, xray, truth=truth, seed=0, options=alone)
     assert not off.residual.success and off.start_shift_mm == 0.0
     # without the shifted start, the image shift left at that wrong estimate starts a second search
     # from the shift, whose better measure is kept
