@@ -318,6 +318,8 @@ def run_biplane_case(case: BiplaneCase, *, options: RegistrationOptions | None =
     kept = ("confidence", "applied", "withheld_reason", "confidence_evidence")
     record.update({f"single_{k}": v for k, v in single_conf.items() if k in kept})
     record["single_depth_tz_mm"] = single.depth_tz_mm
+    if single.beam_restart is not None:
+        record["single_beam_restart"] = single.beam_restart.to_dict()
     return record
 
 

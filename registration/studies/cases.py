@@ -155,7 +155,8 @@ def depth_correction_fields(result: object) -> dict:
     """A depth-corrected single-plane result's tz (``depth_tz_mm``: mm along the beam in the view
     frame, + toward the source, held in ``patient_motion``) and its scans' moves; nothing for a
     result without the correction (RegistrationOptions.depth_correction off, two views); and
-    the rotation check's outcome (``rotation_check``) when it ran."""
+    the rotation check's outcome (``rotation_check``) and the search again from far along the beam
+    (``beam_restart``) when they ran."""
     tz = getattr(result, "depth_tz_mm", None)
     if tz is None:
         return {}
@@ -163,6 +164,9 @@ def depth_correction_fields(result: object) -> dict:
     check = getattr(result, "rotation_check", None)
     if check is not None:
         out["rotation_check"] = check.to_dict()
+    restart = getattr(result, "beam_restart", None)
+    if restart is not None:
+        out["beam_restart"] = restart.to_dict()
     return out
 
 

@@ -353,6 +353,8 @@ def run_volume_case(
             # where the search started (mm from the machine-based pose) and why it searched again
             "start_shift_mm": result.start_shift_mm,
             "second_search": result.second_search,
+            # one view searched again from far along the beam (what it found; absent: it did not look)
+            **({"beam_restart": result.beam_restart.to_dict()} if result.beam_restart is not None else {}),
             "version": __version__,
         }
     )
