@@ -153,3 +153,22 @@ def test_bad_restart_options() -> None:
         DepthOptions(restart_gain=-0.1)
     with pytest.raises(ValueError, match="restart_far_gain must be a finite number"):
         DepthOptions(restart_far_gain=float("nan"))
+
+
+def test_register_says_when_the_search_ran_again_along_the_beam(capsys: pytest.CaptureFixture[str]) -> None:
+    from app.cli.register_command import say_result
+
+    result = _result((20.0, 8.0, -10.0))
+    for kept, words in (
+        (True, "it fit better and was kept; check it by eye"),
+        (False, "the first estimate fit as well"),
+    ):
+        result.beam_restart = restart_module.BeamRestart(-28.0, -0.02, 1.65, 1.70, kept)
+        say_result(result, 1)
+        out = capsys.readouterr()
+        said = out.out + out.err
+        assert "the search ran again 28 mm along the beam: " + words in said
+    result.beam_restart = restart_module.BeamRestart(-28.0, -0.15, None, None, False)  # looked, not searched again
+    say_result(result, 1)
+    out = capsys.readouterr()
+    assert "ran again" not in out.out + out.err
