@@ -161,18 +161,24 @@ def _plane_keys(plane: str) -> tuple[str, str]:
     return ("success", "applied") if plane == "biplane" else ("single_success_inplane", "single_applied")
 
 
+def success_interval(successes: int, runs: int) -> tuple[float, float]:
+    """The 95 % interval of a success rate of ``successes`` in ``runs`` (Wilson's score interval)."""
+    from scipy.stats import binomtest
+
+    ci = binomtest(successes, runs).proportion_ci(confidence_level=0.95, method="wilson")
+    return float(ci.low), float(ci.high)
+
+
 def level_rates(records: list[dict], sweep: str, plane: str) -> list[dict]:
     """Per level of one sweep: offset, runs, successes, success rate with its 95 % interval
     (Wilson's score interval: how well a level of this many runs pins the rate down), applied
     and wrongly applied counts."""
-    from scipy.stats import binomtest
-
     success, applied = _plane_keys(plane)
     rows = []
     for level in sorted({r["level"] for r in records if r["sweep"] == sweep}):
         at = [r for r in records if r["sweep"] == sweep and r["level"] == level]
         k = sum(bool(r[success]) for r in at)
-        interval = binomtest(k, len(at)).proportion_ci(confidence_level=0.95, method="wilson")
+        low, high = success_interval(k, len(at))
         rows.append(
             {
                 "translation_mm": at[0]["level_translation_mm"],
@@ -180,7 +186,7 @@ def level_rates(records: list[dict], sweep: str, plane: str) -> list[dict]:
                 "runs": len(at),
                 "successes": k,
                 "success_rate": k / len(at),
-                "success_interval_95": [round(float(interval.low), 4), round(float(interval.high), 4)],
+                "success_interval_95": [round(low, 4), round(high, 4)],
                 "applied": sum(bool(r.get(applied)) for r in at),
                 "applied_wrong": sum(bool(r.get(applied)) and not r[success] for r in at),
             }
@@ -240,15 +246,20 @@ def _plane_summary(records: list[dict], plane: str) -> dict:
 _POOL_DESIGN = ("pixels", "volume_format_cm", "volume_label", "image_source", "aimed")
 
 
+def _landmark_picks(record: dict) -> re.Match | None:
+    """A landmark run's picks in a moment's case id ("landmarks-4x3mm": pairs, error), None otherwise."""
+    return re.search(r"/landmarks-(\d+)x([0-9.]+)mm", str(record.get("case_id", "")))
+
+
 def _design(record: dict) -> dict:
-    picks = re.search(r"/landmarks-(\d+)x([0-9.]+)mm", str(record.get("case_id", "")))
+    picks = _landmark_picks(record)
     return {k: record.get(k) for k in _POOL_DESIGN} | {"landmarks": picks.group(0)[1:] if picks else None}
 
 
 def pooled_config(records: list[dict], paths: Sequence[Path]) -> dict:
     """The summary's configuration of pooled moments (:func:`pooled_records`): the runs, their
     seeds and revisions, and the design's start (aimed C-arms, landmarks)."""
-    picks = re.search(r"/landmarks-(\d+)x([0-9.]+)mm", str(records[0].get("case_id", ""))) if records else None
+    picks = _landmark_picks(records[0]) if records else None
     return {
         "pooled": [str(p) for p in paths],
         "seeds": sorted({r["study_seed"] for r in records if r.get("study_seed") is not None}),
@@ -380,9 +391,7 @@ def _level_size_words(summary: dict) -> str:
         return ""
     n = sizes[0]
     allowed = int(np.floor((1.0 - CAPTURE_SHARE) * n + 1e-9))
-    from scipy.stats import binomtest
-
-    low = binomtest(n, n).proportion_ci(confidence_level=0.95, method="wilson").low
+    low = success_interval(n, n)[0]
     misses = "none missed" if allowed == 0 else f"at most {allowed} missed"
     return (
         f": with {n} registrations a level passes with {misses}, and {n} of {n} right is consistent with a "
