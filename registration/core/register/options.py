@@ -342,9 +342,9 @@ class StartOptions:
     beam_line_mm: float | None = 3.0
     #: Its image size, pixels across (default 256, >= 16).
     fine_polish_px: int = 256
-    #: Its reach either side of the estimate, mm and degrees (default 3.0 and 2.0, > 0).
-    fine_polish_reach_mm: float = 3.0
-    fine_polish_reach_deg: float = 2.0
+    #: Its reach either side of the estimate, mm and degrees (default 10.0 and 5.0, > 0).
+    fine_polish_reach_mm: float = 10.0
+    fine_polish_reach_deg: float = 5.0
     #: Its final trust-region radius, in first steps (0.5 mm, 0.3 deg) (default 0.05, > 0).
     fine_polish_xtol: float = 0.05
     #: Two views' estimate whose search started from the image shift is compared with a candidate

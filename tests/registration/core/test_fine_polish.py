@@ -107,12 +107,32 @@ def test_the_beam_scan_brings_back_a_depth_left_off_along_one_beam(pair) -> None
     # (as from 1.2 mm above: within a few tenths)
     assert scanned.residual.translation_mm < 0.4, scanned.residual
     assert scanned.stages[len(far.stages)].stage.startswith("beam scan at 256 px, volume level 0")
-    # without it (and without the line search after the polish) the polish's +-3 mm reach cannot get there
-    without = RegistrationOptions(start=StartOptions(beam_scan_mm=None, beam_line_mm=None))
+    # without it (and without the line search after the polish) a polish of +-3 mm cannot get there
+    without = RegistrationOptions(start=StartOptions(beam_scan_mm=None, beam_line_mm=None, fine_polish_reach_mm=3.0))
     alone = fine_polish(inputs, far, without, callback=None, start_s=now)
     assert alone.residual.translation_mm > 4.0, alone.residual
     assert not any(s.stage.startswith("beam scan") for s in alone.stages)
     assert "moved along each view's beam within +-15 mm" in options.start.describe()
+
+
+def test_the_polish_reaches_an_estimate_several_millimetres_off_in_every_direction(pair) -> None:
+    volume, xrays, truth, options, right = pair
+    inputs = check_inputs(volume, xrays, None, truth, None, options)
+    # 7 mm off, across both beams and along them, and 1 deg: no single beam's line leads back, so
+    # neither the beam scan nor the line search after the polish (both off here) would
+    off = offsets_to_matrix((4.0, -3.0, 4.5, 0.6, -0.5, 0.6), right.geometry) @ truth
+    far = replace(right, patient_motion=off, start_shift_mm=40.0)
+    start = StartOptions(beam_scan_mm=None, beam_line_mm=None)
+    now = time.perf_counter()
+    wide = fine_polish(inputs, far, replace(options, start=start), callback=None, start_s=now)
+    # the default reach (+-10 mm / 5 deg) holds the truth: within a few tenths, as from 1.2 mm above
+    assert start.fine_polish_reach_mm >= 7.0 and wide.residual.translation_mm < 0.4, wide.residual
+    # a polish bounded at +-3 mm / 2 deg stops at its bounds (tx 4 mm and tz 4.5 mm lie beyond
+    # them): it ends 1.8 mm off here, beyond the 1 mm criterion by more than the polish's own spread
+    short = replace(start, fine_polish_reach_mm=3.0, fine_polish_reach_deg=2.0)
+    bounded = fine_polish(inputs, far, replace(options, start=short), callback=None, start_s=now)
+    assert bounded.residual.translation_mm > 1.5, bounded.residual
+    assert "120 evaluations over +-10 mm / 5 deg (COBYQA)" in options.start.describe()
 
 
 def test_a_second_scan_round_is_prepared_around_where_the_first_ended(pair, monkeypatch) -> None:

@@ -157,7 +157,7 @@ def test_explain_names_the_start_rules_with_their_thresholds() -> None:
     assert "5 mm" in lines[2] and "13 deg" in lines[2]
     assert "translations alone (80 evaluations at 64 px)" in lines[3]
     assert "along each view's beam within +-15 mm" in lines[4] and "256 px, volume level 0" in lines[4]
-    assert "fine polish at 256 px" in lines[5] and "+-3 mm / 2 deg (COBYQA)" in lines[5]
+    assert "fine polish at 256 px" in lines[5] and "+-10 mm / 5 deg (COBYQA)" in lines[5]
     assert "line search along each view's beam within +-3 mm" in lines[6]
     only_walk = StartOptions(shift_mm=None, recheck_mm=None, fine_polish_evaluations=0)
     assert len(only_walk.describe().splitlines()) == 1  # the walk only
