@@ -8,7 +8,9 @@
 ``capture``: the capture study's seeds (the draws of ``validate capture --sweep translation
 --registrations 20 --seed S``), parts of the case ids to register (comma-separated) and the arms;
 ``landmarks``: the quick capture run from four landmarks per plane picked 3 mm off (the draws of
-``validate capture --quick --from-landmarks 4 --seed S``), the same arguments.
+``validate capture --quick --from-landmarks 4 --seed S``), the same arguments; ``ct``: the quick
+capture run on the shared real head CT (``validate capture --quick --ct DIR --seed S``, the CT from
+``ROADMAP3D_REAL_CT``), the same arguments.
 Records in docs/validation/capture/fine-polish-reach/.
 """
 
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -36,16 +39,18 @@ def _config(mode: str, seed: int):  # noqa: ANN202
 
     if mode == "landmarks":
         return dataclasses.replace(CaptureConfig.quick_config(seed), landmark_pairs=4)
+    if mode == "ct":
+        return CaptureConfig.quick_config(seed, ct_path=os.environ["ROADMAP3D_REAL_CT"])
     return dataclasses.replace(CaptureConfig(seed=seed), sweeps=("translation",), registrations_per_level=20)
 
 
-def run_landmarks(job: tuple[str, int, str, str]) -> str:
-    """One landmark start of the quick capture run, registered and assessed as the study does."""
+def run_study(job: tuple[str, int, str, str]) -> str:
+    """One moment of a quick capture run, registered and assessed as the study does."""
     from registration.studies.capture import capture_tasks
     from registration.studies.execution import execute
 
     _, seed, case_id, arm = job
-    task = next(t for t in capture_tasks(_config("landmarks", seed), ARMS[arm]) if t.case_id == case_id)
+    task = next(t for t in capture_tasks(_config(job[0], seed), ARMS[arm]) if t.case_id == case_id)
     r = execute(task)
     return json.dumps({
         "case": case_id, "arm": arm, "success": bool(r.get("success")), "res": round(r["translation_residual_mm"], 2),
@@ -57,8 +62,8 @@ def run_landmarks(job: tuple[str, int, str, str]) -> str:
 
 
 def run(job: tuple[str, int, str, str]) -> str:
-    if job[0] == "landmarks":
-        return run_landmarks(job)
+    if job[0] in ("landmarks", "ct"):
+        return run_study(job)
     from registration.core.assess import assess
     from registration.core.register import register
     from registration.studies.biplane import _offset_motion, case_preparations, case_views, study_volume
