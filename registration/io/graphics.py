@@ -4,6 +4,8 @@ white) in thin strokes that stand out from their surroundings, and lines of text
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
@@ -53,7 +55,7 @@ def find_graphics(values: NDArray[np.float64], field_mask: NDArray[np.bool_]) ->
     for extreme, candidates, dark in (
         (vmax, field_mask & (values >= vmax - 0.04 * full), False),
         # black text inside the field, off its rim (where the field's own edge reaches black)
-        (vmin, ndimage.binary_erosion(field_mask, iterations=3, border_value=0) & (values <= vmin), True),
+        (vmin, _off_the_rim(field_mask) & (values <= vmin), True),
     ):
         if not candidates.any() or candidates.mean() > 0.5:
             continue
@@ -64,40 +66,88 @@ def find_graphics(values: NDArray[np.float64], field_mask: NDArray[np.bool_]) ->
     return out & field_mask
 
 
+def _off_the_rim(field_mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The field without its 3 px rim (eroded three times, nothing beyond the image): for a
+    whole-image field, the image without its 3 px frame."""
+    if not field_mask.all():
+        return ndimage.binary_erosion(field_mask, iterations=3, border_value=0)
+    kept = np.zeros(field_mask.shape, dtype=bool)
+    kept[3:-3, 3:-3] = True
+    return kept
+
+
+def _box(boxes: Sequence[tuple[slice, slice]], shape: tuple[int, ...], margin: int) -> tuple[slice, slice]:
+    """The bounding box of ``boxes`` grown by ``margin`` px on every side, within ``shape``."""
+    r0 = max(min(b[0].start for b in boxes) - margin, 0)
+    r1 = min(max(b[0].stop for b in boxes) + margin, shape[0])
+    c0 = max(min(b[1].start for b in boxes) - margin, 0)
+    c1 = min(max(b[1].stop for b in boxes) + margin, shape[1])
+    return slice(r0, r1), slice(c0, c1)
+
+
+def _widest(labels: NDArray[np.integer], ids: Sequence[int], boxes: Sequence[tuple[slice, slice]]) -> dict[int, float]:
+    """Each labelled component's (``ids``) largest distance (px) to the nearest pixel off it, as on
+    the whole image: measured on the components' box grown by 1 px, the other components taken
+    off (the nearest pixel off a component is never another's: an 8-connected path between two
+    components crosses the background closer than either)."""
+    box = _box([boxes[i - 1] for i in ids], labels.shape, 1)
+    sub = labels[box]
+    keep = np.zeros(int(labels.max()) + 1, dtype=bool)
+    keep[np.asarray(ids)] = True
+    mine = keep[sub]
+    width = ndimage.distance_transform_edt(mine)
+    widest = np.zeros(keep.size)
+    np.maximum.at(widest, sub[mine], width[mine])
+    return {i: float(widest[i]) for i in ids}
+
+
+def _ring_means(
+    values: NDArray[np.float64], field_mask: NDArray[np.bool_], candidates: NDArray[np.bool_],
+    labels: NDArray[np.integer], ids: Sequence[int], boxes: Sequence[tuple[slice, slice]],
+) -> dict[int, float]:  # fmt: skip
+    """The mean of ``values`` over each component's (``ids``) ring: the field's pixels 2-3 px
+    from the candidates, nearest that component (the larger label where rings meet), as on the
+    whole image: measured on a box 3 px beyond the rings, so every dilation inside them is the
+    whole image's."""
+    box = _box([boxes[i - 1] for i in ids], labels.shape, 6)
+    near = candidates[box]
+    ring = ndimage.binary_dilation(near, iterations=3) & ~ndimage.binary_dilation(near) & field_mask[box]
+    ring_labels = ndimage.grey_dilation(labels[box], size=(7, 7)) * ring
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means = np.atleast_1d(ndimage.mean(values[box], ring_labels, np.asarray(ids)))
+    return {i: float(m) for i, m in zip(ids, means, strict=True)}
+
+
 def _strokes(
     values: NDArray[np.float64], field_mask: NDArray[np.bool_], candidates: NDArray[np.bool_], extreme: float,
     span: float, *, text_only: bool,
 ) -> NDArray[np.bool_]:  # fmt: skip
-    """The components of ``candidates`` that are graphics (see :func:`find_graphics`)."""
+    """The components of ``candidates`` that are graphics (see :func:`find_graphics`). The cheap
+    tests (size, a character's height) run first, the stroke width and the ring's contrast only
+    around the components left."""
     labels, n = ndimage.label(candidates, structure=np.ones((3, 3), bool))
     if n == 0:
         return np.zeros(values.shape, dtype=bool)
-    index = np.arange(1, n + 1)
-    rs, cs = np.nonzero(candidates)
-    r0, r1, c0, c1 = max(rs.min() - 1, 0), rs.max() + 2, max(cs.min() - 1, 0), cs.max() + 2
-    width = np.zeros(values.shape)
-    width[r0:r1, c0:c1] = ndimage.distance_transform_edt(candidates[r0:r1, c0:c1])
-    widest = np.zeros(n + 1)
-    np.maximum.at(widest, labels[rs, cs], width[rs, cs])
-    widest = widest[1:]
-    sizes = np.bincount(labels[rs, cs], minlength=n + 1)[1:]
-    ring = ndimage.binary_dilation(candidates, iterations=3) & ~ndimage.binary_dilation(candidates) & field_mask
-    ring_labels = ndimage.grey_dilation(labels, size=(7, 7)) * ring
-    with np.errstate(invalid="ignore", divide="ignore"):
-        around = ndimage.mean(values, ring_labels, index)
     boxes = ndimage.find_objects(labels)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    left = [
+        k for k in range(n)
+        if boxes[k] is not None and sizes[k + 1] >= 3
+        and not (text_only and boxes[k][0].stop - boxes[k][0].start > GRAPHICS_MAX_CHAR_PX)
+    ]  # fmt: skip
+    widest = _widest(labels, [k + 1 for k in left], boxes) if left else {}
+    left = [k for k in left if 2.0 * widest[k + 1] <= GRAPHICS_MAX_STROKE_PX]
+    if not left:
+        return np.zeros(values.shape, dtype=bool)
+    around = _ring_means(values, field_mask, candidates, labels, [k + 1 for k in left], boxes)
     thin = []
-    for k in range(n):
-        stroke = 2.0 * widest[k]
-        if sizes[k] < 3 or stroke > GRAPHICS_MAX_STROKE_PX or boxes[k] is None:
-            continue
-        if not np.isfinite(around[k]) or abs(extreme - float(around[k])) < GRAPHICS_MIN_CONTRAST * span:
+    for k in left:
+        stroke = 2.0 * widest[k + 1]
+        if not np.isfinite(around[k + 1]) or abs(extreme - around[k + 1]) < GRAPHICS_MIN_CONTRAST * span:
             continue
         height = boxes[k][0].stop - boxes[k][0].start
         extent = max(height, boxes[k][1].stop - boxes[k][1].start)
         if text_only:  # a word or a character: a line's height, with letters' holes or beside others
-            if height > GRAPHICS_MAX_CHAR_PX:
-                continue
             extent = height
         thin.append((k, extent, extent >= 3.0 * max(stroke, 1.0), boxes[k]))
     centers = np.array([((b[0].start + b[0].stop) / 2, (b[1].start + b[1].stop) / 2) for _, _, _, b in thin])

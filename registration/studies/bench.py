@@ -1,7 +1,8 @@
 """``roadmap3d bench``: speed measured as ratios against references in the same run.
 
 DRRs beside the scipy reference renderer, gradient difference, registration over Table I
-(27/27 cm, fluoro), biplane registration, the FDK reconstruction when available, and the peak resident memory.
+(27/27 cm, fluoro), biplane registration, the real CT and the real XA run when available, the
+FDK reconstruction, and the peak resident memory.
 """
 
 from __future__ import annotations
@@ -159,6 +160,10 @@ def collect(*, quick: bool = False, seed: int = 0, log: Callable[[str], None] | 
     out["real_volume"] = bench_real_volume(
         seed=seed, cases=2 if quick else 4, log=say, phantom_seconds=reg["seconds_median"]
     )
+    from registration.studies.run_bench import bench_real_run
+
+    say("reading the real XA run frame by frame (../shared) ...")
+    out["real_run"] = bench_real_run(frames=20 if quick else 40)
     if not quick:
         from registration.sim.reconstruct import bench_reconstruction
 

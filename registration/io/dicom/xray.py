@@ -274,7 +274,13 @@ def _field_mask(
     signal_up = _signal_up(ds, frame)
     info: dict[str, Any] = {**shutter_info}
     if lookup(ds, "PixelIntensityRelationshipSign", frame) in (None, ""):
-        inferred = infer_signal_up(stored)
+        # read from the first frame of a run: its collimated outside keeps its polarity
+        if cache is not None and cache.get("sign_shape") == (rows, cols):
+            inferred = cache["sign_inferred"]
+        else:
+            inferred = infer_signal_up(stored)
+            if cache is not None:
+                cache.update(sign_shape=(rows, cols), sign_inferred=inferred)
         if inferred is not None:
             signal_up = inferred
             info["sign_inferred"] = 1 if inferred else -1

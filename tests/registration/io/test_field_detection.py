@@ -506,3 +506,74 @@ def test_the_command_line_takes_the_users_mask(tmp_path: Path, capsys: pytest.Ca
         ["register", "--volume", str(volume), "--image", str(path), "--image-mask", "a.png", "--image-mask", "b.png"]
     )
     assert code == 2 and "--image-mask: one mask per --image (1), got 2" in err
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_stroke_widths_and_rings_measured_near_the_components_are_the_whole_images(seed: int) -> None:
+    # The burned-in graphics search measures each component left after its cheap tests on a box
+    # around them; the widths and ring means must be exactly what the whole image gives, whichever
+    # components are left (clutter, strokes and blobs of every size, some on the image's edge).
+    from registration.io.graphics import _ring_means, _widest
+
+    rng = np.random.default_rng(seed)
+    shape = (160, 200)
+    candidates = np.zeros(shape, dtype=np.uint8)
+    for _ in range(40):
+        r, c = int(rng.integers(-5, shape[0] + 5)), int(rng.integers(-5, shape[1] + 5))
+        if rng.random() < 0.5:
+            cv2.line(candidates, (c, r), (c + int(rng.integers(-40, 40)), r + int(rng.integers(-40, 40))), 1,
+                     int(rng.integers(1, 4)))  # fmt: skip
+        else:
+            cv2.circle(candidates, (c, r), int(rng.integers(1, 12)), 1, -1)
+    candidates = candidates.astype(bool)
+    values = rng.normal(0.0, 1.0, shape)
+    field_mask = rng.random(shape) > 0.1
+    labels, n = ndimage.label(candidates, structure=np.ones((3, 3), bool))
+    boxes = ndimage.find_objects(labels)
+    ids = sorted(int(i) for i in rng.choice(np.arange(1, n + 1), size=max(1, n // 3), replace=False))
+    # the whole image's measures
+    width = ndimage.distance_transform_edt(candidates)
+    ring = ndimage.binary_dilation(candidates, iterations=3) & ~ndimage.binary_dilation(candidates) & field_mask
+    ring_labels = ndimage.grey_dilation(labels, size=(7, 7)) * ring
+    with np.errstate(invalid="ignore", divide="ignore"):
+        whole = ndimage.mean(values, ring_labels, ids)  # summed in the image's order, as on the box
+    widest = _widest(labels, ids, boxes)
+    means = _ring_means(values, field_mask, candidates, labels, ids, boxes)
+    for i, mean in zip(ids, whole, strict=True):
+        assert widest[i] == width[labels == i].max()
+        assert means[i] == mean or (np.isnan(means[i]) and np.isnan(mean))
+
+
+def test_a_run_reads_its_polarity_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A run without the sign tag: the polarity is read from the first frame's collimated outside
+    # and kept for the run (the collimation is kept the same way); burned-in graphics are still
+    # looked for on every frame.
+    from registration.io import field
+    from registration.io.dicom.runs import read_xray_run
+
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE]
+    circle = np.hypot(yy - 127.5, xx - 127.5) < 120
+    rng = np.random.default_rng(12)
+    frames = np.stack([
+        np.clip(np.rint(np.where(circle, 400.0 + UNITS * _anatomy(20 + f), 4000.0 + rng.normal(0, 15.0, circle.shape))),
+                0, 4095)
+        for f in range(3)
+    ]).astype(np.uint16)  # fmt: skip
+    canvas = np.zeros((SIZE, SIZE), dtype=np.uint8)
+    cv2.putText(canvas, "F 2/3 15 fps", (60, 90), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 255, 1)
+    text = canvas > 0
+    frames[1][text] = 0  # text burned in black on the second frame only (the bright side of this polarity)
+    path = xa_file(tmp_path / "run.dcm", frames, relationship="LOG", sign=None)
+    calls = []
+    read_sign = field.infer_signal_up
+    monkeypatch.setattr(field, "infer_signal_up", lambda values: calls.append(1) or read_sign(values))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run = read_xray_run(path, frame_time_ms=66.7)
+        images = [run[f] for f in range(3)]
+        alone = dicom.read_xray(path, frame=0)
+    assert len(calls) == 2  # once for the run's frames, once for the first frame read alone
+    assert [im.meta["pixel_intensity_relationship_sign"] for im in images] == [-1, -1, -1]
+    np.testing.assert_array_equal(images[0].mask, alone.mask)
+    np.testing.assert_array_equal(images[0].image, alone.image)
+    assert not (images[1].mask & text).any() and images[2].mask[text].all()

@@ -80,3 +80,31 @@ def test_the_drr_bench_renders_like_the_reference_in_rounds(monkeypatch) -> None
     # Joseph's method against trilinear samples at half a voxel: the same line integrals within
     # the interpolation's difference (0.4-0.7 % of the maximum at 64-256 px; coarser at 32)
     assert row["max_rel_error"] < 0.02
+
+
+def test_the_run_bench_reads_a_run_frame_by_frame_beside_decoding(tmp_path, monkeypatch) -> None:
+    # A 6-frame run with a circular field and no geometry tags, as the shared real run has none:
+    # the first frame apart, five frames read and decoded, the ratio per frame.
+    import numpy as np
+    import pydicom
+
+    from registration.studies import run_bench
+    from tests.registration.io.test_dicom import xa_file
+
+    yy, xx = np.mgrid[0:128, 0:128]
+    circle = np.hypot(yy - 63.5, xx - 63.5) < 60
+    rng = np.random.default_rng(3)
+    frames = np.where(circle, rng.integers(1500, 3000, (6, 128, 128)), rng.integers(0, 20, (6, 128, 128)))
+    path = xa_file(tmp_path / "run.dcm", frames.astype(np.uint16), sid=None, imager_spacing=None)
+    ds = pydicom.dcmread(path)
+    ds.FrameTime = "66.7"
+    ds.save_as(path)
+    monkeypatch.setenv("ROADMAP3D_REAL_XA_RUN", str(path))
+    out = run_bench.bench_real_run(frames=40)
+    assert out["frames"] == 6 and out["pixels"] == [128, 128]
+    assert 0 < out["frame_ms_min"] <= out["frame_ms_median"] and 0 < out["decode_ms_min"] <= out["decode_ms_median"]
+    assert out["frame_to_decode_median"] > 0 and out["first_frame_ms"] > 0
+    assert "dark outside" in out["field"]
+    monkeypatch.setenv("ROADMAP3D_REAL_XA_RUN", str(tmp_path / "absent.dcm"))
+    monkeypatch.setattr(run_bench, "REAL_RUN_RELATIVE", tmp_path / "nowhere.dcm")
+    assert set(run_bench.bench_real_run()) == {"skipped"}
