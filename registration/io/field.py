@@ -244,6 +244,82 @@ def _in_mask(mask: NDArray[np.bool_], xs: NDArray[np.float64], ys: NDArray[np.fl
     return inb & mask[yi, xi]
 
 
+def line_peaks(
+    hspace: NDArray[np.integer], angles: NDArray[np.float64], dists: NDArray[np.float64], *, min_distance: int,
+    min_angle: int, threshold: float, num_peaks: int,
+) -> tuple[NDArray[Any], NDArray[np.float64], NDArray[np.float64]]:  # fmt: skip
+    """The peaks :func:`skimage.transform.hough_line_peaks` finds, looked for only where the
+    accumulator passes ``threshold``.
+
+    A peak is a connected group of cells above ``threshold`` that hold the largest count within
+    ``min_distance`` distances and ``min_angle`` angles (beyond the accumulator: none); groups
+    are taken strongest first, each at its rounded centroid, where the largest count around it
+    must still pass ``threshold`` once the neighbourhoods of the peaks taken before are cleared
+    (across the angle's wrap-around, the distance mirrored). The strongest ``num_peaks`` are
+    returned: counts, angles, distances.
+    """
+    rows, cols = hspace.shape
+    min_angle = min(min_angle, cols)
+    dy = np.arange(-min_distance, min_distance + 1)
+    dx = np.arange(-min_angle, min_angle + 1)
+
+    def window_max(ys: NDArray[np.intp], xs: NDArray[np.intp]) -> NDArray[Any]:
+        wy, wx = ys[:, None, None] + dy[None, :, None], xs[:, None, None] + dx[None, None, :]
+        inside = (wy >= 0) & (wy < rows) & (wx >= 0) & (wx < cols)
+        got = hspace[np.clip(wy, 0, rows - 1), np.clip(wx, 0, cols - 1)]
+        return np.where(inside, got, 0).max(axis=(1, 2))
+
+    ys, xs = np.nonzero(hspace > threshold)
+    none = (hspace[:0, 0], angles[:0], dists[:0])
+    if ys.size == 0:
+        return none
+    top = hspace[ys, xs] == window_max(ys, xs)
+    ys, xs = ys[top], xs[top]
+    if ys.size == 0:
+        return none
+    r0, c0 = int(ys.min()), int(xs.min())
+    grid = np.zeros((int(ys.max()) - r0 + 1, int(xs.max()) - c0 + 1), dtype=bool)
+    grid[ys - r0, xs - c0] = True
+    labels, n = ndimage.label(grid, structure=np.ones((3, 3), bool))
+    group = labels[ys - r0, xs - c0]
+    count = hspace[ys, xs]
+    strongest = np.zeros(n + 1, dtype=count.dtype)
+    np.maximum.at(strongest, group, count)
+    cells = np.bincount(group, minlength=n + 1)[1:].astype(np.float64)
+    # each group's centroid, rounded (half to even); integer sums are exact, as in a mean
+    mean_y = np.round(np.bincount(group, weights=ys.astype(np.float64), minlength=n + 1)[1:] / cells)
+    mean_x = np.round(np.bincount(group, weights=xs.astype(np.float64), minlength=n + 1)[1:] / cells)
+    # strongest first; equal counts in the reverse order of their groups (as a stable sort reversed)
+    order = np.argsort(strongest[1:], kind="stable")[::-1]
+    cy, cx = mean_y[order].astype(np.intp), mean_x[order].astype(np.intp)
+    left = window_max(cy, cx)
+    ny, nx = np.meshgrid(dy, dx, indexing="ij")
+    ny, nx = ny.ravel(), nx.ravel()
+    cleared = np.zeros((rows, cols), dtype=bool)
+    peaks: list[tuple[Any, int, int]] = []
+    for i in range(len(order)):
+        count = hspace.dtype.type(0) if cleared[cy[i], cx[i]] else left[i]
+        if not count > threshold:
+            continue
+        peaks.append((count, int(cy[i]), int(cx[i])))
+        # clear the neighbourhood: distances within the accumulator (the first row never), the
+        # angle wrapped around with the distance mirrored
+        y, x = cy[i] + ny, cx[i] + nx
+        keep = (y > 0) & (y < rows)
+        y, x = y[keep], x[keep]
+        wrap = (x < 0) | (x >= cols)
+        cleared[np.where(wrap, rows - y, y), np.where(x < 0, x + cols, np.where(x >= cols, x - cols, x))] = True
+    if not peaks:
+        return none
+    counts = np.array([p[0] for p in peaks])
+    py = np.array([p[1] for p in peaks])
+    px = np.array([p[2] for p in peaks])
+    if num_peaks < len(peaks):
+        best = np.argsort(counts)[::-1][:num_peaks]
+        counts, py, px = counts[best], py[best], px[best]
+    return counts, angles[px], dists[py]
+
+
 def find_blades(
     signal: NDArray[np.float64], field_mask: NDArray[np.bool_], *, max_lines: int = 12
 ) -> list[dict[str, Any]]:
@@ -257,7 +333,7 @@ def find_blades(
     (the median step as a fraction of the field's range) and ``length_px``.
     """
     from skimage.feature import canny
-    from skimage.transform import hough_line, hough_line_peaks
+    from skimage.transform import hough_line
 
     rows, cols = signal.shape
     inside = ndimage.binary_erosion(field_mask, iterations=4)
@@ -271,7 +347,7 @@ def find_blades(
     angles = np.deg2rad(np.arange(-90.0, 90.0, 0.5))
     hspace, thetas, dists = hough_line(edges, theta=angles)
     min_length = BLADE_MIN_LENGTH * min(rows, cols)
-    peaks = hough_line_peaks(
+    peaks = line_peaks(
         hspace, thetas, dists, num_peaks=max_lines, threshold=int(0.5 * min_length), min_distance=7, min_angle=6
     )
     grad = ndimage.gaussian_gradient_magnitude(signal, 2.0)
@@ -299,7 +375,7 @@ def find_outside_edges(
     (``OUTSIDE_EDGE_STEP_FRACTION`` of the profiles along the stretch of the line, with field in
     front of it, that holds the outside's straight run). Entries as
     :func:`find_blades` lists them (never filters); lines through a blade in ``found`` are skipped."""
-    from skimage.transform import hough_line, hough_line_peaks
+    from skimage.transform import hough_line
 
     rows, cols = signal.shape
     boundary = outside & ndimage.binary_dilation(field_mask)
@@ -308,8 +384,8 @@ def find_outside_edges(
         return []
     angles = np.deg2rad(np.arange(-90.0, 90.0, 0.5))
     hspace, thetas, dists = hough_line(boundary, theta=angles)
-    peaks = hough_line_peaks(hspace, thetas, dists, num_peaks=8, threshold=int(0.5 * min_length),
-                             min_distance=7, min_angle=6)  # fmt: skip
+    peaks = line_peaks(hspace, thetas, dists, num_peaks=8, threshold=int(0.5 * min_length), min_distance=7,
+                       min_angle=6)  # fmt: skip
     inside = ndimage.binary_erosion(field_mask, iterations=4)
     span = _robust_range(signal, inside if inside.sum() >= 100 else field_mask)
     smooth = ndimage.gaussian_filter(signal, 1.0)

@@ -577,3 +577,31 @@ def test_a_run_reads_its_polarity_once(tmp_path: Path, monkeypatch: pytest.Monke
     np.testing.assert_array_equal(images[0].mask, alone.mask)
     np.testing.assert_array_equal(images[0].image, alone.image)
     assert not (images[1].mask & text).any() and images[2].mask[text].all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_line_peaks_are_scikit_images(seed: int) -> None:
+    # The blades' Hough peaks, looked for only above the threshold, are exactly scikit-image's
+    # (the same counts, angles and distances in the same order), ties and the angle's wrap included.
+    from skimage.draw import line
+    from skimage.transform import hough_line, hough_line_peaks
+
+    from registration.io.field import line_peaks
+
+    rng = np.random.default_rng(seed)
+    for trial in range(25):
+        edges = np.zeros((int(rng.integers(40, 160)), int(rng.integers(40, 160))), dtype=bool)
+        for _ in range(int(rng.integers(0, 8))):
+            rr, cc = line(*(int(rng.integers(0, n)) for n in (*edges.shape, *edges.shape)))
+            edges[rr, cc] = True
+        edges |= rng.random(edges.shape) < rng.uniform(0.0, 0.05)
+        angles = np.deg2rad(np.arange(-90.0, 90.0, 0.5)) if trial % 2 else np.linspace(-np.pi / 2, np.pi / 2, 45, False)
+        hspace, thetas, dists = hough_line(edges, theta=angles)
+        for fraction, min_distance, min_angle, num_peaks in ((0.5, 7, 6, 12), (0.2, 3, 2, 50)):
+            threshold = int(fraction * hspace.max())
+            ours = line_peaks(hspace, thetas, dists, min_distance=min_distance, min_angle=min_angle,
+                              threshold=threshold, num_peaks=num_peaks)  # fmt: skip
+            theirs = hough_line_peaks(hspace, thetas, dists, min_distance=min_distance, min_angle=min_angle,
+                                      threshold=threshold, num_peaks=num_peaks)  # fmt: skip
+            for a, b in zip(ours, theirs, strict=True):
+                np.testing.assert_array_equal(a, b)
