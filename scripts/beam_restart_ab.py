@@ -13,13 +13,16 @@ whose case id holds one of PARTS; ``clinical SEED N``: the quick clinical study'
 registrations per patient (frames of a rotational run against its own FDK reconstruction); ``ct
 SEED N``: the shared real CT's clinical-looking images (``validate volume --realism clinical``, the
 iso-center in the head), one view.
-Records in docs/validation/capture/beam-restart/.
+Records in docs/validation/capture/beam-restart/. ``ARMS=on`` runs the default engine only;
+``FLAT_FAR_LOOK=off`` assesses without the flat far look's veto (records in
+docs/validation/capture/flat-far-look/, where the veto is replayed from them).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import sys
 
 import numpy as np
@@ -29,6 +32,12 @@ from registration.core.blas import one_blas_thread
 from registration.core.register import DepthOptions, RegistrationOptions, register
 
 ARMS = {"off": RegistrationOptions(depth=DepthOptions(restart_beyond_mm=None)), "on": RegistrationOptions()}
+if os.environ.get("ARMS"):  # e.g. ARMS=on: the default engine only
+    ARMS = {arm: ARMS[arm] for arm in os.environ["ARMS"].split(",")}
+if os.environ.get("FLAT_FAR_LOOK") == "off":  # the assessment before its flat far-look rule (replayed from the records)
+    import registration.core.assess as _assess
+
+    _assess.FLAT_FAR_GAIN = float("inf")
 
 
 def _line(case_id: str, arm: str, result, assessment) -> str:  # noqa: ANN001

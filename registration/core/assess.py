@@ -43,6 +43,10 @@ SPINE_PROBE_BELOW_AGREEMENT = 0.5
 #: ``FAR_PROBE_BELOW_MARGIN`` (a flat peak; docs/decisions/2026-12-07-depth-far.md).
 FAR_PROBE_BELOW_AGREEMENT = 0.5
 FAR_PROBE_BELOW_MARGIN = 0.0025
+#: One view's estimate searched again from far along the beam and not kept is not applied when
+#: the far look found the measure there within this much of the estimate's (a flat look: one
+#: view cannot tell which depth is the patient's; docs/decisions/2026-12-08-flat-far-look.md).
+FLAT_FAR_GAIN = -0.02
 
 
 def shifted_start_withheld(result: RegistrationResult) -> bool:
@@ -66,7 +70,8 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
     view's depth correction ending at its bound, started from the image shift where it cannot be
     confirmed (:func:`shifted_start_withheld`), reached by walking beyond the search box
     (:mod:`registration.core.register.walk`), one view's search run again from far along the beam and
-    kept (:mod:`registration.core.register.beam_restart`), or one view's estimate turning the head more than
+    kept (:mod:`registration.core.register.beam_restart`) or not kept where the far look found the
+    measure as high there (``FLAT_FAR_GAIN``), or one view's estimate turning the head more than
     ``SINGLE_PLANE_MAX_TURN_DEG``, or, registered from ``landmarks`` (the start they gave), an
     estimate that moves them further than their picks allow (:meth:`LandmarkStart.veto`) or that a
     second search held near them (:mod:`registration.core.register.landmark_hold`) found."""
@@ -99,6 +104,11 @@ def veto(result: RegistrationResult, landmarks: LandmarkStart | None = None) -> 
             f"one view's search ran again {abs(restart.tz_mm):.0f} mm along the beam and fit the image better there: "
             "one view cannot confirm a depth this far from the machine-based pose; check the estimate by eye before "
             "applying it"
+        )
+    if restart is not None and restart.measure_again is not None and restart.far_gain > FLAT_FAR_GAIN:
+        return (
+            f"the image fits nearly as well {abs(restart.tz_mm):.0f} mm along the beam as at the estimate, "
+            "and one view cannot tell which depth is the patient's: check the estimate by eye before applying it"
         )
     turn = single_plane_turn_deg(result)
     if turn is not None and turn > SINGLE_PLANE_MAX_TURN_DEG:

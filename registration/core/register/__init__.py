@@ -253,11 +253,14 @@ def around_the_plan(options: RegistrationOptions, n_views: int) -> str:
         lines += f"\none view from an image shift of {far:g} mm or more: a scan along the beam after the capture"
     d = options.depth
     if n_views == 1 and d.enabled and d.restart_beyond_mm is not None and options.start.enabled:
+        from registration.core.assess import FLAT_FAR_GAIN  # the assessment's rule (it imports this module)
+
         lines += (
             f"\none view's estimate {d.restart_beyond_mm:g} mm or more from the machine-based pose, fewer than half of "
             f"its capture runs agreeing: a look along the beam to 76 mm and, unless the estimate's depth stands out "
             f"(gain {d.restart_far_gain:g} or less), the search again from the far side; its estimate kept when the "
-            f"high-passed measure is {d.restart_gain:g} higher (then withheld for a look)"
+            f"high-passed measure is {d.restart_gain:g} higher (then withheld for a look); the first estimate "
+            f"withheld too when the look's gain is above {FLAT_FAR_GAIN:g}"
         )
     return lines
 

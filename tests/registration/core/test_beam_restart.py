@@ -122,9 +122,28 @@ def test_a_fit_no_better_keeps_the_first_estimate_and_its_assessment(scans: dict
     first = _result((20.0, 8.0, -10.0))
     again = _result((21.0, 9.0, -40.0), drr_count=900)
     scans["measure"] = lambda motion: 1.659 if motion is again.patient_motion else 1.65  # less than 0.01 better
+    scans["gain"] = -0.05  # the far look below the estimate's measure, though not enough to skip the search
     kept = restart_module.beam_restart(lambda inputs: again, _Inputs(), first, RegistrationOptions())
     assert kept is first and not kept.beam_restart.kept and kept.beam_restart.measure_again == 1.659
     assert kept.drr_count == 1000 + 17 + 2 + 900 and veto(kept) is None
+
+
+def test_a_flat_far_look_withholds_the_first_estimate(scans: dict) -> None:
+    # The far look found the measure 28 mm along the beam within 0.02 of the estimate's and the
+    # search from there fit no better: either depth may be the patient's, and one view cannot
+    # tell (the capture study's misses applied at 50 mm had far gains of -0.014 and -0.018; right
+    # estimates applied on clinical images, -0.031 and below)
+    first = _result((20.0, 8.0, -10.0))
+    again = _result((21.0, 9.0, -40.0), drr_count=900)
+    scans["measure"] = lambda motion: 1.64 if motion is again.patient_motion else 1.65
+    for gain, withheld in ((-0.014, True), (-0.019, True), (-0.021, False), (-0.031, False)):
+        scans["gain"] = gain
+        kept = restart_module.beam_restart(lambda inputs: again, _Inputs(), first, RegistrationOptions())
+        assert kept is first and not kept.beam_restart.kept
+        why = veto(kept)
+        assert (why is not None) is withheld
+        if withheld:
+            assert why.startswith("the image fits nearly as well 28 mm along the beam as at the estimate")
 
 
 def test_a_depth_that_stands_out_is_not_searched_again(scans: dict) -> None:
@@ -172,3 +191,13 @@ def test_register_says_when_the_search_ran_again_along_the_beam(capsys: pytest.C
     say_result(result, 1)
     out = capsys.readouterr()
     assert "ran again" not in out.out + out.err
+
+
+def test_explain_names_the_search_again_and_its_flat_look() -> None:
+    from registration.core.register import around_the_plan
+
+    said = around_the_plan(RegistrationOptions(), 1)
+    assert "gain -0.1 or less), the search again from the far side" in said
+    assert "kept when the high-passed measure is 0.01 higher (then withheld for a look)" in said
+    assert "the first estimate withheld too when the look's gain is above -0.02" in said
+    assert "far side" not in around_the_plan(RegistrationOptions(), 2)  # two views see the depth
