@@ -26,6 +26,7 @@ from registration.core.images import XRayImage
 from registration.core.landmarks import LandmarkStart
 from registration.core.preparation import Preparation
 from registration.core.register import RegistrationResult
+from registration.core.register.beam_restart import FLAT_FAR_GAIN
 from registration.core.register.result import SINGLE_PLANE_MAX_TURN_DEG, single_plane_turn_deg
 from registration.core.volume import Volume
 
@@ -43,10 +44,6 @@ SPINE_PROBE_BELOW_AGREEMENT = 0.5
 #: ``FAR_PROBE_BELOW_MARGIN`` (a flat peak; docs/decisions/2026-12-07-depth-far.md).
 FAR_PROBE_BELOW_AGREEMENT = 0.5
 FAR_PROBE_BELOW_MARGIN = 0.0025
-#: One view's estimate searched again from far along the beam and not kept is not applied when
-#: the far look found the measure there within this much of the estimate's (a flat look: one
-#: view cannot tell which depth is the patient's; docs/decisions/2026-12-08-flat-far-look.md).
-FLAT_FAR_GAIN = -0.02
 
 
 def shifted_start_withheld(result: RegistrationResult) -> bool:

@@ -36,7 +36,7 @@ from registration.core.intensity import match_views
 from registration.core.landmarks import LandmarkStart
 from registration.core.metrics import residuals, vessel_points
 from registration.core.problem import support_mask
-from registration.core.register.beam_restart import beam_restart
+from registration.core.register.beam_restart import FLAT_FAR_GAIN, beam_restart
 from registration.core.register.biplane import (
     CROSS_START_MM,
     PLANE_CAPTURE_ROUNDS,
@@ -253,8 +253,6 @@ def around_the_plan(options: RegistrationOptions, n_views: int) -> str:
         lines += f"\none view from an image shift of {far:g} mm or more: a scan along the beam after the capture"
     d = options.depth
     if n_views == 1 and d.enabled and d.restart_beyond_mm is not None and options.start.enabled:
-        from registration.core.assess import FLAT_FAR_GAIN  # the assessment's rule (it imports this module)
-
         lines += (
             f"\none view's estimate {d.restart_beyond_mm:g} mm or more from the machine-based pose, fewer than half of "
             f"its capture runs agreeing: a look along the beam to 76 mm and, unless the estimate's depth stands out "

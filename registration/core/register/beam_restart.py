@@ -32,6 +32,10 @@ from registration.core.register.result import RegistrationResult, StageCost
 
 #: The search runs again only when fewer than this fraction of the capture runs agreed.
 RESTART_BELOW_AGREEMENT = 0.5
+#: A search again not kept leaves the first estimate withheld when the far look found the measure
+#: there within this much of the estimate's (a flat look: one view cannot tell which depth is the
+#: patient's; :func:`registration.core.assess.veto`, docs/decisions/2026-12-08-flat-far-look.md).
+FLAT_FAR_GAIN = -0.02
 
 
 @dataclass(frozen=True)
