@@ -298,10 +298,10 @@ def line_peaks(
     cleared = np.zeros((rows, cols), dtype=bool)
     peaks: list[tuple[Any, int, int]] = []
     for i in range(len(order)):
-        count = hspace.dtype.type(0) if cleared[cy[i], cx[i]] else left[i]
-        if not count > threshold:
+        value = hspace.dtype.type(0) if cleared[cy[i], cx[i]] else left[i]
+        if not value > threshold:
             continue
-        peaks.append((count, int(cy[i]), int(cx[i])))
+        peaks.append((value, int(cy[i]), int(cx[i])))
         # clear the neighbourhood: distances within the accumulator (the first row never), the
         # angle wrapped around with the distance mirrored
         y, x = cy[i] + ny, cx[i] + nx
